@@ -1,0 +1,42 @@
+"""2D vector helpers on arrays whose last axis holds (x, y)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+Array = jnp.ndarray
+
+
+def cross(a: Array, b: Array) -> Array:
+    """Scalar cross product a x b."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def cross_scalar_vector(s: Array, v: Array) -> Array:
+    """s x v: the velocity of a point at lever arm v on a body spinning at angular velocity s."""
+    return jnp.stack([-s * v[..., 1], s * v[..., 0]], axis=-1)
+
+
+def dot(a: Array, b: Array) -> Array:
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def rotate(angle: Array, v: Array) -> Array:
+    """Rotate v by `angle` (broadcast over leading axes)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def rotate_by(cos_sin: tuple[Array, Array], v: Array) -> Array:
+    """Rotate v by an angle given as precomputed (cos, sin), to share trigonometry between callers."""
+    c, s = cos_sin
+    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def nonzero(x: Array) -> Array:
+    """x, or 1 where x == 0: the divide guard Jax2D applies to every denominator (masked slots stay finite)."""
+    return jnp.where(x == 0, 1.0, x)
+
+
+def length(v: Array) -> Array:
+    return jnp.sqrt(dot(v, v))
