@@ -171,7 +171,10 @@ def add_polygon(
     )
     if fixed:
         inverse_mass, inverse_inertia = jnp.zeros_like(inverse_mass), jnp.zeros_like(inverse_inertia)
-    slot = _free_slot(state.bodies.active[:num_polygons])
+    # Arena slots are never reused: pairs among them are not enumerated, so shapes there could not collide.
+    first = arena_polygon_count(state)
+    slot = _free_slot(state.bodies.active[first:num_polygons])
+    slot = jnp.where(slot < 0, -1, slot + first)
     world_centre = jnp.asarray(position, jnp.float32) + _rotate_point(rotation, centre)
     bodies = _set_body(
         state.bodies, slot, world_centre, rotation, jnp.asarray(velocity, jnp.float32), angular_velocity,

@@ -114,9 +114,10 @@ def step(
     num_contacts = tables.num_contacts
     velocity = jnp.clip(solved.velocity, -params.clip_velocity, params.clip_velocity)
     angular_velocity = jnp.clip(solved.angular_velocity, -params.clip_angular_velocity, params.clip_angular_velocity)
-    # Integrate with the unclamped velocities, as Jax2D does, then clamp everything.
-    position = solved.position + solved.velocity * params.dt
-    rotation = bodies.rotation + solved.angular_velocity * params.dt
+    # Integrate with the clamped velocities (Jax2D integrates first): a body pinned at the position clamp by a
+    # joint otherwise gains unbounded spin and ends in NaN.
+    position = solved.position + velocity * params.dt
+    rotation = bodies.rotation + angular_velocity * params.dt
     position = jnp.clip(position, -params.clip_position, params.clip_position)
 
     new_bodies = bodies.replace(

@@ -1,0 +1,80 @@
+"""Joints beyond the pendulum and motor (see test_physics_motion): the weld, and jointed bodies at the clamp box."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from physics_sim import (
+    PARAMS,
+    arena_scene,
+    non_finite_leaves,
+    open_scene,
+    pair_index,
+    simulate,
+)
+
+from engine.physics import add_circle, add_fixed_joint, add_rectangle
+
+
+def _welded_pair(bend: float, spin: float, height: float):
+    """Two 0.6 x 0.3 boxes welded end to end at (2.3, height), the second one turned by `bend`."""
+    weld = np.array([2.3, height])
+    state = arena_scene()
+    state, a = add_rectangle(state, weld - (0.3, 0.0), 0.6, 0.3, angular_velocity=spin)
+    b_centre = weld + 0.3 * np.array([np.cos(bend), np.sin(bend)])
+    state, b = add_rectangle(state, b_centre, 0.6, 0.3, rotation=bend, angular_velocity=spin)
+    state, _ = add_fixed_joint(state, a, b, (0.3, 0.0), (-0.3, 0.0))
+    return state, int(a), int(b)
+
+
+@pytest.mark.parametrize(
+    ("bend", "spin", "height"),
+    [
+        pytest.param(0.0, 3.0, 2.0, id="straight-spinning"),
+        pytest.param(0.4, 0.0, 3.0, id="bent-lands-on-tip"),
+    ],
+)
+def test_fixed_joint_holds_relative_angle(bend, spin, height):
+    state, a, b = _welded_pair(bend, spin, height)
+    _, trace = simulate(state, 180)
+    # It falls, hits the floor and tumbles: both boxes touch the floor at some point.
+    assert trace.touching[:, pair_index(a, 0)].any() and trace.touching[:, pair_index(b, 0)].any()
+    relative = trace.rotation[:, b] - trace.rotation[:, a]
+    error = np.abs(relative - bend)
+    worst = int(np.argmax(error))
+    # 0.02 rad: the weld may flex by about a degree on impact, no more.
+    assert error[worst] < 0.02, (
+        f"relative angle off by {error[worst]:.4f} rad at step {worst} (reference {bend})"
+    )
+    # The anchors stay together (joint softness: 1 cm).
+    anchor_a = trace.position[:, a] + _rotated(trace.rotation[:, a], (0.3, 0.0))
+    anchor_b = trace.position[:, b] + _rotated(trace.rotation[:, b], (-0.3, 0.0))
+    assert np.max(np.linalg.norm(anchor_a - anchor_b, axis=1)) < 0.01
+
+
+def _rotated(angle: np.ndarray, v) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * v[0] - s * v[1], s * v[0] + c * v[1]], axis=-1)
+
+
+def test_welded_pair_reaching_the_clamp_box_stays_finite():
+    """Found by the random-scene test, reduced: a small and a large circle welded 3 m apart fall out of the open
+    world, are held at y = -15 by the position clamp and must not blow up there (10 s)."""
+    small, large = np.array([1.624, 4.064]), np.array([3.252, 1.541])
+    middle = (small + large) / 2
+    state = open_scene()
+    state, a = add_circle(state, small, 0.063, velocity=(0.924, 1.673))
+    state, b = add_circle(state, large, 0.25, velocity=(1.421, -0.544))
+    state, _ = add_fixed_joint(state, a, b, middle - small, middle - large)
+    final, trace = simulate(state, 600)
+    finite = np.isfinite(trace.rotation).all(axis=1) & np.isfinite(trace.position).all(axis=(1, 2))
+    at_clamp = (np.abs(np.nan_to_num(trace.position[:, [a, b]])) >= PARAMS.clip_position - 1e-3).any(
+        axis=(1, 2)
+    )
+    first_clamp = int(np.argmax(at_clamp)) if at_clamp.any() else None
+    first_bad = int(np.argmin(finite)) if not finite.all() else None
+    assert first_bad is None, (
+        f"NaN/inf from step {first_bad} (on the clamp box from step {first_clamp}); "
+        f"max |rotation| before that: {np.abs(trace.rotation[:first_bad, [a, b]]).max():.3g} rad"
+    )
+    assert not non_finite_leaves(final)
