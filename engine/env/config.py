@@ -1,0 +1,31 @@
+"""Settings of the Kinetix-compatible task layer.
+
+Defaults follow Kinetix 3.0.x's training setup so that results compare with its published numbers. This is a
+plain dataclass that imports nothing from the project, because the engine room depends on no other room. The
+environment that consumes it arrives with issue 4, which may add fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Which levels an environment plays and how the agent sees and drives them."""
+
+    size: Literal["s", "m", "l"] = "s"
+    """Kinetix size class: fixes the number of polygon, circle, joint and thruster slots, hence shapes."""
+    levels: str = "handmade"
+    """Where levels come from: "handmade" (the bundled hand-made set), "random", or a level file or folder."""
+    frame_skip: int = 2
+    """Physics sub-steps per agent step; Kinetix trains at 2 (the agent acts at 30 Hz)."""
+    max_timesteps: int = 256
+    """Agent steps before an episode is cut off."""
+    dense_reward_scale: float = 0.1
+    """Weight of the shaping term that rewards moving the goal shapes closer together."""
+    observation: Literal["entity", "symbolic"] = "entity"
+    """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector."""
+    action: Literal["multi_discrete", "continuous", "discrete"] = "multi_discrete"
+    """How actions map to motors and thrusters; multi-discrete is Kinetix's default."""
