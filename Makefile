@@ -1,17 +1,23 @@
+# Two commands for a fresh machine: `make run` (the main job) and `make test` (lint, then the test suite).
+# Both create .venv with python3 (3.11 or 3.12) and install the project into it; the install is redone only
+# when pyproject.toml changes (the stamp file below), so later runs start at once.
+
+PYTHON ?= python3
 VENV := .venv
-PY := $(VENV)/bin/python
-STAMP := $(VENV)/.installed
+STAMP := $(VENV)/.impulse-installed
 
-$(STAMP): pyproject.toml
-	python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
-	touch $(STAMP)
+.PHONY: run test venv
 
-.PHONY: run test
 run: $(STAMP)
-	$(PY) -m benchmarks.engine --quick
+	$(VENV)/bin/impulse bench engine --quick
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	JAX_COMPILATION_CACHE_DIR=.cache/jax $(VENV)/bin/pytest
+	$(VENV)/bin/pytest
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)

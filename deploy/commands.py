@@ -1,0 +1,101 @@
+"""The table of `impulse` subcommands: what each does, which config it resolves, and which issue builds it.
+
+Kept apart from argument parsing so that building a command later means filling in one row: its config class
+and its `run` function. A command without `run` says which issue brings it and exits with status 2, so nothing
+pretends to work before it does.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from learner.config import TrainConfig
+
+ISSUE_TRAINER = "issue 5 (learner and fused trainer)"
+ISSUE_LEVELS = "issue 4 (task layer and level files)"
+ISSUE_DISTRIBUTED = "the distributed-mode issues (not yet filed)"
+
+RunFn = Callable[[argparse.Namespace, Any], int | None]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One `impulse` subcommand."""
+
+    name: str
+    summary: str
+    """One line for `impulse --help`."""
+    description: str
+    """What the command does when built, for `impulse NAME --help`."""
+    config: type | None = None
+    """The config dataclass it resolves from --config and key=value overrides; None if it takes none."""
+    pending: str | None = None
+    """The issue that builds it, while it is not built."""
+    run: RunFn | None = None
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command(
+        "train",
+        "train a policy in one process: fused rollout, PPO and curriculum",
+        "Fused single-process training: rollouts, PPO updates and the curriculum in one jitted loop on one "
+        "device. Writes checkpoints and the resolved config.toml to the run directory.",
+        config=TrainConfig,
+        pending=ISSUE_TRAINER,
+    ),
+    Command(
+        "launch",
+        "run learner, curriculum and actors as local processes",
+        "Local multi-process run: one learner, one curriculum service, N actors and an optional Rerun viewer, "
+        "talking over Zenoh, with a live status display.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+    Command(
+        "learner",
+        "run the learner process alone (multi-host)",
+        "The learner service: receives trajectories, applies corrected PPO updates, publishes weights, "
+        "checkpoints.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+    Command(
+        "actor",
+        "run one actor process alone (multi-host)",
+        "An actor service: runs batched rollouts with the newest weights and publishes trajectories and level "
+        "results.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+    Command(
+        "curriculum",
+        "run the curriculum service alone (multi-host)",
+        "The curriculum service: keeps the level buffer, scores level results and serves level batches.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+    Command(
+        "router",
+        "run a Zenoh router for a multi-host run",
+        "A Zenoh router for one host of a multi-host run, with TLS and access control from a file.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+    Command(
+        "eval",
+        "evaluate a checkpoint on the hand-made levels",
+        "Evaluate a checkpoint: solve rate and return per hand-made level.",
+        config=TrainConfig,
+        pending=ISSUE_TRAINER,
+    ),
+    Command(
+        "levels",
+        "inspect, validate, convert and render level files",
+        "Level file tools: inspect, validate, convert (Kinetix JSON) and render.",
+        pending=ISSUE_LEVELS,
+    ),
+    Command(
+        "view",
+        "open the Rerun viewer on a run",
+        "Open the Rerun viewer with Impulse's blueprint on a live or recorded run.",
+        pending=ISSUE_DISTRIBUTED,
+    ),
+)

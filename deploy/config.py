@@ -1,0 +1,375 @@
+"""Typed run configuration: dataclass defaults, then a TOML file, then `key=value` overrides.
+
+Every value is checked against the dataclass field's type before anything runs, because a misspelt key or a
+wrong type found after a GPU job has started costs hours, and a silently ignored key is worse. Errors are
+`ConfigError`s whose message is written for the person at the terminal: the full dotted key, where the value
+came from, what was expected, and the closest valid keys.
+
+Supported field types: int, float (an int is accepted), bool, str, `Literal[...]`, `X | None`, `tuple[...]` and
+`list[...]` of those, and nested dataclasses (TOML tables). An integral float such as `1e9` is accepted for an
+int. TOML has no null, so an optional field is set to None with the word `none` (the string "none" in a file),
+and `config_to_toml` writes None the same way; a resolved config therefore reads back to an equal instance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import os
+import tomllib
+import types
+import typing
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TypeVar, Union
+
+import tomli_w
+
+T = TypeVar("T")
+
+NONE_WORD = "none"
+CONFIG_FILENAME = "config.toml"
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be applied. The message is complete and meant to be shown as it is."""
+
+
+@dataclass(frozen=True)
+class _Value:
+    """A leaf value waiting to be type-checked, with where it came from for the error message."""
+
+    value: Any
+    source: str
+    raw: str | None = None
+    """The override text as typed: used as is where a string is expected (`name=123` means "123")."""
+
+
+class _Mismatch(Exception):
+    """A value does not fit a type; turned into a ConfigError by the caller that knows the key."""
+
+
+def resolve_config(cls: type[T], toml_path: Path | None = None, overrides: Iterable[str] = ()) -> T:
+    """Build a `cls` instance from its defaults, the TOML file (if any), then the overrides, in that order."""
+    tree: dict[str, Any] = {}
+    if toml_path is not None:
+        _merge(cls, cls, tree, _read_toml(Path(toml_path)), "", source=f"from {toml_path}")
+    for item in overrides:
+        key, raw = _split_override(item)
+        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from override '{item}'", raw=raw)
+    return _build(cls, tree, "", base=None)
+
+
+def config_to_dict(instance: Any) -> dict[str, Any]:
+    """The instance as plain TOML-ready data: tables for dataclasses, lists for sequences, "none" for None."""
+    return {f.name: _plain(getattr(instance, f.name)) for f in dataclasses.fields(instance) if f.init}
+
+
+def config_to_toml(instance: Any) -> str:
+    """The instance as TOML text that `resolve_config` reads back to an equal instance."""
+    return tomli_w.dumps(config_to_dict(instance))
+
+
+def write_resolved_config(instance: Any, run_dir: Path | str) -> Path:
+    """Write `config.toml` into the run directory (created if needed), so a run's outputs say what made them.
+
+    Written to a temporary file and renamed, so a crash never leaves a half-written config beside checkpoints.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / CONFIG_FILENAME
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(config_to_toml(instance), encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+# ---- reading sources -------------------------------------------------------------------------------------------
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+
+
+def _split_override(item: str) -> tuple[str, str]:
+    key, sep, raw = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"override '{item}' is not of the form key=value")
+    return key, raw.strip()
+
+
+def _parse_value(raw: str) -> Any:
+    """TOML value syntax where it parses (numbers, booleans, arrays, quoted strings), else the text itself."""
+    if "\n" in raw:
+        return raw
+    try:
+        return tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        return raw
+
+
+# ---- merging sources into one tree, checking keys --------------------------------------------------------------
+
+
+def _merge(
+    root: type, cls: type, tree: dict[str, Any], data: dict[str, Any], prefix: str, source: str,
+    raw: str | None = None,
+) -> None:
+    """Merge TOML-shaped data into the tree for `cls`; unknown keys fail here, where the source is known."""
+    types_ = _field_types(cls)
+    for key, value in data.items():
+        dotted = prefix + key
+        if key not in types_:
+            raise ConfigError(_unknown_key_message(root, cls, dotted, source))
+        sub = _dataclass_in(types_[key])
+        if sub is not None and isinstance(value, dict):
+            node = tree.get(key)
+            if not isinstance(node, dict):
+                node = tree[key] = {}
+            _merge(root, sub, node, value, dotted + ".", source)
+        else:
+            tree[key] = _Value(value, source, raw)
+
+
+def _merge_dotted(root: type, tree: dict[str, Any], key: str, value: Any, source: str, raw: str) -> None:
+    parts = key.split(".")
+    if any(not p.strip() for p in parts):
+        raise ConfigError(f"malformed config key '{key}' in {source}")
+    cls, prefix = root, ""
+    for part in parts[:-1]:
+        types_ = _field_types(cls)
+        dotted = prefix + part
+        if part not in types_:
+            raise ConfigError(_unknown_key_message(root, cls, dotted, source))
+        sub = _dataclass_in(types_[part])
+        if sub is None:
+            raise ConfigError(f"unknown config key '{key}' ({source}): '{dotted}' is a value, not a table")
+        node = tree.get(part)
+        if not isinstance(node, dict):
+            node = tree[part] = {}
+        tree, cls, prefix = node, sub, dotted + "."
+    _merge(root, cls, tree, {parts[-1]: value}, prefix, source, raw)
+
+
+def _unknown_key_message(root: type, cls: type, dotted: str, source: str) -> str:
+    prefix, _, name = dotted.rpartition(".")
+    prefix = prefix + "." if prefix else ""
+    level_keys = list(_field_types(cls))
+    paths = _all_paths(root)
+    leaves: dict[str, list[str]] = {}
+    for path in paths:
+        leaves.setdefault(path.rpartition(".")[2], []).append(path)
+    suggestions = [prefix + k for k in difflib.get_close_matches(name, level_keys, n=3, cutoff=0.6)]
+    # Whole-path matching catches a key in the wrong section or a mistyped separator; paths in the key's own
+    # section are left out of it, since their shared prefix alone makes them look close.
+    elsewhere = [p for p in paths if not (prefix and p.startswith(prefix)) and p + "." != prefix]
+    suggestions += difflib.get_close_matches(dotted, elsewhere, n=3, cutoff=0.75)
+    for leaf in difflib.get_close_matches(name, list(leaves), n=3, cutoff=0.8):
+        suggestions += leaves[leaf]
+    suggestions = list(dict.fromkeys(suggestions))[:5]
+    message = f"unknown config key '{dotted}' ({source})"
+    if suggestions:
+        return message + "; did you mean " + " or ".join(f"'{s}'" for s in suggestions) + "?"
+    where = f" in [{prefix[:-1]}]" if prefix else ""
+    return message + f"; valid keys{where}: " + ", ".join(level_keys)
+
+
+# ---- building and type checking --------------------------------------------------------------------------------
+
+
+def _build(cls: type[T], tree: dict[str, Any], prefix: str, base: Any) -> T:
+    """Instantiate `cls` from the merged tree, taking unset fields from `base` (or the class defaults)."""
+    types_ = _field_types(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        key = prefix + f.name
+        default = getattr(base, f.name) if base is not None else _field_default(f)
+        node = tree.get(f.name, _ABSENT)
+        if isinstance(node, dict):
+            sub = _dataclass_in(types_[f.name])
+            assert sub is not None  # _merge only makes tables for dataclass fields
+            kwargs[f.name] = _build(sub, node, key + ".", default if isinstance(default, sub) else None)
+        elif isinstance(node, _Value):
+            kwargs[f.name] = _check(types_[f.name], node, key)
+        elif default is dataclasses.MISSING:
+            raise ConfigError(f"config key '{key}' has no default and must be set")
+        else:
+            kwargs[f.name] = default
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"invalid config [{prefix[:-1] or cls.__name__}]: {e}") from None
+
+
+_ABSENT = object()
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
+def _check(tp: Any, node: _Value, key: str) -> Any:
+    try:
+        return _convert(tp, node.value, node.raw)
+    except _Mismatch:
+        pass
+    message = f"config key '{key}' expects {_describe(tp)}, got {node.value!r} ({node.source})"
+    options = [o for o in _literal_options(tp) if isinstance(o, str)]
+    if isinstance(node.value, str) and options:
+        close = difflib.get_close_matches(node.value, options, n=1, cutoff=0.5)
+        if close:
+            message += f"; did you mean '{close[0]}'?"
+    raise ConfigError(message)
+
+
+def _convert(tp: Any, value: Any, raw: str | None) -> Any:
+    """Return `value` as type `tp`, or raise _Mismatch. Only lossless conversions are made."""
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return value
+    if origin is Union or origin is types.UnionType:
+        members = typing.get_args(tp)
+        if type(None) in members and isinstance(value, str) and value.lower() == NONE_WORD:
+            return None
+        for member in members:
+            if member is type(None):
+                continue
+            try:
+                return _convert(member, value, raw)
+            except _Mismatch:
+                continue
+        raise _Mismatch
+    if origin is Literal:
+        for option in typing.get_args(tp):
+            if type(value) is type(option) and value == option:
+                return option
+            if raw is not None and isinstance(option, str) and raw == option:
+                return option
+        raise _Mismatch
+    if dataclasses.is_dataclass(tp):
+        raise _Mismatch  # a single value where a table is needed
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        raise _Mismatch
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise _Mismatch
+    if tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise _Mismatch
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        if raw is not None:
+            return raw
+        raise _Mismatch
+    if tp in (tuple, list) or origin in (tuple, list):
+        return _convert_sequence(tp, value)
+    raise TypeError(f"config field type {tp!r} is not supported by deploy.config")
+
+
+def _convert_sequence(tp: Any, value: Any) -> Any:
+    if not isinstance(value, list | tuple):
+        raise _Mismatch
+    origin = typing.get_origin(tp) or tp
+    args = typing.get_args(tp)
+    if origin is list:
+        item = args[0] if args else Any
+        return [_convert(item, v, None) for v in value]
+    if not args:
+        return tuple(value)
+    if len(args) == 2 and args[1] is Ellipsis:
+        return tuple(_convert(args[0], v, None) for v in value)
+    if len(args) != len(value):
+        raise _Mismatch
+    return tuple(_convert(a, v, None) for a, v in zip(args, value, strict=True))
+
+
+def _describe(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(o) for o in typing.get_args(tp))
+    if origin is Union or origin is types.UnionType:
+        return " or ".join(NONE_WORD if a is type(None) else _describe(a) for a in typing.get_args(tp))
+    if dataclasses.is_dataclass(tp):
+        return f"a table of {tp.__name__} keys"
+    if isinstance(tp, type) and origin is None:
+        return tp.__name__
+    return repr(tp).replace("typing.", "")
+
+
+def _literal_options(tp: Any) -> list[Any]:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return list(typing.get_args(tp))
+    if origin is Union or origin is types.UnionType:
+        return [o for a in typing.get_args(tp) for o in _literal_options(a)]
+    return []
+
+
+# ---- schema helpers --------------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    """Resolved field types of a config dataclass (annotations may be strings under `from __future__`)."""
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a dataclass")
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if f.init}
+
+
+def _dataclass_in(tp: Any) -> type | None:
+    """The dataclass a field holds (directly or as `X | None`), or None for a plain value field."""
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+        return tp
+    origin = typing.get_origin(tp)
+    if origin is Union or origin is types.UnionType:
+        for member in typing.get_args(tp):
+            if isinstance(member, type) and dataclasses.is_dataclass(member):
+                return member
+    return None
+
+
+@functools.cache
+def _all_paths(cls: type) -> tuple[str, ...]:
+    """Every valid dotted key of a config class, tables included."""
+    paths: list[str] = []
+    for name, tp in _field_types(cls).items():
+        paths.append(name)
+        sub = _dataclass_in(tp)
+        if sub is not None:
+            paths += [f"{name}.{p}" for p in _all_paths(sub)]
+    return tuple(paths)
+
+
+def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return config_to_dict(value)
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if value is None:
+        return NONE_WORD
+    return value

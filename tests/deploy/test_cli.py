@@ -1,0 +1,114 @@
+"""The `impulse` command: help, version, --print-config, commands not built yet, and `impulse bench`."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from deploy import bench
+from deploy.cli import main
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def impulse(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run the installed console script when there is one (as a user would), else `python -m deploy.cli`."""
+    script = Path(sys.executable).with_name("impulse")
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "deploy.cli"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    return subprocess.run(
+        [*command, *args], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+
+
+def test_help_lists_every_command() -> None:
+    result = impulse("--help")
+    assert result.returncode == 0, result.stderr
+    for name in ("train", "launch", "learner", "actor", "curriculum", "router", "eval", "levels", "view", "bench"):
+        assert name in result.stdout
+
+
+def test_print_config_shows_overrides(tmp_path: Path) -> None:
+    config_file = tmp_path / "run.toml"
+    config_file.write_text("[network]\nwidth = 64\n")
+    result = impulse("train", "--config", str(config_file), "ppo.learning_rate=3e-4", "--print-config", "env.size=m")
+    assert result.returncode == 0, result.stderr
+    printed = tomllib.loads(result.stdout)
+    assert printed["ppo"]["learning_rate"] == 3e-4
+    assert printed["env"]["size"] == "m"
+    assert printed["network"]["width"] == 64
+    assert printed["ppo"]["num_envs"] == 2048
+
+
+def test_unbuilt_command_says_which_issue(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["train"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not built yet" in err and "issue 5 (learner and fused trainer)" in err
+    assert "\n" not in err
+    assert main(["levels"]) == 2
+    assert "issue 4 (task layer and level files)" in capsys.readouterr().err
+    for name in ("launch", "learner", "actor", "curriculum", "router", "view"):
+        assert main([name]) == 2
+        assert "the distributed-mode issues (not yet filed)" in capsys.readouterr().err
+
+
+def test_config_error_is_one_line_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["train", "ppo.learning_rat=1", "--print-config"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.strip() == (
+        "impulse train: config error: unknown config key 'ppo.learning_rat' "
+        "(from override 'ppo.learning_rat=1'); did you mean 'ppo.learning_rate'?"
+    )
+
+
+def test_version_and_global_options(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.startswith("impulse ")
+    assert main(["--log-format", "json", "eval", "--log-level", "DEBUG", "seed=2", "--print-config"]) == 0
+    assert tomllib.loads(capsys.readouterr().out)["seed"] == 2
+
+
+def test_stray_argument_is_a_usage_error() -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["levels", "seed=1"])  # levels takes no config
+    assert info.value.code == 2
+
+
+def test_bench_unknown_name(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "nosuch"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown benchmark 'nosuch'" in err and "engine" in err
+
+
+def test_bench_help_lists_modules(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    out = capsys.readouterr().out
+    assert "available benchmarks:" in out and "engine" in out and "_harness" not in out
+
+
+def test_bench_runs_module_main_with_its_arguments(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    package = tmp_path / "fake_benchmarks"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "_private.py").write_text("")
+    (package / "echo.py").write_text(
+        "def main(argv):\n    print('ARGS', argv)\n    return 3 if '--fail' in argv else None\n"
+    )
+    (package / "nomain.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert bench.available("fake_benchmarks") == ["echo", "nomain"]
+    assert bench.run("echo", ["--quick", "x"], package="fake_benchmarks") == 0
+    assert bench.run("echo", ["--fail"], package="fake_benchmarks") == 3
+    with pytest.raises(bench.UnknownBenchmark, match="no main"):
+        bench.run("nomain", [], package="fake_benchmarks")
+    with pytest.raises(bench.UnknownBenchmark, match="did you mean 'echo'"):
+        bench.run("ecko", [], package="fake_benchmarks")

@@ -1,0 +1,163 @@
+"""Config loading: defaults, TOML files, dotted overrides, type checks and the errors a user sees."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from engine.env.config import EnvConfig
+from learner.config import PPOConfig, TrainConfig
+
+
+@dataclass(frozen=True)
+class Inner:
+    rate: float = 0.5
+    mode: Literal["fast", "slow"] = "fast"
+
+
+@dataclass(frozen=True)
+class Outer:
+    """Covers the field types the real configs do not use yet."""
+
+    count: int = 1
+    label: str = "a"
+    sizes: tuple[int, ...] = (1, 2)
+    pair: tuple[str, float] = ("x", 1.0)
+    names: list[str] = field(default_factory=list)
+    limit: int | None = None
+    maybe: Inner | None = None
+    inner: Inner = field(default_factory=lambda: Inner(rate=0.25))
+
+
+def test_defaults_are_kinetix_ppo() -> None:
+    config = resolve_config(TrainConfig, None, [])
+    assert config == TrainConfig()
+    assert config.ppo.num_envs == 2048 and config.ppo.num_steps == 256
+    assert config.ppo.learning_rate == 1e-4 and config.ppo.anneal_lr
+    assert (config.ppo.gamma, config.ppo.gae_lambda, config.ppo.clip_eps) == (0.995, 0.9, 0.2)
+    assert config.ppo.correction == "vtrace"
+    assert config.env == EnvConfig(size="s", levels="handmade", frame_skip=2, max_timesteps=256)
+    assert config.network.width == 128 and config.network.activation == "tanh"
+    assert config.checkpoint.keep_last == 3
+    assert config.output_dir() == Path("runs/default")
+
+
+def test_toml_file_then_overrides(tmp_path: Path) -> None:
+    path = tmp_path / "run.toml"
+    path.write_text('name = "big"\nseed = 3\n[ppo]\nnum_envs = 4096\ngamma = 0.99\n[env]\nsize = "l"\n')
+    config = resolve_config(TrainConfig, path, ["ppo.gamma=0.9"])
+    assert (config.name, config.seed, config.env.size) == ("big", 3, "l")
+    assert config.ppo.num_envs == 4096
+    assert config.ppo.gamma == 0.9  # the command line wins over the file
+    assert config.ppo.learning_rate == PPOConfig().learning_rate  # untouched keys keep their defaults
+    assert config.output_dir() == Path("runs/big")
+
+
+def test_dotted_overrides_coerce_types() -> None:
+    config = resolve_config(
+        TrainConfig, None,
+        ["ppo.learning_rate=3e-4", "env.size=m", "ppo.anneal_lr=false", "ppo.clip_eps=1",
+         "total_env_steps=1e9", "name=123", "env.levels=\"random\""],
+    )
+    assert config.ppo.learning_rate == 3e-4
+    assert config.env.size == "m"
+    assert config.ppo.anneal_lr is False
+    assert config.ppo.clip_eps == 1.0 and isinstance(config.ppo.clip_eps, float)
+    assert config.total_env_steps == 10**9 and isinstance(config.total_env_steps, int)
+    assert config.name == "123"  # a str field takes the text as typed
+    assert config.env.levels == "random"
+
+
+def test_generic_types() -> None:
+    config = resolve_config(
+        Outer, None,
+        ["sizes=[3, 4, 5]", "pair=['y', 2]", "names=[\"p\", \"q\"]", "limit=7", "maybe.mode=slow",
+         "inner.mode=slow"],
+    )
+    assert config.sizes == (3, 4, 5)
+    assert config.pair == ("y", 2.0)
+    assert config.names == ["p", "q"]
+    assert config.limit == 7
+    assert config.maybe == Inner(mode="slow")
+    assert config.inner == Inner(rate=0.25, mode="slow")  # the field's own default is the base, not Inner()
+    assert resolve_config(Outer, None, ["limit=7", "limit=none"]).limit is None
+
+
+def test_inline_table_override() -> None:
+    config = resolve_config(TrainConfig, None, ["ppo={gamma = 0.5, num_steps = 64}"])
+    assert (config.ppo.gamma, config.ppo.num_steps) == (0.5, 64)
+
+
+def test_unknown_key_suggests_close_match() -> None:
+    with pytest.raises(ConfigError) as info:
+        resolve_config(TrainConfig, None, ["ppo.learning_rat=1"])
+    message = str(info.value)
+    assert "unknown config key 'ppo.learning_rat'" in message
+    assert "did you mean 'ppo.learning_rate'" in message
+
+
+def test_key_in_wrong_section_suggests_full_path(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"'gamma'.*did you mean 'ppo\.gamma'"):
+        resolve_config(TrainConfig, None, ["gamma=0.9"])
+    path = tmp_path / "bad.toml"
+    path.write_text("[env]\nsise = 'm'\n")
+    with pytest.raises(ConfigError, match=r"'env\.sise' \(from .*bad\.toml\); did you mean 'env\.size'"):
+        resolve_config(TrainConfig, path, [])
+
+
+def test_unknown_key_without_match_lists_valid_keys() -> None:
+    with pytest.raises(ConfigError, match=r"unknown config key 'network\.zzz'.*valid keys in \[network\]: kind"):
+        resolve_config(TrainConfig, None, ["network.zzz=1"])
+    with pytest.raises(ConfigError, match=r"'seed' is a value, not a table"):
+        resolve_config(TrainConfig, None, ["seed.x=1"])
+
+
+def test_wrong_type_names_key_type_and_value() -> None:
+    with pytest.raises(ConfigError) as info:
+        resolve_config(TrainConfig, None, ["ppo.num_envs=many"])
+    assert str(info.value) == (
+        "config key 'ppo.num_envs' expects int, got 'many' (from override 'ppo.num_envs=many')"
+    )
+    with pytest.raises(ConfigError, match=r"'ppo\.num_steps' expects int, got 2\.5"):
+        resolve_config(TrainConfig, None, ["ppo.num_steps=2.5"])
+    with pytest.raises(ConfigError, match=r"'ppo\.anneal_lr' expects bool, got 1"):
+        resolve_config(TrainConfig, None, ["ppo.anneal_lr=1"])
+    with pytest.raises(ConfigError, match=r"'env\.size' expects one of 's', 'm', 'l', got 'xl'.*did you mean"):
+        resolve_config(TrainConfig, None, ["env.size=xl"])
+    with pytest.raises(ConfigError, match=r"'sizes' expects tuple\[int, \.\.\.\], got \[1, 'a'\]"):
+        resolve_config(Outer, None, ["sizes=[1, 'a']"])
+    with pytest.raises(ConfigError, match=r"'ppo' expects a table of PPOConfig keys"):
+        resolve_config(TrainConfig, None, ["ppo=3"])
+
+
+def test_cross_field_check_becomes_config_error() -> None:
+    with pytest.raises(ConfigError, match=r"invalid config \[ppo\]: num_minibatches \(7\) must divide"):
+        resolve_config(TrainConfig, None, ["ppo.num_minibatches=7"])
+
+
+def test_malformed_inputs(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not of the form key=value"):
+        resolve_config(TrainConfig, None, ["seed"])
+    with pytest.raises(ConfigError, match="config file not found"):
+        resolve_config(TrainConfig, tmp_path / "missing.toml", [])
+    bad = tmp_path / "bad.toml"
+    bad.write_text("seed = = 1\n")
+    with pytest.raises(ConfigError, match="invalid TOML"):
+        resolve_config(TrainConfig, bad, [])
+
+
+def test_resolved_config_round_trips(tmp_path: Path) -> None:
+    config = resolve_config(TrainConfig, None, ["ppo.gamma=0.9", "env.size=l", "seed=5"])
+    path = write_resolved_config(config, tmp_path / "runs" / "x")
+    assert path == tmp_path / "runs" / "x" / "config.toml"
+    assert resolve_config(TrainConfig, path, []) == config
+    assert "[ppo]" in config_to_toml(config)
+
+    odd = resolve_config(Outer, None, ["maybe.rate=2", "sizes=[]"])
+    odd_path = write_resolved_config(odd, tmp_path)
+    assert 'limit = "none"' in odd_path.read_text()
+    assert resolve_config(Outer, odd_path, []) == odd
