@@ -88,10 +88,6 @@ def contact_rows(
     return rows, enabled
 
 
-def split_into_phases(rows: ContactRows, tables: PairTables) -> list[ContactRows]:
-    return [ContactRows(*(field[phase] for field in rows)) for phase in tables.phases]
-
-
 def one_hot(indices: np.ndarray, num_bodies: int) -> np.ndarray:
     """Constant [k, N] matrix that scatters per-contact values onto bodies by a fused multiply-sum."""
     return (np.asarray(indices)[:, None] == np.arange(num_bodies)[None, :]).astype(np.float32)
