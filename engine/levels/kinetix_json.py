@@ -17,6 +17,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from engine.levels.level import Level
 from engine.physics.params import SimParams
 from engine.physics.scene import empty_scene, refresh_collision_filter
 from engine.physics.sizes import SceneSizes
@@ -41,6 +42,17 @@ class KinetixLevel:
     motor_bindings: np.ndarray  # [J]
     thruster_bindings: np.ndarray  # [T]
     frame_skip: int
+
+    @property
+    def level(self) -> Level:
+        """The scene and its task data as one pytree, roles and densities in body order."""
+        return Level(
+            state=self.state,
+            roles=jnp.asarray(np.concatenate([self.polygon_roles, self.circle_roles]), jnp.int32),
+            densities=jnp.asarray(np.concatenate([self.polygon_densities, self.circle_densities]), jnp.float32),
+            motor_bindings=jnp.asarray(self.motor_bindings, jnp.int32),
+            thruster_bindings=jnp.asarray(self.thruster_bindings, jnp.int32),
+        )
 
 
 def decode_arrays(value: Any) -> Any:
