@@ -142,11 +142,21 @@ def solve_joint(
     new_wa = new_wa + angular_impulse * iia
     new_wb = new_wb - angular_impulse * iib
 
+    # The accumulators feed next step's warm start. An impulse bigger than one that takes the pair across the
+    # whole velocity clamp can never be applied (the clamp discards it), so it is capped there; otherwise a
+    # constraint that cannot be met (bodies pinned by the position clamp) grows it geometrically into inf/NaN.
+    acc = s.acc_impulse[j] + impulse
+    acc_cap = 2.0 * params.clip_velocity / nonzero(ima + imb)
+    acc_norm = jnp.sqrt(acc[0] ** 2 + acc[1] ** 2)
+    acc = acc * jnp.minimum(1.0, acc_cap / nonzero(acc_norm))
+    r_cap = 2.0 * params.clip_angular_velocity / nonzero(iia + iib)
+    acc_r = jnp.clip(s.acc_r_impulse[j] + angular_impulse, -r_cap, r_cap)
+
     return JointSolverState(
         position=s.position + _spread(oa, dxa) + _spread(ob, dxb),
         velocity=s.velocity + _spread(oa, dva) + _spread(ob, dvb),
         angular_velocity=s.angular_velocity + _spread(oa, new_wa - wa) + _spread(ob, new_wb - wb),
-        acc_impulse=s.acc_impulse.at[j].set(jnp.where(on, s.acc_impulse[j] + impulse, 0.0)),
-        acc_r_impulse=s.acc_r_impulse.at[j].set(jnp.where(on & fixed, s.acc_r_impulse[j] + angular_impulse, 0.0)),
+        acc_impulse=s.acc_impulse.at[j].set(jnp.where(on, acc, 0.0)),
+        acc_r_impulse=s.acc_r_impulse.at[j].set(jnp.where(on & fixed, acc_r, 0.0)),
         anchor=s.anchor.at[j].set(jnp.where(on, joint_point, 0.0)),
     )

@@ -127,6 +127,14 @@ def step(
         acc_impulse=solved.acc_impulse, acc_r_impulse=solved.acc_r_impulse, global_position=solved.anchor
     )
     new_thrusters = state.thrusters.replace(global_position=thruster_positions(state, position, rotation))
+    # Cap what is carried to the next step's warm start at the impulse that takes the contact across the whole
+    # velocity clamp: more can never be applied, and letting it accumulate (bodies pressed together on the
+    # position clamp) grows it geometrically into inf/NaN. Inactive in ordinary contact, where impulses are tiny.
+    if num_contacts:
+        reach = jnp.sqrt((rows.lever_a**2).sum(-1)) + jnp.sqrt((rows.lever_b**2).sum(-1))
+        cap = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
+        normal_impulse = jnp.minimum(normal_impulse, cap)
+        tangent_impulse = jnp.clip(tangent_impulse, -rows.friction * normal_impulse, rows.friction * normal_impulse)
     cache = ContactCache(normal_impulse=normal_impulse, tangent_impulse=tangent_impulse, active=contacts.touching)
     new_state = state.replace(bodies=new_bodies, joints=new_joints, thrusters=new_thrusters, contacts=cache)
 

@@ -163,7 +163,6 @@ def test_random_scenes_are_valid(random_run):
     assert not problems, f"{len(problems)} invalid scenes, e.g. {dict(list(problems.items())[:3])}"
 
 
-@pytest.mark.xfail(reason="open engine bug: jointed bodies pinned at the clamp go NaN", strict=False)
 def test_random_scenes_stay_finite(random_run):
     first, clamp = random_run["first_non_finite"], random_run["first_at_clamp"]
     bad = np.flatnonzero(first >= 0)
