@@ -1,3 +1,19 @@
-"""The Kinetix-compatible task layer over the physics engine: which levels are played, what the agent observes,
-how its actions drive motors and thrusters, the reward, and auto-reset at episode end. For now it holds only
-its configuration (`engine.env.config`); the environment itself arrives with issue 4."""
+"""The Kinetix-compatible task layer over the physics engine: which level is played, what the agent observes, how
+its actions drive motors and thrusters, the reward, and auto-reset at episode end.
+
+Pure functions, jitted with the static `EnvSpec` and vmappable over environments (`engine.env.env` documents the
+order of one step and the auto-reset rule):
+
+    from engine.env.env import reset_batch, step
+    from engine.env.spec import env_from_config
+
+    spec, params = env_from_config(config)                              # config: EnvConfig
+    obs, state = reset_batch(spec, params, levels, num_envs)            # levels: a Level batch [K]
+    obs, state, reward, done, info = jax.vmap(step, in_axes=(None, None, 0, 0, None))(
+        spec, params, state, actions, levels)
+
+Modules: `config` (EnvConfig, plain settings), `spec` (EnvSpec, EnvParams, env_from_config), `state` (EnvState),
+`actions` (action types, action spaces, bindings), `observations` (entity and flat symbolic observations),
+`observation_types` (the EntityObservation layout), `reward` (sparse outcome and dense shaping), `env` (reset, step).
+This package file imports nothing, so reading the configuration does not load JAX.
+"""

@@ -1,8 +1,8 @@
 """Settings of the Kinetix-compatible task layer.
 
 Defaults follow Kinetix 3.0.x's training setup so that results compare with its published numbers. This is a
-plain dataclass that imports nothing from the project, because the engine room depends on no other room. The
-environment that consumes it arrives with issue 4, which may add fields.
+plain dataclass that imports nothing from the project, because the engine room depends on no other room.
+`engine.env.spec.env_from_config` turns it into the environment's static `EnvSpec` and dynamic `EnvParams`.
 """
 
 from __future__ import annotations
@@ -23,8 +23,9 @@ class EnvConfig:
     """Physics sub-steps per agent step; Kinetix trains at 2 (the agent acts at 30 Hz)."""
     max_timesteps: int = 256
     """Agent steps before an episode is cut off."""
-    dense_reward_scale: float = 0.1
-    """Weight of the shaping term that rewards moving the goal shapes closer together."""
+    dense_reward_scale: float = 0.2
+    """Weight of the shaping term that rewards moving the goal shapes closer together (0.2 as in Kinetix's training
+    configs; its level files and EnvParams carry 0.1)."""
     observation: Literal["entity", "symbolic"] = "entity"
     """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector."""
     action: Literal["multi_discrete", "continuous", "discrete"] = "multi_discrete"
