@@ -67,6 +67,8 @@ def _add_command(commands: argparse._SubParsersAction, spec: Command) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_logging_options(p, with_defaults=False)
+    if spec.arguments is not None:
+        spec.arguments(p)
     if spec.config is not None:
         p.add_argument("--config", type=Path, metavar="FILE.toml", help="TOML file with config values")
         p.add_argument(

@@ -35,6 +35,8 @@ class Command:
     pending: str | None = None
     """The issue that builds it, while it is not built."""
     run: RunFn | None = None
+    arguments: Callable[[argparse.ArgumentParser], None] | None = None
+    """Adds the command's own options (beyond --config, --print-config and key=value overrides)."""
 
 
 COMMANDS: tuple[Command, ...] = (
