@@ -34,8 +34,16 @@ class PPOConfig:
     ent_coef: float = 0.01
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    """Standardise advantages within each minibatch (Kinetix does)."""
+    clip_value: bool = True
+    """Clip the value prediction to within clip_eps of the behaviour value, as the policy ratio is clipped."""
     correction: Literal["vtrace", "none"] = "vtrace"
     """Off-policy correction for trajectories from a lagging policy; "none" is plain on-policy PPO."""
+    vtrace_rho_bar: float = 1.0
+    """V-trace: importance weights in the value targets' TD errors are clipped at this (rho-bar)."""
+    vtrace_c_bar: float = 1.0
+    """V-trace: trace-cutting weights are clipped at this (c-bar); gae_lambda scales them further."""
     max_policy_lag: int = 4
     """Trajectories older than this many policy versions are dropped rather than corrected."""
 
@@ -45,21 +53,53 @@ class PPOConfig:
                 f"num_minibatches ({self.num_minibatches}) must divide num_envs ({self.num_envs}), "
                 "because minibatches are whole environment sequences"
             )
+        if self.vtrace_c_bar > self.vtrace_rho_bar:
+            raise ValueError(
+                f"vtrace_c_bar ({self.vtrace_c_bar}) must not exceed vtrace_rho_bar ({self.vtrace_rho_bar})"
+            )
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    """Policy and value network shape. Kinetix's default is the entity transformer with 5 x 128 tanh heads."""
+    """Policy and value network shape (see `learner.networks`). Defaults give Kinetix's model sizes: separate
+    actor and critic heads of 5 x Dense(128) tanh over a torso chosen by `kind`."""
 
-    kind: Literal["entity", "transformer"] = "transformer"
-    """"transformer": attention over shapes with joint/thruster message passing; "entity": a cheaper
-    permutation-invariant MLP over the same entity observation."""
+    kind: Literal["transformer", "entity", "flat"] = "transformer"
+    """"transformer": attention over shapes with joint/thruster message passing (entity observation);
+    "entity": a cheaper permutation-invariant MLP over the same entity observation; "flat": an MLP over the
+    symbolic flat observation vector."""
     width: int = 128
+    """Units of each Dense layer of the actor and critic heads."""
     depth: int = 5
     """Dense layers in each of the separate actor and critic heads."""
+    activation: Literal["tanh", "relu"] = "tanh"
+    """Nonlinearity of the heads and the entity encoders."""
     transformer_layers: int = 2
     num_heads: int = 8
-    activation: Literal["tanh", "relu"] = "tanh"
+    """Attention heads per layer; shared out evenly among the 4 attention-mask channels, so a multiple of 4
+    unless full_attention_mask."""
+    transformer_size: int = 16
+    """Query/key/value features per attention head."""
+    transformer_encoder_size: int = 128
+    """Width of every entity token in the transformer (encoders, attention output, messages)."""
+    full_attention_mask: bool = False
+    """Every head attends over all active shapes (channel 0), ignoring the joint and contact channels."""
+    entity_encoder_size: int = 64
+    """Permutation-invariant MLP: per-entity embedding width, of which 4 are the entity-type one-hot."""
+    entity_heads: int = 8
+    entity_head_size: int = 32
+    """Permutation-invariant MLP: per-entity multi-head Dense (heads x size, ReLU), summed over entities."""
+    flat_embedding_size: int = 128
+    """Flat MLP: width of the ReLU layer between the observation vector and the heads."""
+
+    def __post_init__(self) -> None:
+        if not self.full_attention_mask and self.num_heads % 4:
+            raise ValueError(
+                f"num_heads ({self.num_heads}) must be a multiple of 4, the attention-mask channels "
+                "(or set full_attention_mask)"
+            )
+        if self.entity_encoder_size <= 4:
+            raise ValueError(f"entity_encoder_size ({self.entity_encoder_size}) must exceed the 4-way type one-hot")
 
 
 @dataclass(frozen=True)
@@ -72,6 +112,18 @@ class CheckpointConfig:
     """Also keep the checkpoint with the best evaluation solve rate, beyond the last few."""
     directory: str = "checkpoints"
     """Relative paths are taken inside the run directory."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation at the end of `impulse train` and by `impulse eval`."""
+
+    levels: str = ""
+    """Level set to evaluate on (as env.levels); empty: the training levels, or the hand-made set when training
+    on random levels."""
+    attempts: int = 20
+    """Episodes per level, each from the level's start (Kinetix scores hand-made levels over 20); 0 skips the
+    evaluation at the end of training."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +140,7 @@ class TrainConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
 
     def output_dir(self) -> Path:
         """The run directory with the run name filled in."""

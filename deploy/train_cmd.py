@@ -1,0 +1,124 @@
+"""`impulse train` and `impulse eval`: command-line glue around `learner.run` and `learner.evaluate`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from learner.config import TrainConfig
+
+log = logging.getLogger("impulse.train")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def enable_compile_cache() -> Path:
+    """Keep compiled programs across runs (the training step takes tens of seconds to compile on CPU): in
+    $IMPULSE_CACHE_DIR, else the checkout's ignored .cache/jax (shared with the tests), else ~/.cache/impulse."""
+    import os
+
+    import jax
+
+    checkout = Path(__file__).resolve().parents[1]
+    if os.environ.get("IMPULSE_CACHE_DIR"):
+        root = Path(os.environ["IMPULSE_CACHE_DIR"])
+    elif (checkout / "pyproject.toml").is_file():
+        root = checkout / ".cache"
+    else:
+        root = Path.home() / ".cache" / "impulse"
+    directory = root / "jax"
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return directory
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--resume", type=Path, metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there "
+        "(key=value overrides still apply, e.g. total_env_steps to train longer)",
+    )
+    parser.add_argument(
+        "--updates", type=int, metavar="N",
+        help="stop after N more updates (checkpointing), even if total_env_steps is not reached",
+    )
+
+
+def run_train(args: argparse.Namespace, config: TrainConfig) -> int:
+    from learner.run import RunError, train_run  # JAX loads only when a run starts
+
+    enable_compile_cache()
+    if args.resume is not None:
+        saved = args.resume / "config.toml"
+        if not saved.is_file():
+            print(f"impulse train: {args.resume} has no config.toml; is it a run directory?", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            config = resolve_config(TrainConfig, saved, args.overrides)
+        except ConfigError as err:
+            print(f"impulse train: config error: {err}", file=sys.stderr)
+            return EXIT_USAGE
+        run_dir = args.resume
+    else:
+        run_dir = config.output_dir()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_resolved_config(config, run_dir)
+    log.info("run directory %s", run_dir)
+    try:
+        summary = train_run(config, run_dir, config_to_toml(config), resume=args.resume is not None,
+                            stop_after_updates=args.updates)
+    except RunError as err:
+        print(f"impulse train: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    log.info(
+        "done: %d updates, %s env steps, %.0f env steps/s (rollout and update, after compiling), compile %.1f s",
+        summary.updates, f"{summary.env_steps:,}", summary.steps_per_s, summary.compile_s,
+    )
+    return 0
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
+                        help="a run directory (its newest checkpoint) or one checkpoint's directory")
+    parser.add_argument("--levels", metavar="SET",
+                        help='"handmade", a level file or a folder (default: eval.levels, else the training levels)')
+    parser.add_argument("--attempts", type=int, metavar="K", help="episodes per level (default: eval.attempts)")
+    parser.add_argument("--seed", type=int, default=0, help="evaluation seed (same seed, same numbers)")
+    parser.add_argument("--greedy", action="store_true", help="take the most likely action instead of sampling")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores as JSON here")
+
+
+def _run_dir_of(path: Path) -> Path:
+    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder."""
+    for candidate in (path, path.parent, path.parent.parent):
+        if (candidate / "config.toml").is_file():
+            return candidate
+    raise FileNotFoundError(f"no config.toml in {path} or above it; --checkpoint takes a run directory")
+
+
+def run_eval(args: argparse.Namespace, config: TrainConfig) -> int:
+    from learner.run import RunError, evaluate_run, format_scores
+
+    enable_compile_cache()
+    try:
+        run_dir = _run_dir_of(args.checkpoint)
+        config = resolve_config(TrainConfig, run_dir / "config.toml", args.overrides)
+    except (FileNotFoundError, ConfigError) as err:
+        print(f"impulse eval: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+    try:
+        table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
+                             seed=args.seed, greedy=args.greedy)
+    except RunError as err:
+        print(f"impulse eval: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    print(format_scores(table))
+    if args.json is not None:
+        args.json.write_text(json.dumps(table, indent=2))
+    return 0

@@ -1,0 +1,60 @@
+"""The agent as the rest of the system sees it: a network, its action distribution and the policy function the
+rollout calls. Built once from the configs; shared by the fused trainer, evaluation and (later) actors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from engine.env.actions import action_space
+from engine.env.observations import observation_shape
+from engine.env.spec import EnvSpec
+from learner.config import NetworkConfig
+from learner.distributions import Distribution, distribution_for
+from learner.networks import ActorCritic, make_network
+
+Array = jax.Array
+
+
+@dataclass(frozen=True)
+class Agent:
+    """Static description of the policy (hashable, so jitted functions can take it as a static argument)."""
+
+    network: ActorCritic
+    distribution: Distribution
+    spec: EnvSpec
+
+    def apply(self, params: Any, obs: Any) -> tuple[Array, Array]:
+        """(distribution parameters, value) for a batch of observations."""
+        return self.network.apply(params, obs)
+
+    def act(self, params: Any, obs: Any, key: Array) -> tuple[Array, Array, Array]:
+        """Sample actions: (action, log-probability, value). The rollout's `policy`."""
+        dist_params, value = self.network.apply(params, obs)
+        action = self.distribution.sample(dist_params, key)
+        return action, self.distribution.log_prob(dist_params, action), value
+
+    def act_greedy(self, params: Any, obs: Any, key: Array) -> tuple[Array, Array, Array]:
+        """The most likely action (for deterministic evaluation)."""
+        del key
+        dist_params, value = self.network.apply(params, obs)
+        action = self.distribution.mode(dist_params)
+        return action, self.distribution.log_prob(dist_params, action), value
+
+    def init(self, key: Array) -> Any:
+        """Fresh parameters, initialised on a dummy observation of one environment."""
+        dummy = jax.tree.map(lambda s: jnp.zeros((1,) + s.shape, s.dtype), observation_shape(self.spec))
+        return self.network.init(key, dummy)
+
+
+def make_agent(network: NetworkConfig, spec: EnvSpec) -> Agent:
+    if (network.kind == "flat") != (spec.observation == "symbolic"):
+        raise ValueError(
+            f'network.kind "{network.kind}" needs env.observation '
+            f'"{"symbolic" if network.kind == "flat" else "entity"}", got "{spec.observation}"'
+        )
+    distribution = distribution_for(action_space(spec))
+    return Agent(make_network(network, distribution), distribution, spec)

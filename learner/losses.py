@@ -1,0 +1,102 @@
+"""The PPO loss (Schulman et al., 2017), piece by piece.
+
+Each piece is a small pure function of arrays, so that tests can check it by hand; `ppo_loss` evaluates the
+network on a minibatch and puts them together. Ratios are taken against the behaviour policy's log-probabilities
+(those recorded when the data was collected), so a lagging actor's data is weighted by pi_current / mu; the clip
+keeps that ratio near 1 for the gradient, as in on-policy PPO.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from learner.config import PPOConfig
+from learner.distributions import Distribution
+
+Array = jax.Array
+
+
+class PPOBatch(NamedTuple):
+    """One minibatch; every leaf has the same leading dimensions (any number of them, e.g. [N] or [T, B])."""
+
+    obs: Any
+    action: Array
+    behaviour_log_prob: Array  # log mu(a|x), recorded by the acting policy
+    old_value: Array  # the acting policy's value estimate, the centre of the value clip
+    advantage: Array
+    target: Array  # value target (GAE lambda-return or V-trace v_s)
+
+
+def normalize_advantages(advantages: Array, eps: float = 1e-8) -> Array:
+    """Zero mean, unit standard deviation over all entries."""
+    return (advantages - advantages.mean()) / (advantages.std() + eps)
+
+
+def policy_loss(log_prob: Array, behaviour_log_prob: Array, advantages: Array, clip_eps: float) -> Array:
+    """Clipped surrogate: -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)), r = exp(log_prob - behaviour_log_prob)."""
+    ratio = jnp.exp(log_prob - behaviour_log_prob)
+    unclipped = ratio * advantages
+    clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
+    return -jnp.mean(jnp.minimum(unclipped, clipped))
+
+
+def value_loss(values: Array, old_values: Array, targets: Array, clip_eps: float | None) -> Array:
+    """0.5 mean squared error to the targets; with `clip_eps`, the pessimistic (larger) of the errors of the
+    prediction and of the prediction clipped to old_values +- clip_eps."""
+    error = jnp.square(values - targets)
+    if clip_eps is not None:
+        clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
+        error = jnp.maximum(error, jnp.square(clipped - targets))
+    return 0.5 * jnp.mean(error)
+
+
+def entropy_bonus(entropy: Array) -> Array:
+    """Mean entropy of the policy over the batch (subtracted from the loss, scaled by ent_coef)."""
+    return jnp.mean(entropy)
+
+
+def total_loss(policy: Array, value: Array, entropy: Array, vf_coef: float, ent_coef: float) -> Array:
+    """policy + vf_coef * value - ent_coef * entropy."""
+    return policy + vf_coef * value - ent_coef * entropy
+
+
+def approx_kl(log_ratio: Array) -> Array:
+    """Estimate of KL(mu || pi) from log_ratio = log pi - log mu of actions drawn from mu: mean((r - 1) - log r),
+    unbiased and never negative (Schulman's k3 estimator)."""
+    return jnp.mean(jnp.expm1(log_ratio) - log_ratio)
+
+
+def clip_fraction(log_ratio: Array, clip_eps: float) -> Array:
+    """Fraction of samples whose ratio lies outside [1 - eps, 1 + eps]."""
+    return jnp.mean((jnp.abs(jnp.exp(log_ratio) - 1.0) > clip_eps).astype(jnp.float32))
+
+
+def ppo_loss(
+    params: Any, apply_fn, distribution: Distribution, batch: PPOBatch, config: PPOConfig
+) -> tuple[Array, dict[str, Array]]:
+    """PPO loss of one minibatch and its metrics.
+
+    `apply_fn(params, obs) -> (distribution params, value)` (see `learner.networks.ActorCritic`); leading
+    dimensions of the batch pass straight through it. Uses config.clip_eps (also for the value clip when
+    config.clip_value), vf_coef, ent_coef and normalize_advantages. Returns (total loss, metrics) with metrics
+    total_loss, policy_loss, value_loss, entropy, approx_kl, clip_fraction."""
+    dist_params, values = apply_fn(params, batch.obs)
+    log_prob = distribution.log_prob(dist_params, batch.action)
+    advantages = normalize_advantages(batch.advantage) if config.normalize_advantages else batch.advantage
+    pi_loss = policy_loss(log_prob, batch.behaviour_log_prob, advantages, config.clip_eps)
+    v_loss = value_loss(values, batch.old_value, batch.target, config.clip_eps if config.clip_value else None)
+    entropy = entropy_bonus(distribution.entropy(dist_params))
+    loss = total_loss(pi_loss, v_loss, entropy, config.vf_coef, config.ent_coef)
+    log_ratio = jax.lax.stop_gradient(log_prob - batch.behaviour_log_prob)
+    metrics = {
+        "total_loss": loss,
+        "policy_loss": pi_loss,
+        "value_loss": v_loss,
+        "entropy": entropy,
+        "approx_kl": approx_kl(log_ratio),
+        "clip_fraction": clip_fraction(log_ratio, config.clip_eps),
+    }
+    return loss, metrics

@@ -1,0 +1,140 @@
+"""The PPO update: one pure function of (train state, trajectory batch), used unchanged by the fused trainer and
+the distributed learner.
+
+A batch is E environment sequences of T steps collected by a behaviour policy that may be some versions older
+than the one being trained. Targets and advantages come from GAE (on-policy, `correction = "none"`) or V-trace
+(importance-weighted, robust to policy lag) computed once per update with the current parameters; then
+`update_epochs` passes over `num_minibatches` minibatches of whole sequences apply the clipped PPO loss against
+the behaviour log-probabilities.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from actors.rollout import Trajectory
+from learner.config import PPOConfig
+from learner.losses import PPOBatch, ppo_loss
+from learner.returns import gae, vtrace
+
+Array = jax.Array
+
+
+class TrainState(NamedTuple):
+    """Everything the update changes. `policy_version` counts updates: actors tag data with it."""
+
+    params: Any
+    opt_state: Any
+    policy_version: Array  # int32
+
+
+def make_optimizer(config: PPOConfig, num_updates: int) -> optax.GradientTransformation:
+    """Adam with global-norm clipping; the learning rate decays linearly to 0 over the run when annealed."""
+    steps_per_update = config.update_epochs * config.num_minibatches
+    if config.anneal_lr:
+        rate = optax.linear_schedule(config.learning_rate, 0.0, max(num_updates, 1) * steps_per_update)
+    else:
+        rate = config.learning_rate
+    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate, eps=1e-5))
+
+
+def targets_and_advantages(
+    config: PPOConfig, trajectory: Trajectory, values: Array, last_value: Array, log_ratio: Array
+) -> tuple[Array, Array]:
+    """(value targets, advantages) [T, E] under the configured correction. `values` and `last_value` come from
+    the current parameters; `log_ratio` is log pi_current - log pi_behaviour of the taken actions."""
+    discounts = config.gamma * (1.0 - trajectory.done.astype(jnp.float32))
+    if config.correction == "vtrace":
+        return vtrace(
+            rewards=trajectory.reward,
+            values=values,
+            bootstrap_value=last_value,
+            discounts=discounts,
+            log_rhos=log_ratio,
+            lambda_=config.gae_lambda,
+            rho_bar=config.vtrace_rho_bar,
+            c_bar=config.vtrace_c_bar,
+            # The clipped PPO ratio already weights the policy gradient by pi/mu; weighting the advantages too
+            # would apply the correction twice.
+            pg_rho_bar=None,
+        )
+    return gae(
+        rewards=trajectory.reward,
+        values=values,
+        bootstrap_value=last_value,
+        discounts=discounts,
+        lambda_=config.gae_lambda,
+    )
+
+
+def ppo_update(
+    state: TrainState,
+    trajectory: Trajectory,
+    last_obs: Any,
+    key: Array,
+    *,
+    apply_fn,
+    distribution,
+    optimizer: optax.GradientTransformation,
+    config: PPOConfig,
+) -> tuple[TrainState, dict[str, Array]]:
+    """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps."""
+    num_steps, num_envs = trajectory.reward.shape
+
+    def evaluate(params, obs, action):
+        dist_params, value = apply_fn(params, obs)
+        return distribution.log_prob(dist_params, action), value
+
+    flat = lambda x: x.reshape((num_steps * num_envs,) + x.shape[2:])  # noqa: E731
+    log_prob, values = evaluate(state.params, jax.tree.map(flat, trajectory.obs), flat(trajectory.action))
+    log_prob, values = log_prob.reshape(num_steps, num_envs), values.reshape(num_steps, num_envs)
+    _, last_value = apply_fn(state.params, last_obs)
+    if config.correction == "vtrace":
+        targets, advantages = targets_and_advantages(
+            config, trajectory, values, last_value, log_prob - trajectory.log_prob
+        )
+    else:
+        # On-policy: the behaviour values are those of the parameters that acted, as in plain PPO.
+        targets, advantages = targets_and_advantages(
+            config, trajectory, trajectory.value, last_value, jnp.zeros_like(log_prob)
+        )
+    batch = PPOBatch(
+        obs=trajectory.obs,
+        action=trajectory.action,
+        behaviour_log_prob=trajectory.log_prob,
+        old_value=trajectory.value,
+        advantage=jax.lax.stop_gradient(advantages),
+        target=jax.lax.stop_gradient(targets),
+    )
+
+    def loss_fn(params, minibatch: PPOBatch):
+        return ppo_loss(params, apply_fn, distribution, minibatch, config)
+
+    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+    def minibatch_step(carry, minibatch):
+        params, opt_state = carry
+        (_, metrics), grads = grad_fn(params, minibatch)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), metrics
+
+    def epoch(carry, epoch_key):
+        # Minibatches are whole environment sequences: shuffle the environment axis, split it.
+        order = jax.random.permutation(epoch_key, num_envs)
+        per = num_envs // config.num_minibatches
+
+        def split(x):
+            x = jnp.take(x, order, axis=1).reshape((num_steps, config.num_minibatches, per) + x.shape[2:])
+            return jnp.moveaxis(x, 1, 0).reshape((config.num_minibatches, num_steps * per) + x.shape[3:])
+
+        return jax.lax.scan(minibatch_step, carry, jax.tree.map(split, batch))
+
+    (params, opt_state), metrics = jax.lax.scan(
+        epoch, (state.params, state.opt_state), jax.random.split(key, config.update_epochs)
+    )
+    metrics = jax.tree.map(jnp.mean, metrics)
+    return TrainState(params, opt_state, state.policy_version + 1), metrics

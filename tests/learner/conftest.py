@@ -1,0 +1,13 @@
+"""Learner test configuration: make the helper module beside this file (`learner_dummies`) importable under any
+pytest import mode, and the repository root importable when PYTHONPATH is not set."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+_ROOT = _HERE.parents[1]
+for _path in (str(_HERE), str(_ROOT)):
+    if _path not in sys.path:
+        sys.path.insert(0, _path)

@@ -1,0 +1,93 @@
+"""A run killed with SIGKILL mid-training resumes from its newest checkpoint and ends with exactly the parameters
+of a run that was never interrupted (real `impulse train` processes, real orbax checkpoints)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from deploy.config import resolve_config
+from learner.checkpoint import Checkpointer
+from learner.config import TrainConfig
+from learner.run import build
+
+REPO = Path(__file__).resolve().parents[2]
+LEVEL = REPO.parent / "shared" / "kinetix-levels" / "s" / "h0_weak_thrust.json"  # TODO(lead): a hand-made level
+UPDATES = 8
+SETTINGS = [
+    f"env.levels={LEVEL}",
+    "network.kind=entity",
+    "network.width=32",
+    "network.depth=2",
+    "ppo.num_envs=16",
+    "ppo.num_steps=16",
+    "ppo.num_minibatches=2",
+    "ppo.update_epochs=2",
+    f"total_env_steps={UPDATES * 16 * 16}",
+    "checkpoint.every_updates=2",
+    "checkpoint.keep_last=2",
+    "eval.attempts=0",
+]
+
+
+def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache")}
+    command = [
+        sys.executable,
+        "-c",
+        "from deploy.cli import main; raise SystemExit(main())",
+        "train",
+        f"run_dir={run_dir}",
+        *SETTINGS,
+        *extra,
+    ]
+    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _final_params(run_dir: Path):
+    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    trainer, _, _, levels = build(config)
+    template = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), levels)
+    with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
+        assert checkpoints.latest_step() == UPDATES
+        carry, counters, _ = checkpoints.restore(template)
+    assert counters["update"] == UPDATES
+    return carry
+
+
+def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
+    # One run straight through first: it also fills the compilation cache that the next two processes reuse.
+    straight = _train(tmp_path / "straight")
+    straight_out, _ = straight.communicate(timeout=400)
+    assert straight.returncode == 0, straight_out
+    killed_dir = tmp_path / "killed"
+    victim = _train(killed_dir)
+    # Kill it as soon as its second checkpoint is complete (orbax renames a finished step into place).
+    deadline = time.monotonic() + 400
+    while not (killed_dir / "checkpoints" / "4").is_dir():
+        assert victim.poll() is None, f"training exited early:\n{victim.stdout.read()}"
+        assert time.monotonic() < deadline, "no checkpoint within the time limit"
+        time.sleep(0.05)
+    victim.send_signal(signal.SIGKILL)
+    victim.wait()
+    assert victim.returncode == -signal.SIGKILL
+    assert not (killed_dir / "checkpoints" / str(UPDATES)).exists(), "the victim finished before it was killed"
+
+    resumed = _train(killed_dir, "--resume", str(killed_dir))
+    resumed_out, _ = resumed.communicate(timeout=400)
+    assert resumed.returncode == 0, resumed_out
+    assert "resumed from checkpoint" in resumed_out
+
+    a, b = _final_params(tmp_path / "straight"), _final_params(killed_dir)
+    for left, right in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(left), np.asarray(right))
+    # Every update appears in the resumed run's metrics, the recomputed ones after the kill included.
+    lines = (killed_dir / "metrics.jsonl").read_text().splitlines()
+    assert len(lines) >= UPDATES
