@@ -12,10 +12,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from deploy import levels_cmd
+from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
 
-ISSUE_TRAINER = "issue 5 (learner and fused trainer)"
-ISSUE_LEVELS = "issue 4 (task layer and level files)"
 ISSUE_DISTRIBUTED = "the distributed-mode issues (not yet filed)"
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
@@ -46,7 +46,8 @@ COMMANDS: tuple[Command, ...] = (
         "Fused single-process training: rollouts, PPO updates and the curriculum in one jitted loop on one "
         "device. Writes checkpoints and the resolved config.toml to the run directory.",
         config=TrainConfig,
-        pending=ISSUE_TRAINER,
+        run=run_train,
+        arguments=add_train_arguments,
     ),
     Command(
         "launch",
@@ -84,15 +85,20 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "eval",
         "evaluate a checkpoint on the hand-made levels",
-        "Evaluate a checkpoint: solve rate and return per hand-made level.",
+        "Evaluate a checkpoint: solve rate, mean return and episode length per level over K episodes each, as "
+        "a table (and JSON with --json). Uses the config saved in the run directory.",
         config=TrainConfig,
-        pending=ISSUE_TRAINER,
+        run=run_eval,
+        arguments=add_eval_arguments,
     ),
     Command(
         "levels",
         "inspect, validate, convert and render level files",
-        "Level file tools: inspect, validate, convert (Kinetix JSON) and render.",
-        pending=ISSUE_LEVELS,
+        "Level file tools for Kinetix JSON files (also Impulse's own level format): `validate FILE...` prints "
+        "every problem, `show FILE` describes a level, `render FILE -o OUT.png` draws it, `convert IN OUT --size "
+        "s|m|l` re-sizes and normalises it.",
+        run=levels_cmd.run,
+        arguments=levels_cmd.add_arguments,
     ),
     Command(
         "view",

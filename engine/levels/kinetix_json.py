@@ -1,31 +1,75 @@
-"""Import of Kinetix's JSON level files into the engine's scene layout.
+"""Kinetix's JSON level files: loading (padded into any larger size), checking and saving.
 
-A Kinetix file stores Jax2D's state as separate polygon and circle lists (array-of-structs, every slot included),
-arrays encoded as objects keyed "0", "1", ...; see the Kinetix digest's level-format section. We keep the stored
-inverse masses and inertias (they encode Jax2D's mass conventions), recompute the joint collision filter, and
-start with an empty contact cache, as Kinetix's own loader effectively does.
+This is also Impulse's own level format. A file holds Jax2D's state as separate polygon and circle lists
+(array-of-structs, every slot included, inactive ones too), arrays encoded as objects keyed "0", "1", ..., plus the
+task data Kinetix keeps inside the entries (shape roles and densities, motor and thruster bindings) and the
+`env_params` / `static_env_params` it was made with; see the level-format section of the Kinetix digest.
+
+Loading keeps the stored inverse masses and inertias (they encode Jax2D's mass conventions) and recomputes the
+joint collision filter, as Kinetix does. The contact cache is read from the stored manifolds when the level keeps
+its own size (Kinetix's files hold zeros there; a saved mid-episode state comes back exactly) and starts empty
+when the level is padded into a larger size, as in Kinetix. Every problem with a file is reported as a
+`LevelFileError` naming the file, the field and the problem; the scene is then checked with `validate_scene`.
+
+Saving writes the same structure as Kinetix (key order included): `save(load(file))` reproduces every field the
+loader reads, and `load(save(level))` gives back the level's arrays bit for bit.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import math
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.levels.level import Level
+from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
+from engine.physics.pairs import pair_tables
 from engine.physics.params import SimParams
 from engine.physics.scene import empty_scene, refresh_collision_filter
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
+from engine.physics.validate import validate_scene
+
+# Values Kinetix writes beside the scene; fixed in every size (see the digest's section on embedded params).
+MAX_TIMESTEPS = 256
+PIXELS_PER_UNIT = 100
+DENSE_REWARD_SCALE = 0.1
+NUM_SHAPE_ROLES = 4
+SCREEN_DIM = 500
+DOWNSCALE = 4
+SOLVER_BATCH_SIZE = 16
+MAX_SHAPE_SIZE = 2
+# Kinetix's EnvParams declares these with integer defaults, so its files write them as JSON integers.
+_INTEGER_PARAMS = ("clip_position", "clip_velocity", "clip_angular_velocity")
 
 
 class LevelFileError(ValueError):
-    """A level file is malformed or does not fit; the message names the file, field and problem."""
+    """A level file is malformed, does not fit the requested size, or holds an invalid scene.
+
+    `path` is the file and `problems` lists every problem found, each naming the field (e.g.
+    "polygon[4].position missing").
+    """
+
+    def __init__(self, path: str | Path, problems: str | list[str]):
+        problems = [problems] if isinstance(problems, str) else list(problems)
+        super().__init__(str(path), problems)
+        self.path = str(path)
+        self.problems = problems
+
+    def __str__(self) -> str:
+        if len(self.problems) == 1:
+            return f"{self.path}: {self.problems[0]}"
+        listed = "\n  ".join(self.problems)
+        return f"{self.path}: {len(self.problems)} problems:\n  {listed}"
 
 
 @dataclass(frozen=True)
@@ -42,6 +86,8 @@ class KinetixLevel:
     motor_bindings: np.ndarray  # [J]
     thruster_bindings: np.ndarray  # [T]
     frame_skip: int
+    file_sizes: SceneSizes | None = None
+    """The slot counts stored in the file (`sizes` is what it was loaded into)."""
 
     @property
     def level(self) -> Level:
@@ -55,191 +101,664 @@ class KinetixLevel:
         )
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# Field tables, in Kinetix's key order. Kind: "f" float32, "i" int32, "b" bool. Shape "V" = max polygon vertices.
+
+_F, _I, _B = "f", "i", "b"
+_VEC = (2,)
+
+_SHAPE_FIELDS: tuple[tuple[str, str, tuple], ...] = (
+    ("position", _F, _VEC),
+    ("rotation", _F, ()),
+    ("velocity", _F, _VEC),
+    ("angular_velocity", _F, ()),
+    ("inverse_mass", _F, ()),
+    ("inverse_inertia", _F, ()),
+    ("friction", _F, ()),
+    ("restitution", _F, ()),
+    ("collision_mode", _I, ()),
+    ("active", _B, ()),
+    ("n_vertices", _I, ()),
+    ("vertices", _F, ("V", 2)),
+    ("radius", _F, ()),
+    ("role", _I, ()),
+    ("density", _F, ()),
+    ("highlighted", _B, ()),
+)
+_BODY_FIELDS = (
+    "position", "rotation", "velocity", "angular_velocity", "inverse_mass", "inverse_inertia", "friction",
+    "restitution", "collision_mode", "active",
+)
+# What the loader reads from each kind of shape; the rest (a polygon's radius, a circle's vertices, highlighted)
+# are leftovers Kinetix writes and ignores.
+_POLYGON_READS = (*_BODY_FIELDS, "n_vertices", "vertices", "role", "density")
+_CIRCLE_READS = (*_BODY_FIELDS, "radius", "role", "density")
+
+_JOINT_FIELDS: tuple[tuple[str, str, tuple], ...] = (
+    ("a_index", _I, ()),
+    ("b_index", _I, ()),
+    ("a_relative_pos", _F, _VEC),
+    ("b_relative_pos", _F, _VEC),
+    ("global_position", _F, _VEC),
+    ("active", _B, ()),
+    ("acc_impulse", _F, _VEC),
+    ("acc_r_impulse", _F, ()),
+    ("motor_speed", _F, ()),
+    ("motor_power", _F, ()),
+    ("motor_on", _B, ()),
+    ("motor_has_joint_limits", _B, ()),
+    ("min_rotation", _F, ()),
+    ("max_rotation", _F, ()),
+    ("is_fixed_joint", _B, ()),
+    ("rotation", _F, ()),
+    ("motor_binding", _I, ()),
+)
+_THRUSTER_FIELDS: tuple[tuple[str, str, tuple], ...] = (
+    ("object_index", _I, ()),
+    ("relative_position", _F, _VEC),
+    ("rotation", _F, ()),
+    ("power", _F, ()),
+    ("global_position", _F, _VEC),
+    ("active", _B, ()),
+    ("thruster_binding", _I, ()),
+)
+_MANIFOLD_FIELDS: tuple[tuple[str, str, tuple], ...] = (
+    ("normal", _F, _VEC),
+    ("penetration", _F, ()),
+    ("collision_point", _F, _VEC),
+    ("active", _B, ()),
+    ("acc_impulse_normal", _F, ()),
+    ("acc_impulse_tangent", _F, ()),
+    ("restitution_velocity_target", _F, ()),
+)
+_MANIFOLD_READS = ("active", "acc_impulse_normal", "acc_impulse_tangent")
+_DTYPES = {_F: np.float32, _I: np.int32, _B: np.bool_}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Decoding
+
+
+class _Malformed(ValueError):
+    pass
+
+
 def decode_arrays(value: Any) -> Any:
-    """Turn Kinetix's {"0": a, "1": b} array encoding back into (nested) lists."""
+    """Turn Kinetix's {"0": a, "1": b} array encoding back into (nested) lists; other objects stay objects."""
     if isinstance(value, dict):
-        if "0" in value and all(k.isdigit() for k in value):
-            return [decode_arrays(value[str(i)]) for i in range(len(value))]
+        if value and all(isinstance(k, str) and k.isdigit() for k in value):
+            return _decode_array(value)
         return {k: decode_arrays(v) for k, v in value.items()}
     if isinstance(value, list):
         return [decode_arrays(v) for v in value]
     return value
 
 
-_BODY_FIELDS = {
-    "position": np.float32,
-    "rotation": np.float32,
-    "velocity": np.float32,
-    "angular_velocity": np.float32,
-    "inverse_mass": np.float32,
-    "inverse_inertia": np.float32,
-    "friction": np.float32,
-    "restitution": np.float32,
-    "collision_mode": np.int32,
-    "active": bool,
-}
-_JOINT_FIELDS = {
-    "a_index": np.int32,
-    "b_index": np.int32,
-    "a_relative_pos": np.float32,
-    "b_relative_pos": np.float32,
-    "rotation": np.float32,
-    "active": bool,
-    "is_fixed_joint": bool,
-    "motor_on": bool,
-    "motor_speed": np.float32,
-    "motor_power": np.float32,
-    "motor_has_joint_limits": bool,
-    "min_rotation": np.float32,
-    "max_rotation": np.float32,
-    "acc_impulse": np.float32,
-    "acc_r_impulse": np.float32,
-    "global_position": np.float32,
-}
-_THRUSTER_FIELDS = {
-    "object_index": np.int32,
-    "relative_position": np.float32,
-    "rotation": np.float32,
-    "power": np.float32,
-    "active": bool,
-    "global_position": np.float32,
-}
-
-
-def _column(entries: list[dict], field: str, dtype, where: str) -> np.ndarray:
-    try:
-        values = [entry[field] for entry in entries]
-    except KeyError:
-        raise LevelFileError(f"{where}: missing field {field!r}") from None
-    except TypeError:
-        raise LevelFileError(f"{where}: entries must be objects") from None
-    try:
-        arr = np.asarray(values, dtype=dtype)
-    except (TypeError, ValueError):
-        raise LevelFileError(f"{where}.{field}: expected numbers of one shape") from None
-    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-        raise LevelFileError(f"{where}.{field}: NaN or infinite value")
-    return arr
-
-
-def _entity_list(env_state: dict, key: str, where: str) -> list[dict]:
-    value = env_state.get(key)
-    if not isinstance(value, list):
-        raise LevelFileError(f"{where}: env_state.{key} must be a list of slot objects")
+def _decode_array(value: Any) -> Any:
+    """A (nested) array in Kinetix's encoding as nested lists; objects that are not arrays are an error."""
+    if isinstance(value, dict):
+        keys = {str(i) for i in range(len(value))}
+        if set(value) != keys:
+            raise _Malformed("an object that is not an array (array keys must be \"0\", \"1\", ... without gaps)")
+        return [_decode_array(value[str(i)]) for i in range(len(value))]
+    if isinstance(value, list):
+        return [_decode_array(v) for v in value]
     return value
 
 
-def load_kinetix_level(path: str | Path, sizes: SceneSizes | None = None) -> KinetixLevel:
-    """Load a Kinetix JSON level; with `sizes` given, pad it into those (larger or equal) slot counts."""
-    path = Path(path)
+def _numbers_only(value: Any) -> bool:
+    if isinstance(value, list):
+        return all(_numbers_only(v) for v in value)
+    return isinstance(value, (int, float)) and value is not None
+
+
+def _describe_shape(shape: tuple) -> str:
+    return "a number" if shape == () else f"shape {list(shape)}"
+
+
+def _parse_value(raw: Any, kind: str, shape: tuple) -> np.ndarray:
+    """One field's value as an array of `kind` and exactly `shape`; raises _Malformed with the problem."""
+    decoded = _decode_array(raw)
+    if not _numbers_only(decoded):
+        raise _Malformed(f"expected {'true/false' if kind == _B else _describe_shape(shape)} of numbers, "
+                         f"got {json.dumps(raw)[:60]}")
     try:
-        raw = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise LevelFileError(f"{path}: cannot read level file: {err}") from err
-    if not isinstance(raw, dict) or "env_state" not in raw:
-        raise LevelFileError(f"{path}: not a Kinetix level (no env_state object)")
-    data = decode_arrays(raw)
-    env_state = data["env_state"]
-    where = str(path)
-    polygons = _entity_list(env_state, "polygon", where)
-    circles = _entity_list(env_state, "circle", where)
-    joints = _entity_list(env_state, "joint", where)
-    thrusters = _entity_list(env_state, "thruster", where)
-    static = data.get("static_env_params", {})
+        arr = np.asarray(decoded, dtype=np.float64)
+    except OverflowError:
+        raise _Malformed("number too large") from None
+    except (ValueError, TypeError):
+        raise _Malformed(f"wrong shape: expected {_describe_shape(shape)} (got a ragged array)") from None
+    if arr.shape != shape:
+        raise _Malformed(f"wrong shape: expected {_describe_shape(shape)}, got {_describe_shape(arr.shape)}")
+    if not np.all(np.isfinite(arr)):
+        raise _Malformed("NaN or infinite value")
+    if kind == _F:
+        with np.errstate(over="ignore"):
+            out = arr.astype(np.float32)
+        if not np.all(np.isfinite(out)):
+            raise _Malformed("value too large for float32")
+        return out
+    if kind == _I:
+        if not np.all(arr == np.round(arr)) or np.any(np.abs(arr) >= 2**31):
+            raise _Malformed(f"expected an integer, got {json.dumps(raw)[:60]}")
+        return arr.astype(np.int32)
+    if not np.all((arr == 0) | (arr == 1)):
+        raise _Malformed(f"expected true or false, got {json.dumps(raw)[:60]}")
+    return arr.astype(bool)
+
+
+def _read_slots(
+    env_state: dict, key: str, fields: tuple, reads: tuple[str, ...], vertices: int, problems: list[str]
+) -> tuple[int, dict[str, np.ndarray]]:
+    """(slot count, field -> [slots, ...] array) for one entity list; problems are appended, bad values left 0."""
+    entries = env_state.get(key)
+    if entries is None:
+        problems.append(f"env_state.{key} missing")
+        return 0, {}
+    if not isinstance(entries, list):
+        problems.append(f"env_state.{key}: expected a list of slot objects, got {type(entries).__name__}")
+        return 0, {}
+    spec = {name: (kind, tuple(vertices if d == "V" else d for d in shape)) for name, kind, shape in fields}
+    columns = {name: np.zeros((len(entries), *spec[name][1]), _DTYPES[spec[name][0]]) for name in reads}
+    for i, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            problems.append(f"{key}[{i}]: expected an object, got {type(entry).__name__}")
+            continue
+        for name in reads:
+            if name not in entry:
+                problems.append(f"{key}[{i}].{name} missing")
+                continue
+            try:
+                columns[name][i] = _parse_value(entry[name], *spec[name])
+            except _Malformed as err:
+                problems.append(f"{key}[{i}].{name}: {err}")
+    return len(entries), columns
+
+
+def _static_params(raw: Any, counts: dict[str, int], problems: list[str]) -> dict[str, int | bool]:
+    """The file's static_env_params we use, with defaults; slot counts must agree with the entity lists."""
+    out: dict[str, int | bool] = {
+        "max_polygon_vertices": 4, "num_static_fixated_polys": 4, "num_solver_iterations": 10,
+        "do_warm_starting": True, "frame_skip": 2,
+    }
+    if raw is None:
+        return out
+    if not isinstance(raw, dict):
+        problems.append(f"static_env_params: expected an object, got {type(raw).__name__}")
+        return out
+    minimum = {"max_polygon_vertices": 3, "num_static_fixated_polys": 0, "num_solver_iterations": 1, "frame_skip": 1}
+    for name, least in minimum.items():
+        if name not in raw:
+            continue
+        value = _finite_number(raw[name])
+        if value is None or value != int(value) or value < least:
+            problems.append(f"static_env_params.{name}: expected an integer >= {least}, got {json.dumps(raw[name])}")
+        else:
+            out[name] = int(value)
+    if "do_warm_starting" in raw:
+        if isinstance(raw["do_warm_starting"], bool):
+            out["do_warm_starting"] = raw["do_warm_starting"]
+        else:
+            problems.append(f"static_env_params.do_warm_starting: expected true or false, got "
+                            f"{json.dumps(raw['do_warm_starting'])}")
+    for name, count in counts.items():
+        if name in raw and raw[name] != count:
+            key = name.removeprefix("num_").removesuffix("s")
+            problems.append(
+                f"static_env_params.{name} is {json.dumps(raw[name])} but env_state.{key} has {count} slots"
+            )
+    return out
+
+
+def _sim_params(raw: Any, problems: list[str]) -> SimParams:
+    if raw is None:
+        return SimParams()
+    if not isinstance(raw, dict):
+        problems.append(f"env_params: expected an object, got {type(raw).__name__}")
+        return SimParams()
+    values = {}
+    for f in dataclasses.fields(SimParams):
+        if f.name not in raw:
+            continue
+        value = _finite_number(raw[f.name])
+        if value is None:
+            problems.append(f"env_params.{f.name}: expected a finite number, got {json.dumps(raw[f.name])[:60]}")
+        else:
+            values[f.name] = value
+    return SimParams(**values)
+
+
+def _finite_number(value: Any) -> float | None:
+    """`value` as a finite float, or None if it is not a JSON number (booleans are not numbers here)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _check_range(
+    columns: dict[str, np.ndarray], key: str, field: str, low: int, high: int, what: str, problems: list[str]
+) -> None:
+    """Active slots of `key` must have `field` in [low, high]."""
+    if field not in columns or "active" not in columns:
+        return
+    values, active = columns[field], columns["active"]
+    for i in np.flatnonzero(active & ((values < low) | (values > high))):
+        problems.append(f"{key}[{i}].{field}: {int(values[i])} is {what}")
+
+
+def _manifold_cache(
+    env_state: dict, tables_sizes: SceneSizes, problems: list[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The contact cache (normal impulse, tangent impulse, active) in engine slot order from the stored
+    manifolds, or None when the file has none. Kinetix interleaves the two points of a polygon pair (pair i at
+    entries 2i, 2i+1); the engine keeps every pair's point 0 first, then every pair's point 1."""
+    tables = pair_tables(tables_sizes)
+    expected = {
+        "acc_rr_manifolds": (2 * tables.num_rr, "two per polygon pair"),
+        "acc_cr_manifolds": (tables.num_cr, "one per circle-polygon pair"),
+        "acc_cc_manifolds": (tables.num_cc, "one per circle pair"),
+    }
+    if not any(key in env_state for key in expected):
+        return None
+    parts = []
+    for key, (count, why) in expected.items():
+        n, columns = _read_slots(env_state, key, _MANIFOLD_FIELDS, _MANIFOLD_READS, 0, problems)
+        if key in env_state and isinstance(env_state[key], list) and n != count:
+            problems.append(f"env_state.{key}: {n} entries, expected {count} ({why})")
+            return None
+        if not columns:
+            return None
+        parts.append(columns)
+    rr, cr, cc = parts
+    order = np.concatenate([np.arange(0, 2 * tables.num_rr, 2), np.arange(1, 2 * tables.num_rr, 2)]).astype(int)
+
+    def slots(field: str) -> np.ndarray:
+        return np.concatenate([rr[field][order], cr[field], cc[field]])
+
+    return slots("acc_impulse_normal"), slots("acc_impulse_tangent"), slots("active")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Loading
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise LevelFileError(path, f"cannot read the file: {err.strerror or err}") from err
+    try:
+        raw = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as err:
+        raise LevelFileError(path, f"not valid JSON: {err}") from err
+    if not isinstance(raw, dict):
+        raise LevelFileError(path, f"not a level file: the top level must be an object, got {type(raw).__name__}")
+    if not isinstance(raw.get("env_state"), dict):
+        raise LevelFileError(path, "not a level file: env_state missing or not an object")
+    return raw
+
+
+def load_kinetix_level(
+    path: str | Path, sizes: SceneSizes | None = None, *, validate: bool = True
+) -> KinetixLevel:
+    """Load a level file, in its own size or padded into `sizes` (which must be at least as large).
+
+    Padding adds inactive slots; circles move up by the number of polygon slots added, and joint and thruster
+    body indices follow them. Raises `LevelFileError` for a malformed file, one too large for `sizes`, or (with
+    `validate`, the default) a scene that `validate_scene` rejects; tools that want to show such a scene anyway
+    pass `validate=False` and call `validate_scene` themselves.
+    """
+    path = Path(path)
+    raw = _read_json(path)
+    env_state = raw["env_state"]
+    problems: list[str] = []
+
+    # Slot counts first: the vertex count (from static_env_params) shapes the polygon entries.
+    counts = {}
+    for key in ("polygon", "circle", "joint", "thruster"):
+        entries = env_state.get(key)
+        counts[f"num_{key}s"] = len(entries) if isinstance(entries, list) else 0
+    static = _static_params(raw.get("static_env_params"), counts, problems)
+    V = int(static["max_polygon_vertices"])
+    P, polygons = _read_slots(env_state, "polygon", _SHAPE_FIELDS, _POLYGON_READS, V, problems)
+    C, circles = _read_slots(env_state, "circle", _SHAPE_FIELDS, _CIRCLE_READS, V, problems)
+    J, joints = _read_slots(env_state, "joint", _JOINT_FIELDS, tuple(f[0] for f in _JOINT_FIELDS), V, problems)
+    T, thrusters = _read_slots(
+        env_state, "thruster", _THRUSTER_FIELDS, tuple(f[0] for f in _THRUSTER_FIELDS), V, problems
+    )
+    gravity = np.array([0.0, -9.81], np.float32)
+    if "gravity" not in env_state:
+        problems.append("env_state.gravity missing")
+    else:
+        try:
+            gravity = _parse_value(env_state["gravity"], _F, _VEC)
+        except _Malformed as err:
+            problems.append(f"env_state.gravity: {err}")
+    params = _sim_params(raw.get("env_params"), problems)
+
+    role_text = f"not a role ({', '.join(f'{i} {name}' for i, name in enumerate(ROLE_NAMES))})"
+    for key, columns in (("polygon", polygons), ("circle", circles)):
+        _check_range(columns, key, "role", 0, len(ROLE_NAMES) - 1, role_text, problems)
+    _check_range(joints, "joint", "motor_binding", 0, NUM_MOTOR_BINDINGS - 1,
+                 f"out of range (motor bindings are 0..{NUM_MOTOR_BINDINGS - 1})", problems)
+    _check_range(thrusters, "thruster", "thruster_binding", 0, NUM_THRUSTER_BINDINGS - 1,
+                 f"out of range (thruster bindings are 0..{NUM_THRUSTER_BINDINGS - 1})", problems)
+    index_text = f"out of range (the file has {P} polygons and {C} circles: body indices 0..{P + C - 1})"
+    for field in ("a_index", "b_index"):
+        _check_range(joints, "joint", field, 0, P + C - 1, index_text, problems)
+    _check_range(thrusters, "thruster", "object_index", 0, P + C - 1, index_text, problems)
+    if problems:
+        raise LevelFileError(path, problems)
+
+    S = int(static["num_static_fixated_polys"])
+    if S > P:
+        raise LevelFileError(path, f"static_env_params.num_static_fixated_polys is {S} but the file has {P} polygons")
     file_sizes = SceneSizes(
-        num_polygons=len(polygons),
-        num_circles=len(circles),
-        num_joints=len(joints),
-        num_thrusters=len(thrusters),
-        max_polygon_vertices=int(static.get("max_polygon_vertices", 4)),
-        num_static_polygons=int(static.get("num_static_fixated_polys", 4)),
-        num_solver_iterations=int(static.get("num_solver_iterations", 10)),
-        warm_starting=bool(static.get("do_warm_starting", True)),
+        num_polygons=P, num_circles=C, num_joints=J, num_thrusters=T, max_polygon_vertices=V,
+        num_static_polygons=S, num_solver_iterations=int(static["num_solver_iterations"]),
+        warm_starting=bool(static["do_warm_starting"]),
     )
     target = sizes or file_sizes
     if not file_sizes.fits_in(target):
-        raise LevelFileError(
-            f"{path}: level needs {file_sizes.num_polygons} polygons, {file_sizes.num_circles} circles, "
-            f"{file_sizes.num_joints} joints, {file_sizes.num_thrusters} thrusters but the size allows "
-            f"{target.num_polygons}, {target.num_circles}, {target.num_joints}, {target.num_thrusters}"
-        )
-    P, C, Pt = file_sizes.num_polygons, file_sizes.num_circles, target.num_polygons
+        raise LevelFileError(path, _does_not_fit(file_sizes, target))
+    cache = _manifold_cache(env_state, file_sizes, problems)
+    if problems:
+        raise LevelFileError(path, problems)
 
-    def shift(index: np.ndarray) -> np.ndarray:
-        # Circles move up when polygon slots are added in front of them.
-        return np.where(index >= P, index + (Pt - P), index).astype(np.int32)
+    state = _build_state(target, P, C, polygons, circles, joints, thrusters, gravity, cache, file_sizes)
+    if validate:
+        found = validate_scene(state)
+        if found:
+            raise LevelFileError(path, [f"invalid scene: {p}" for p in found])
 
-    state = empty_scene(target)
-    b = state.bodies
-    body_updates = {}
-    for field, dtype in _BODY_FIELDS.items():
-        poly = _column(polygons, field, dtype, f"{where}: polygon") if P else None
-        circ = _column(circles, field, dtype, f"{where}: circle") if C else None
-        arr = np.array(getattr(b, field))
-        if poly is not None:
-            arr[:P] = poly
-        if circ is not None:
-            arr[Pt : Pt + C] = circ
-        body_updates[field] = jnp.asarray(arr)
-    vertices = np.array(state.polygon_vertices)
-    n_vertices = np.array(state.polygon_n_vertices)
-    if P:
-        verts = _column(polygons, "vertices", np.float32, f"{where}: polygon")
-        if verts.ndim != 3 or verts.shape[2] != 2 or verts.shape[1] > target.max_polygon_vertices:
-            raise LevelFileError(f"{where}: polygon.vertices must be [slots, <= {target.max_polygon_vertices}, 2]")
-        vertices[:P, : verts.shape[1]] = verts
-        n_vertices[:P] = _column(polygons, "n_vertices", np.int32, f"{where}: polygon")
-    radius = np.array(state.circle_radius)
-    if C:
-        radius[:C] = _column(circles, "radius", np.float32, f"{where}: circle")
-
-    joint_updates = {}
-    for field, dtype in _JOINT_FIELDS.items():
-        arr = np.array(getattr(state.joints, field))
-        if joints:
-            col = _column(joints, field, dtype, f"{where}: joint")
-            arr[: len(joints)] = shift(col) if field in ("a_index", "b_index") else col
-        joint_updates[field] = jnp.asarray(arr)
-    thruster_updates = {}
-    for field, dtype in _THRUSTER_FIELDS.items():
-        ours = "body_index" if field == "object_index" else field
-        arr = np.array(getattr(state.thrusters, ours))
-        if thrusters:
-            col = _column(thrusters, field, dtype, f"{where}: thruster")
-            arr[: len(thrusters)] = shift(col) if field == "object_index" else col
-        thruster_updates[ours] = jnp.asarray(arr)
-
-    gravity = np.asarray(env_state.get("gravity", [0.0, -9.81]), np.float32)
-    state = state.replace(
-        bodies=b.replace(**body_updates),
-        polygon_vertices=jnp.asarray(vertices),
-        polygon_n_vertices=jnp.asarray(n_vertices),
-        circle_radius=jnp.asarray(radius),
-        joints=state.joints.replace(**joint_updates),
-        thrusters=state.thrusters.replace(**thruster_updates),
-        gravity=jnp.asarray(gravity),
-    )
-    state = refresh_collision_filter(state)
-
-    env_params = data.get("env_params", {})
-    known = {f.name for f in dataclasses.fields(SimParams)}
-    params = SimParams(**{k: float(v) for k, v in env_params.items() if k in known})
-
-    def extra(entries: list[dict], field: str, size: int, default: float, dtype) -> np.ndarray:
+    def task(columns: dict, field: str, size: int, default, dtype) -> np.ndarray:
         out = np.full(size, default, dtype=dtype)
-        if entries:
-            out[: len(entries)] = [entry.get(field, default) for entry in entries]
+        if field in columns:
+            out[: len(columns[field])] = columns[field]
         return out
 
     return KinetixLevel(
         state=state,
         sizes=target,
         params=params,
-        polygon_roles=extra(polygons, "role", Pt, 0, np.int32),
-        circle_roles=extra(circles, "role", target.num_circles, 0, np.int32),
-        polygon_densities=extra(polygons, "density", Pt, 1.0, np.float32),
-        circle_densities=extra(circles, "density", target.num_circles, 1.0, np.float32),
-        motor_bindings=extra(joints, "motor_binding", target.num_joints, 0, np.int32),
-        thruster_bindings=extra(thrusters, "thruster_binding", target.num_thrusters, 0, np.int32),
-        frame_skip=int(static.get("frame_skip", 2)),
+        polygon_roles=task(polygons, "role", target.num_polygons, 0, np.int32),
+        circle_roles=task(circles, "role", target.num_circles, 0, np.int32),
+        polygon_densities=task(polygons, "density", target.num_polygons, 1.0, np.float32),
+        circle_densities=task(circles, "density", target.num_circles, 1.0, np.float32),
+        motor_bindings=task(joints, "motor_binding", target.num_joints, 0, np.int32),
+        thruster_bindings=task(thrusters, "thruster_binding", target.num_thrusters, 0, np.int32),
+        frame_skip=int(static["frame_skip"]),
+        file_sizes=file_sizes,
     )
+
+
+def _does_not_fit(file_sizes: SceneSizes, target: SceneSizes) -> str:
+    if file_sizes.num_static_polygons != target.num_static_polygons:
+        return (f"the file has {file_sizes.num_static_polygons} static arena polygons but the size expects "
+                f"{target.num_static_polygons}")
+    names = ("num_polygons", "num_circles", "num_joints", "num_thrusters", "max_polygon_vertices")
+    over = [
+        f"{getattr(file_sizes, n)} {n.removeprefix('num_').replace('_', ' ')} (the size allows {getattr(target, n)})"
+        for n in names
+        if getattr(file_sizes, n) > getattr(target, n)
+    ]
+    return "too large for the size: the file has " + ", ".join(over)
+
+
+def _build_state(
+    target: SceneSizes,
+    P: int,
+    C: int,
+    polygons: dict,
+    circles: dict,
+    joints: dict,
+    thrusters: dict,
+    gravity: np.ndarray,
+    cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    file_sizes: SceneSizes,
+) -> SimState:
+    Pt = target.num_polygons
+    host = jax.tree.map(np.array, _empty_scene_host(target))
+
+    def shift(index: np.ndarray) -> np.ndarray:
+        # Circles move up when polygon slots are added in front of them.
+        return np.where(index >= P, index + (Pt - P), index).astype(np.int32)
+
+    bodies = {}
+    for field in _BODY_FIELDS:
+        arr = getattr(host.bodies, field)
+        if P:
+            arr[:P] = polygons[field]
+        if C:
+            arr[Pt : Pt + C] = circles[field]
+        bodies[field] = arr
+    vertices, n_vertices, radius = host.polygon_vertices, host.polygon_n_vertices, host.circle_radius
+    if P:
+        V = polygons["vertices"].shape[1]
+        vertices[:P] = 0.0
+        vertices[:P, :V] = polygons["vertices"]
+        n_vertices[:P] = polygons["n_vertices"]
+    if C:
+        radius[:C] = circles["radius"]
+    joint_fields = {}
+    for field in vars(host.joints):
+        arr = getattr(host.joints, field)
+        if len(joints.get(field, ())):
+            arr[: len(joints[field])] = shift(joints[field]) if field in ("a_index", "b_index") else joints[field]
+        joint_fields[field] = arr
+    thruster_fields = {}
+    for ours in vars(host.thrusters):
+        theirs = "object_index" if ours == "body_index" else ours
+        arr = getattr(host.thrusters, ours)
+        if len(thrusters.get(theirs, ())):
+            column = thrusters[theirs]
+            arr[: len(column)] = shift(column) if ours == "body_index" else column
+        thruster_fields[ours] = arr
+    contacts = host.contacts
+    same_layout = (P, C, file_sizes.num_static_polygons) == (Pt, target.num_circles, target.num_static_polygons)
+    if cache is not None and same_layout:
+        contacts = contacts.replace(normal_impulse=cache[0], tangent_impulse=cache[1], active=cache[2])
+    host = host.replace(
+        bodies=host.bodies.replace(**bodies),
+        polygon_vertices=vertices,
+        polygon_n_vertices=n_vertices,
+        circle_radius=radius,
+        joints=host.joints.replace(**joint_fields),
+        thrusters=host.thrusters.replace(**thruster_fields),
+        contacts=contacts,
+        gravity=gravity,
+    )
+    return _refresh_collision_filter(jax.device_put(host))
+
+
+# Jitted once per size: run eagerly, these two cost a compile per primitive the first time a size is seen.
+_refresh_collision_filter = jax.jit(refresh_collision_filter)
+
+
+@functools.cache
+def _empty_scene_host(sizes: SceneSizes) -> SimState:
+    return jax.tree.map(np.asarray, jax.jit(empty_scene, static_argnums=0)(sizes))
+
+
+def level_file_problems(path: str | Path, sizes: SceneSizes | None = None) -> list[str]:
+    """Every problem with a level file (format, fit into `sizes`, scene validity); empty when it is valid."""
+    try:
+        level = load_kinetix_level(path, sizes, validate=False)
+    except LevelFileError as err:
+        return list(err.problems)
+    return [f"invalid scene: {p}" for p in validate_scene(level.state)]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Saving
+
+
+def _encode(value: np.ndarray) -> Any:
+    """A host array in Kinetix's encoding: nested {"0": ..., "1": ...} objects around plain JSON scalars."""
+    if value.ndim == 0:
+        if value.dtype == np.bool_:
+            return bool(value)
+        if value.dtype.kind in "iu":
+            return int(value)
+        return float(value)
+    return {str(i): _encode(value[i]) for i in range(value.shape[0])}
+
+
+def level_to_json_dict(
+    level: Level, sizes: SceneSizes, params: SimParams | None = None, frame_skip: int = 2
+) -> dict[str, Any]:
+    """A level as the JSON object of a Kinetix level file (three keys: env_state, env_params, static_env_params)."""
+    params = SimParams() if params is None else params
+    host: Level = jax.tree.map(np.asarray, level)
+    s = host.state
+    P, C, J, T, V = (sizes.num_polygons, sizes.num_circles, sizes.num_joints, sizes.num_thrusters,
+                     sizes.max_polygon_vertices)
+    tables = pair_tables(sizes)
+    expected = {
+        "roles": (host.roles.shape, (P + C,)),
+        "motor_bindings": (host.motor_bindings.shape, (J,)),
+        "thruster_bindings": (host.thruster_bindings.shape, (T,)),
+        "state.polygon_vertices": (s.polygon_vertices.shape, (P, V, 2)),
+        "state.circle_radius": (s.circle_radius.shape, (C,)),
+        "state.contacts": (s.contacts.active.shape, (tables.num_contacts,)),
+    }
+    wrong = [f"{name} has shape {got}, expected {want}" for name, (got, want) in expected.items() if got != want]
+    if wrong:
+        raise ValueError("level does not match the sizes (a batch of levels must be saved one by one): "
+                         + "; ".join(wrong))
+    if frame_skip < 1:
+        raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+    b = s.bodies
+    zero_vertices = np.zeros((V, 2), np.float32)
+
+    def shape_entry(body: int, n_vertices: int, vertices: np.ndarray, radius: float) -> dict[str, Any]:
+        entry = {field: _encode(getattr(b, field)[body]) for field in _BODY_FIELDS}
+        entry["n_vertices"] = int(n_vertices)
+        entry["vertices"] = _encode(vertices)
+        entry["radius"] = float(radius)
+        entry["role"] = int(host.roles[body])
+        entry["density"] = float(host.densities[body])
+        entry["highlighted"] = False
+        return entry
+
+    polygons = [shape_entry(i, s.polygon_n_vertices[i], s.polygon_vertices[i], 0.0) for i in range(P)]
+    circles = [shape_entry(P + i, 0, zero_vertices, s.circle_radius[i]) for i in range(C)]
+
+    def slot_entry(group: Any, fields: tuple, slot: int, rename: dict[str, str], extra: dict) -> dict[str, Any]:
+        entry = {}
+        for name, _, _ in fields:
+            if name in extra:
+                entry[name] = int(extra[name][slot])
+            else:
+                entry[name] = _encode(getattr(group, rename.get(name, name))[slot])
+        return entry
+
+    joints = [
+        slot_entry(s.joints, _JOINT_FIELDS, j, {}, {"motor_binding": host.motor_bindings}) for j in range(J)
+    ]
+    thrusters = [
+        slot_entry(s.thrusters, _THRUSTER_FIELDS, t, {"object_index": "body_index"},
+                   {"thruster_binding": host.thruster_bindings})
+        for t in range(T)
+    ]
+    collides = _collision_matrix(s.joints, P + C)
+
+    cache = s.contacts
+
+    def manifold(slot: int) -> dict[str, Any]:
+        return {
+            "normal": {"0": 0.0, "1": 0.0},
+            "penetration": 0.0,
+            "collision_point": {"0": 0.0, "1": 0.0},
+            "active": bool(cache.active[slot]),
+            "acc_impulse_normal": float(cache.normal_impulse[slot]),
+            "acc_impulse_tangent": float(cache.tangent_impulse[slot]),
+            "restitution_velocity_target": 0.0,
+        }
+
+    n_rr = tables.num_rr
+    rr = [manifold(pair + point * n_rr) for pair in range(n_rr) for point in (0, 1)]
+    cr = [manifold(2 * n_rr + k) for k in range(tables.num_cr)]
+    cc = [manifold(2 * n_rr + tables.num_cr + k) for k in range(tables.num_cc)]
+
+    env_params: dict[str, Any] = {}
+    for f in dataclasses.fields(SimParams):
+        value = float(getattr(params, f.name))
+        env_params[f.name] = int(value) if f.name in _INTEGER_PARAMS and value.is_integer() else value
+    env_params.update(
+        max_timesteps=MAX_TIMESTEPS, pixels_per_unit=PIXELS_PER_UNIT, dense_reward_scale=DENSE_REWARD_SCALE,
+        num_shape_roles=NUM_SHAPE_ROLES,
+    )
+    static_env_params = {
+        "num_polygons": P,
+        "num_circles": C,
+        "num_joints": J,
+        "num_thrusters": T,
+        "max_polygon_vertices": V,
+        "num_solver_iterations": sizes.num_solver_iterations,
+        "solver_batch_size": SOLVER_BATCH_SIZE,
+        "do_warm_starting": bool(sizes.warm_starting),
+        "num_static_fixated_polys": sizes.num_static_polygons,
+        "screen_dim": {"0": SCREEN_DIM, "1": SCREEN_DIM},
+        "downscale": DOWNSCALE,
+        "frame_skip": int(frame_skip),
+        "max_shape_size": MAX_SHAPE_SIZE,
+        "num_motor_bindings": NUM_MOTOR_BINDINGS,
+        "num_thruster_bindings": NUM_THRUSTER_BINDINGS,
+    }
+    return {
+        "env_state": {
+            "polygon": polygons,
+            "circle": circles,
+            "joint": joints,
+            "thruster": thrusters,
+            "collision_matrix": _encode(collides),
+            "acc_rr_manifolds": rr,
+            "acc_cr_manifolds": cr,
+            "acc_cc_manifolds": cc,
+            "gravity": _encode(s.gravity),
+        },
+        "env_params": env_params,
+        "static_env_params": static_env_params,
+    }
+
+
+def _collision_matrix(joints: Any, num_bodies: int) -> np.ndarray:
+    """[N, N] bool, Kinetix's collision matrix: two shapes may collide unless they are the same shape or linked
+    through a chain of active joints (what `refresh_collision_filter` computes per pair, here in numpy)."""
+    parent = list(range(num_bodies))
+
+    def root(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    a, b, active = np.asarray(joints.a_index), np.asarray(joints.b_index), np.asarray(joints.active)
+    for i, j in zip(a[active], b[active]):
+        if 0 <= i < num_bodies and 0 <= j < num_bodies:
+            parent[root(int(j))] = root(int(i))
+    roots = np.array([root(i) for i in range(num_bodies)])
+    return roots[:, None] != roots[None, :]
+
+
+def save_kinetix_level(
+    path: str | Path, level: Level, sizes: SceneSizes, params: SimParams | None = None, frame_skip: int = 2
+) -> Path:
+    """Write `level` (one level of `sizes`) as a Kinetix JSON file; the file is replaced atomically."""
+    path = Path(path)
+    text = json.dumps(level_to_json_dict(level, sizes, params, frame_skip))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -46,15 +46,21 @@ def test_print_config_shows_overrides(tmp_path: Path) -> None:
 
 
 def test_unbuilt_command_says_which_issue(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["train"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "not built yet" in err and "issue 5 (learner and fused trainer)" in err
-    assert "\n" not in err
-    assert main(["levels"]) == 2
-    assert "issue 4 (task layer and level files)" in capsys.readouterr().err
     for name in ("launch", "learner", "actor", "curriculum", "router", "view"):
         assert main([name]) == 2
-        assert "the distributed-mode issues (not yet filed)" in capsys.readouterr().err
+        err = capsys.readouterr().err.strip()
+        assert "not built yet" in err and "the distributed-mode issues (not yet filed)" in err
+        assert "\n" not in err
+
+
+def test_eval_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval", "--checkpoint", str(tmp_path)]) == 2
+    assert "no config.toml" in capsys.readouterr().err
+
+
+def test_resume_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys) -> None:
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "has no config.toml" in capsys.readouterr().err
 
 
 def test_config_error_is_one_line_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
@@ -72,7 +78,7 @@ def test_version_and_global_options(capsys: pytest.CaptureFixture[str]) -> None:
         main(["--version"])
     assert info.value.code == 0
     assert capsys.readouterr().out.startswith("impulse ")
-    assert main(["--log-format", "json", "eval", "--log-level", "DEBUG", "seed=2", "--print-config"]) == 0
+    assert main(["--log-format", "json", "train", "--log-level", "DEBUG", "seed=2", "--print-config"]) == 0
     assert tomllib.loads(capsys.readouterr().out)["seed"] == 2
 
 

@@ -1,0 +1,163 @@
+"""`impulse levels`: validate (exit codes, every problem printed), show, render (PNG of the scene) and convert."""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from PIL import Image
+
+from deploy.cli import main
+from engine.levels.kinetix_json import level_to_json_dict, load_kinetix_level, save_kinetix_level
+from engine.levels.level import level_from_scene
+from engine.levels.render import ROLE_COLOURS, world_to_pixel
+from engine.physics.scene import add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
+from engine.physics.sizes import SIZE_M, SIZE_S
+
+GREEN_AT = (1.5, 2.5)  # centre of the green box
+BLUE_AT = (3.8, 1.0)  # centre of the (fixed) blue circle
+
+
+def small_level():
+    """The level below, built by one compiled call (cheaper than running the builders eagerly)."""
+    return jax.tree.map(np.asarray, _compiled()())
+
+
+@functools.cache
+def _compiled():
+    return jax.jit(_small_level)
+
+
+def _small_level():
+    """S-sized: a green box with a thruster, a blue fixed ball, a red ball hinged to the box by a motor."""
+    s = empty_scene(SIZE_S)
+    s, box = add_rectangle(s, GREEN_AT, 0.8, 0.6)
+    s, blue = add_circle(s, BLUE_AT, 0.3, fixed=True)
+    s, red = add_circle(s, (2.3, 2.5), 0.2)
+    s, _ = add_revolute_joint(s, box, red, (0.4, 0.0), (-0.4, 0.0), motor_on=True)
+    s, _ = add_thruster(s, box, (-0.3, 0.0), rotation=0.0, power=0.5)
+    roles = jnp.zeros(SIZE_S.num_bodies, jnp.int32).at[jnp.stack([box, blue, red])].set(jnp.array([1, 2, 3]))
+    return level_from_scene(s, roles, motor_bindings=jnp.array([1], jnp.int32))
+
+
+@pytest.fixture(scope="module")
+def level_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return save_kinetix_level(tmp_path_factory.mktemp("levels") / "small.json", small_level(), SIZE_S)
+
+
+def write_bad(path: Path) -> Path:
+    data = level_to_json_dict(small_level(), SIZE_S)
+    del data["env_state"]["polygon"][4]["velocity"]
+    data["env_state"]["circle"][0]["role"] = 5
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_validate_reports_every_problem_and_exit_code(
+    tmp_path: Path, level_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["levels", "validate", str(level_file)]) == 0
+    out = capsys.readouterr().out
+    assert f"ok       {level_file}" in out and "1 of 1 level files valid" in out
+
+    folder = tmp_path / "set"
+    folder.mkdir()
+    (folder / "good.json").write_text(level_file.read_text())
+    bad = write_bad(folder / "bad.json")
+    (folder / "notes.txt").write_text("not a level")
+    assert main(["levels", "validate", str(folder)]) == 1
+    out = capsys.readouterr().out
+    assert f"INVALID  {bad}" in out and f"ok       {folder / 'good.json'}" in out
+    assert "polygon[4].velocity missing" in out and "circle[0].role: 5 is not a role" in out
+    assert "1 of 2 level files valid" in out and "notes.txt" not in out
+
+    assert main(["levels", "validate", str(level_file), "--size", "m"]) == 0
+    capsys.readouterr()
+    empty_m = level_from_scene(jax.jit(empty_scene, static_argnums=0)(SIZE_M))
+    m_file = save_kinetix_level(tmp_path / "m.json", empty_m, SIZE_M)
+    assert main(["levels", "validate", str(m_file), "--size", "s"]) == 1
+    assert "too large for the size" in capsys.readouterr().out
+    assert main(["levels", "validate", str(tmp_path / "absent.json")]) == 1
+    assert "no such file" in capsys.readouterr().out
+
+
+def test_show_describes_roles_links_and_controls(level_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["levels", "show", str(level_file)]) == 0
+    out = capsys.readouterr().out
+    assert "size: S (5 polygons incl. 4 arena, 2 circles, 1 joint, 1 thruster)" in out
+    assert "#4  green   rectangle 0.80 x 0.60 m, at (1.50, 2.50)" in out
+    assert "blue    circle r 0.30 m" in out and "fixed" in out
+    assert "red     circle r 0.20 m" in out
+    assert "joint 0: revolute, green polygon #4 - red circle #6" in out and "motor binding 1" in out
+    assert "motor action 1: joint 0" in out and "motor action 0: nothing" in out
+    assert "thruster action 0: fires thruster 0 on green polygon #4" in out
+    assert "task: make a green shape touch a blue shape without any green shape touching a red one" in out
+
+    assert main(["levels", "show", str(level_file), "--size", "l"]) == 0
+    out = capsys.readouterr().out
+    assert "in the file, loaded as L" in out and "red circle #13" in out  # circles moved up by 7 polygon slots
+
+
+def test_render_draws_the_scene(tmp_path: Path, level_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out_png = tmp_path / "pictures" / "small.png"
+    assert main(["levels", "render", str(level_file), "-o", str(out_png)]) == 0
+    assert "500 x 500" in capsys.readouterr().out
+    image = np.asarray(Image.open(out_png).convert("RGB"))
+    assert image.shape == (500, 500, 3)
+    green = tuple(ROLE_COLOURS[1])
+    assert tuple(image[world_to_pixel(*GREEN_AT)]) == green
+    # y points up: the green box is in the upper half at x = 1.5 m, and nowhere near the bottom-left.
+    rows, cols = np.nonzero(np.all(image == green, axis=-1))
+    assert abs(rows.mean() - (500 - GREEN_AT[1] * 100)) < 3 and abs(cols.mean() - GREEN_AT[0] * 100) < 3
+    assert 0.75 * 80 * 60 < rows.size <= 80 * 60  # about the box's area (the outline and thruster take a little)
+    # The blue ball is fixed, so it is drawn half as bright; the floor (neutral, fixed) dark grey at the bottom.
+    below_centre = (BLUE_AT[0], BLUE_AT[1] - 0.15)  # off the line that marks the rotation
+    assert tuple(image[world_to_pixel(*below_centre)]) == tuple(c // 2 for c in ROLE_COLOURS[2])
+    assert tuple(image[world_to_pixel(2.5, 0.2)]) == (80, 80, 80)
+    assert tuple(image[world_to_pixel(2.5, 4.0)]) == (255, 255, 255)
+
+    half = tmp_path / "half.png"
+    assert main(["levels", "render", str(level_file), "-o", str(half), "--scale", "0.5"]) == 0
+    small = np.asarray(Image.open(half).convert("RGB"))
+    assert small.shape == (250, 250, 3)
+    assert tuple(small[world_to_pixel(*GREEN_AT, scale=0.5)]) == green
+
+
+def test_convert_resizes_and_loads_at_the_new_size(
+    tmp_path: Path, level_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "as_m.json"
+    assert main(["levels", "convert", str(level_file), str(target), "--size", "m"]) == 0
+    assert "size M" in capsys.readouterr().out
+    converted = load_kinetix_level(target)
+    assert converted.sizes == SIZE_M
+    original = load_kinetix_level(level_file)
+    # The red circle (body 6 in S) is body 7 in M, still hinged to the green box.
+    assert np.array_equal(np.asarray(converted.state.bodies.position)[7], np.asarray(original.state.bodies.position)[6])
+    assert int(converted.state.joints.b_index[0]) == 7 and int(converted.level.roles[7]) == 3
+    data = json.loads(target.read_text())
+    assert data["static_env_params"]["num_polygons"] == 6 and len(data["env_state"]["circle"]) == 3
+
+    assert main(["levels", "convert", str(target), str(tmp_path / "back.json"), "--size", "s"]) == 1
+    err = capsys.readouterr().err
+    assert "as_m.json" in err and "too large for the size" in err
+    assert not (tmp_path / "back.json").exists()
+
+
+def test_bad_input_and_usage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = write_bad(tmp_path / "bad.json")
+    assert main(["levels", "show", str(bad)]) == 1
+    assert "polygon[4].velocity missing" in capsys.readouterr().err
+    assert main(["levels", "render", str(bad), "-o", str(tmp_path / "x.png")]) == 1
+    assert not (tmp_path / "x.png").exists()
+    capsys.readouterr()
+    assert main(["levels"]) == 2
+    assert "choose an action" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["levels", "convert", str(bad), str(tmp_path / "y.json")])  # --size is required
+    assert info.value.code == 2
