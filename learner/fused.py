@@ -25,7 +25,7 @@ from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import Level
 from learner.agent import Agent
 from learner.config import PPOConfig
-from learner.update import TrainState, make_optimizer, ppo_update
+from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
 
 Array = jax.Array
 LevelSampler = Callable[[Array], Level]  # key -> a batch of levels
@@ -74,6 +74,9 @@ class FusedTrainer:
         envs, trajectory, _, _, stats = rollout(
             self.agent.act, carry.train.params, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps
         )
+        # Fused mode acts with the parameters it trains, so the lag is always 0; recorded for parity with the
+        # distributed learner's metrics.
+        lag = check_policy_lag(carry.train.policy_version, carry.train.policy_version, self.ppo.max_policy_lag)
         train, losses = ppo_update(
             carry.train,
             trajectory,
@@ -99,6 +102,7 @@ class FusedTrainer:
             "episode_return": jnp.where(episodes > 0, stats.return_sum / safe, jnp.nan),
             "episode_length": jnp.where(episodes > 0, stats.length_sum / safe, jnp.nan),
             "reward_per_step": trajectory.reward.mean(),
+            "policy_lag": lag.lag,
         }
         return FusedCarry(train, envs, key), metrics
 

@@ -32,6 +32,18 @@ class TrainState(NamedTuple):
     policy_version: Array  # int32
 
 
+class LagCheck(NamedTuple):
+    lag: Array  # int32 policy versions between the data's behaviour policy and the learner's
+    accepted: Array  # bool: lag within the configured limit
+
+
+def check_policy_lag(behaviour_version: Array, learner_version: Array, max_policy_lag: int) -> LagCheck:
+    """How stale a batch is. Batches older than `max_policy_lag` versions are dropped (and counted by the caller)
+    rather than corrected: importance weights that far off-policy are mostly clipped and carry little signal."""
+    lag = jnp.asarray(learner_version, jnp.int32) - jnp.asarray(behaviour_version, jnp.int32)
+    return LagCheck(lag=lag, accepted=lag <= max_policy_lag)
+
+
 def make_optimizer(config: PPOConfig, num_updates: int) -> optax.GradientTransformation:
     """Adam with global-norm clipping; the learning rate decays linearly to 0 over the run when annealed."""
     steps_per_update = config.update_epochs * config.num_minibatches

@@ -1,0 +1,115 @@
+"""Fused training throughput: environment steps consumed per second including the PPO update, for S, M and L,
+with the compile time of the training step and the share of time spent in rollout vs update.
+
+The timed program is exactly what `impulse train` runs (`learner.fused.FusedTrainer.iterate`). To split the time,
+the rollout and the update are also compiled and timed on their own. Levels: all shared Kinetix levels of the
+size (auto-reset walks them), as Kinetix's own PPO benchmark trains on the hand-made levels.
+
+Kinetix's figure for comparison (not re-measured here; it needs a GPU): 94.7k env steps/s end to end on an H100
+with its entity network, 2,048 envs, 64 steps, 8 epochs, 32 minibatches on S levels. `--kinetix-settings` uses
+those settings (the default network here is Kinetix's default size: the permutation-invariant entity network is
+the cheaper `entity` kind; `--network transformer` is the paper's model class).
+
+    impulse bench train --quick                       # S, 64 envs, small: a smoke run on CPU
+    impulse bench train --sizes s m l --kinetix-settings
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+
+from actors.rollout import rollout
+from benchmarks._harness import emit, environment, progress, require_levels, time_jitted
+from engine.env.spec import EnvParams, EnvSpec
+from engine.levels.kinetix_json import load_kinetix_level
+from engine.levels.level import stack_levels
+from engine.physics.sizes import size_preset
+from learner.agent import make_agent
+from learner.config import NetworkConfig, PPOConfig
+from learner.fused import FusedTrainer
+from learner.update import ppo_update
+
+
+def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> dict:
+    sizes = size_preset(size)
+    paths = sorted((require_levels() / size).glob("*.json"))
+    levels = stack_levels([load_kinetix_level(path, sizes).level for path in paths])
+    spec = EnvSpec(sizes=sizes, observation="symbolic" if network.kind == "flat" else "entity")
+    agent = make_agent(network, spec)
+    trainer = FusedTrainer(agent, EnvParams(dense_reward_scale=0.2), ppo, num_updates=1000)
+    carry = jax.jit(trainer.init)(jax.random.PRNGKey(0), levels)
+    jax.block_until_ready(carry)
+
+    iterate = jax.jit(trainer.iterate)
+    start = time.perf_counter()
+    compiled = iterate.lower(carry, levels).compile()
+    compile_s = time.perf_counter() - start
+    state = {"carry": carry}
+
+    def train_step():
+        state["carry"], metrics = compiled(state["carry"], levels)
+        return metrics
+
+    _, train_s = time_jitted(train_step, repeats)
+
+    roll = jax.jit(lambda c: rollout(agent.act, c.train.params, spec, trainer.env_params, c.envs, levels,
+                                     ppo.num_steps))
+    _, rollout_s = time_jitted(lambda: roll(state["carry"]), repeats)
+    _, trajectory, _, _, _ = roll(state["carry"])
+    update = jax.jit(lambda c, t, k: ppo_update(c.train, t, c.envs.obs, k, apply_fn=agent.apply,
+                                                 distribution=agent.distribution, optimizer=trainer.optimizer,
+                                                 config=ppo))
+    _, update_s = time_jitted(lambda: update(state["carry"], trajectory, jax.random.PRNGKey(1)), repeats)
+
+    steps = ppo.num_envs * ppo.num_steps
+    return {
+        "system": "impulse-fused-ppo",
+        "size": size,
+        "network": network.kind,
+        "parameters": sum(x.size for x in jax.tree.leaves(carry.train.params)),
+        "num_envs": ppo.num_envs,
+        "num_steps": ppo.num_steps,
+        "update_epochs": ppo.update_epochs,
+        "num_minibatches": ppo.num_minibatches,
+        "env_steps_per_s": steps / train_s,
+        "compile_s": compile_s,
+        "iteration_s": train_s,
+        "rollout_s": rollout_s,
+        "update_s": update_s,
+        "rollout_share": rollout_s / (rollout_s + update_s),
+        "levels": len(paths),
+        **environment(),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="impulse bench train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
+    parser.add_argument("--network", default="entity", choices=["entity", "transformer", "flat"])
+    parser.add_argument("--num-envs", type=int, default=256)
+    parser.add_argument("--num-steps", type=int, default=64)
+    parser.add_argument("--epochs", type=int, default=4)
+    parser.add_argument("--minibatches", type=int, default=8)
+    parser.add_argument("--kinetix-settings", action="store_true",
+                        help="2,048 envs x 64 steps, 8 epochs, 32 minibatches (Kinetix's PPO benchmark)")
+    parser.add_argument("--quick", action="store_true", help="S only, 64 envs, 16 steps, 2 epochs")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    if args.kinetix_settings:
+        args.num_envs, args.num_steps, args.epochs, args.minibatches = 2048, 64, 8, 32
+    if args.quick:
+        args.sizes, args.num_envs, args.num_steps, args.epochs, args.minibatches = ["s"], 64, 16, 2, 4
+    ppo = PPOConfig(num_envs=args.num_envs, num_steps=args.num_steps, update_epochs=args.epochs,
+                    num_minibatches=args.minibatches)
+    network = NetworkConfig(kind=args.network)
+    for size in args.sizes:
+        progress(f"fused PPO, size {size}: compiling and timing ...")
+        emit(measure(size, ppo, network, args.repeats))
+
+
+if __name__ == "__main__":
+    main()
