@@ -11,6 +11,10 @@ goes to stderr); ``reference_env.run_reference`` parses them.
         of ones; the timing protocol matches benchmarks/_harness.time_jitted.
     trajectory --level PATH [--steps 120] [--actions zero|scripted] [--record 30,60,120]
         One env, jitted single engine steps (no Kinetix frame_skip); body states at the recorded steps.
+    trajectories --levels PATH [PATH ...] [--steps 120] [--actions zero|scripted]
+        Many levels in one process (for benchmarks/compat_jax2d.py): per level, one jitted scan of Jax2D's
+        single-env step over the whole action sequence, compiled once per StaticSimParams (once per size), and
+        one JSON line with the initial body flags and every step's body positions.
     env-speed --level PATH --num-envs N --steps T [--repeats 3]
         The Kinetix env (entity observation, multi-discrete actions, auto-reset to the same level, frame_skip
         from the file), vmapped and scanned, uniform random actions drawn inside the scan from a fixed key.
@@ -167,6 +171,57 @@ def trajectory(args: argparse.Namespace) -> None:
           "num_joints": num_joints, "num_thrusters": num_thrusters, "frames": frames, **environment()})
 
 
+def _action_sequence(steps: int, num_joints: int, num_thrusters: int, kind: str) -> np.ndarray:
+    """[steps, J + T] engine actions: zeros, or the shared scripted pattern."""
+    if kind == "zero":
+        return np.zeros((steps, num_joints + num_thrusters), np.float32)
+    scripted = _load_scripted_actions()
+    rows = [scripted.engine_actions(i, num_joints, num_thrusters) for i in range(steps)]
+    return np.stack(rows).reshape(steps, num_joints + num_thrusters).astype(np.float32)
+
+
+def trajectories(args: argparse.Namespace) -> None:
+    """Body positions after every step, for many levels, with one compile per static configuration.
+
+    The jitted rollout is cached by StaticSimParams (the only static input; levels of one size share it) and
+    takes the state, SimParams and actions as traced arguments, so a new level of an already seen size does not
+    recompile. ``traces`` in each record counts the compilations so far."""
+    rollouts: dict[str, Callable] = {}
+    traces = {"count": 0}
+
+    def make_rollout(static: StaticSimParams) -> Callable:
+        engine = PhysicsEngine(static)
+
+        def body(state: SimState, params: SimParams, action: jax.Array) -> tuple[SimState, jax.Array]:
+            state = engine.step(state, params, action)[0]
+            return state, jnp.concatenate([state.polygon.position, state.circle.position])
+
+        @jax.jit
+        def rollout(state: SimState, params: SimParams, actions: jax.Array) -> jax.Array:
+            traces["count"] += 1  # runs at trace time only
+            return jax.lax.scan(lambda s, a: body(s, params, a), state, actions)[1]
+
+        return rollout
+
+    for path in args.levels:
+        state, params, static = load_sim(path)
+        key = repr(static)
+        if key not in rollouts:
+            rollouts[key] = make_rollout(static)
+        num_joints, num_thrusters = static.num_joints, static.num_thrusters
+        actions = _action_sequence(args.steps, num_joints, num_thrusters, args.actions)
+        progress(f"jax2d trajectories {level_name(path)}: {args.steps} steps, {args.actions} actions")
+        start = time.perf_counter()
+        positions = np.asarray(jax.block_until_ready(rollouts[key](state, params, jnp.asarray(actions))))
+        initial = _bodies(state)
+        emit({"system": "jax2d", "kind": "trajectories", "level": level_name(path), "actions": args.actions,
+              "steps": args.steps, "num_polygons": static.num_polygons, "num_circles": static.num_circles,
+              "num_joints": num_joints, "num_thrusters": num_thrusters,
+              "initial": {k: initial[k] for k in ("position", "active", "inverse_mass")},
+              "positions": positions.tolist(), "seconds": time.perf_counter() - start,
+              "traces": traces["count"], **environment()})
+
+
 def env_speed(args: argparse.Namespace) -> None:
     level, static_env_params, env_params = load_from_json_file(str(Path(args.level).resolve()))
     env = make_kinetix_env(ActionType.MULTI_DISCRETE, ObservationType.SYMBOLIC_ENTITY, None, env_params,
@@ -222,8 +277,14 @@ def main(argv: list[str] | None = None) -> None:
     traj.add_argument("--steps", type=int, default=120)
     traj.add_argument("--actions", choices=("zero", "scripted"), default="zero")
     traj.add_argument("--record", default="30,60,120", help="comma-separated step counts (0 = initial state)")
+    many = commands.add_parser("trajectories")
+    many.add_argument("--levels", nargs="+", required=True)
+    many.add_argument("--steps", type=int, default=120)
+    many.add_argument("--actions", choices=("zero", "scripted"), default="zero")
     args = parser.parse_args(argv)
-    {"engine-speed": engine_speed, "trajectory": trajectory, "env-speed": env_speed}[args.command](args)
+    commands_by_name = {"engine-speed": engine_speed, "trajectory": trajectory, "trajectories": trajectories,
+                        "env-speed": env_speed}
+    commands_by_name[args.command](args)
 
 
 if __name__ == "__main__":
