@@ -9,7 +9,7 @@ STAMP := $(VENV)/.impulse-installed
 .PHONY: run test venv
 
 run: $(STAMP)
-	$(VENV)/bin/impulse bench engine --quick
+	$(VENV)/bin/impulse train --config configs/quick-cpu.toml
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -19,22 +19,12 @@ from learner.config import TrainConfig
 from learner.run import build
 
 REPO = Path(__file__).resolve().parents[2]
-LEVEL = REPO.parent / "shared" / "kinetix-levels" / "s" / "h0_weak_thrust.json"  # TODO(lead): a hand-made level
+QUICK = REPO / "configs" / "quick-cpu.toml"
 UPDATES = 8
-SETTINGS = [
-    f"env.levels={LEVEL}",
-    "network.kind=entity",
-    "network.width=32",
-    "network.depth=2",
-    "ppo.num_envs=16",
-    "ppo.num_steps=16",
-    "ppo.num_minibatches=2",
-    "ppo.update_epochs=2",
-    f"total_env_steps={UPDATES * 16 * 16}",
-    "checkpoint.every_updates=2",
-    "checkpoint.keep_last=2",
-    "eval.attempts=0",
-]
+# The README's quick config (its compiled training step is shared with the learning test through the cache),
+# stopped after 8 updates, checkpointing every 2, without the final evaluation.
+SETTINGS = ["--config", str(QUICK), f"total_env_steps={UPDATES * 64 * 64}", "checkpoint.every_updates=2",
+            "checkpoint.keep_last=2", "eval.attempts=0"]
 
 
 def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
