@@ -1,5 +1,9 @@
 """Settings for the whole test run.
 
+Each test folder keeps its shared helper modules beside its tests (`tests/engine/physics_sim.py`,
+`tests/env/env_scenes.py`, ...); every folder is put on `sys.path` here, so the tests import them by name under
+any pytest import mode. Helper module names are unique across folders for that reason.
+
 JAX's persistent compilation cache lives under `<repo>/.cache/jax` (ignored by git), so a second `make test` on
 the same machine, or CI after a developer's run, skips recompiling the engine's jitted functions; only
 compilations slower than half a second are stored, which keeps the cache small.
@@ -7,11 +11,15 @@ compilations slower than half a second are stored, which keeps the cache small.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import jax
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+for _folder in [REPO_ROOT, *sorted(p for p in Path(__file__).resolve().parent.iterdir() if p.is_dir())]:
+    if not _folder.name.startswith((".", "_")) and str(_folder) not in sys.path:
+        sys.path.insert(0, str(_folder))
 
 jax.config.update("jax_compilation_cache_dir", str(REPO_ROOT / ".cache" / "jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)

@@ -1,4 +1,4 @@
-"""Learner test configuration: make the helper module beside this file (`learner_dummies`) importable under any
+"""Level test configuration: make the shared helper module beside this file (`level_samples`) importable under any
 pytest import mode, and the repository root importable when PYTHONPATH is not set."""
 
 from __future__ import annotations
