@@ -56,8 +56,8 @@ LEVELS: dict[str, HandmadeLevel] = dict(
                designs.s_hop_over),
         _entry("s", "Lander: pulse the slanted thruster so the falling green pod drifts onto the blue pad, not the "
                "red floor.", designs.s_lander),
-        _entry("s", "Catapult: swing the motorised arm to fling the green ball into the blue right wall.",
-               designs.s_catapult),
+        _entry("s", "Catapult: swing the motorised arm to fling the green ball onto the blue ball before it drops "
+               "onto the red floor.", designs.s_catapult),
         _entry("m", "Locomotion: drive the two-wheel car over a bump until its green body touches the raised blue "
                "ball.", designs.m_car_bump),
         _entry("m", "Thrust aiming: climb (thruster 0), then cross above the red shelf (thruster 1) to the blue ball, "

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from engine.env.env import reset, step
 from engine.env.spec import EnvParams, EnvSpec
@@ -138,37 +139,35 @@ def play_batch(
     return jax.vmap(one)(levels, which)
 
 
-def _sign_action(signal: Array, deadband: float) -> tuple[Array, Array]:
-    """(push right, push left) flags of a bang-bang rule on `signal`."""
-    return signal > deadband, signal < -deadband
+def _cartpole_push(sim: SimState, cart: int, pole: int, target_x: float) -> tuple[Array, Array]:
+    """(push right, push left) for a cart carrying a free pole: a bang-bang PD rule that holds the pole at a
+    small lean towards `target_x` (less as the cart speeds up) and pushes the cart under it."""
+    b = sim.bodies
+    x, vx = b.position[cart, 0], b.velocity[cart, 0]
+    lean, lean_rate = -b.rotation[pole], -b.angular_velocity[pole]  # positive: leaning right
+    lean_ref = jnp.clip(0.05 * (target_x - x) - 0.12 * vx, -0.1, 0.1)
+    signal = lean - lean_ref + 0.3 * lean_rate
+    return signal > 0.005, signal < -0.005
 
 
 def cartpole_thrusters(cart: int, pole: int, target_x: float) -> Controller:
-    """Balance a pole hinged on a cart pushed by two thrusters (binding 0 right, 1 left) while walking the cart
-    to `target_x`: hold the pole at a small lean towards the target and push under it (bang-bang PD)."""
+    """Balance the pole of a cart pushed by two thrusters (binding 0 right, 1 left) while walking it to
+    `target_x`."""
 
     def controller(sim: SimState, t: Array) -> Array:
         del t
-        b = sim.bodies
-        x, vx = b.position[cart, 0], b.velocity[cart, 0]
-        lean, lean_rate = -b.rotation[pole], -b.angular_velocity[pole]
-        lean_ref = jnp.clip(0.05 * (target_x - x) - 0.12 * vx, -0.1, 0.1)
-        right, left = _sign_action(lean - lean_ref + 0.3 * lean_rate, 0.005)
+        right, left = _cartpole_push(sim, cart, pole, target_x)
         return action(thrust0=right, thrust1=left)
 
     return controller
 
 
 def cartpole_wheels(cart: int, pole: int, target_x: float) -> Controller:
-    """The same rule for a cart on motorised wheels (binding 0: +1 rolls right, -1 left)."""
+    """The same for a cart on motorised wheels (binding 0: +1 rolls right, -1 left)."""
 
     def controller(sim: SimState, t: Array) -> Array:
         del t
-        b = sim.bodies
-        x, vx = b.position[cart, 0], b.velocity[cart, 0]
-        lean, lean_rate = -b.rotation[pole], -b.angular_velocity[pole]
-        lean_ref = jnp.clip(0.05 * (target_x - x) - 0.12 * vx, -0.1, 0.1)
-        right, left = _sign_action(lean - lean_ref + 0.3 * lean_rate, 0.005)
+        right, left = _cartpole_push(sim, cart, pole, target_x)
         return action(motor0=jnp.where(right, PLUS, jnp.where(left, MINUS, OFF)))
 
     return controller
@@ -210,8 +209,8 @@ def lander_two_jets(body: int, waypoints: tuple[Waypoint, ...], jet: float, tilt
     `jet` each) through waypoints: pick the jet combination whose acceleration is closest to the one a velocity
     tracker asks for."""
     s, c = math.sin(tilt), math.cos(tilt)
-    options = jnp.array([[0.0, 0.0], [s, c], [-s, c], [0.0, 2 * c]]) * jet  # none, right jet, left jet, both
-    flags = jnp.array([[0, 0], [1, 0], [0, 1], [1, 1]], jnp.int32)
+    options = np.array([[0.0, 0.0], [s, c], [-s, c], [0.0, 2 * c]], np.float32) * jet  # none, right, left, both
+    flags = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.int32)
 
     def controller(sim: SimState, t: Array) -> Array:
         del t
@@ -220,8 +219,9 @@ def lander_two_jets(body: int, waypoints: tuple[Waypoint, ...], jet: float, tilt
         wx, wy = _waypoint(p, waypoints)
         v_want = jnp.stack([jnp.clip(1.2 * (wx - p[0]), -1.2, 1.2), jnp.clip(1.5 * (wy - p[1]), -1.2, 1.0)])
         want = (v_want - v) * 6.0 + jnp.array([0.0, 9.81])
-        best = jnp.argmin(jnp.sum((options - want) ** 2, axis=1))
-        return action(thrust0=flags[best, 0], thrust1=flags[best, 1])
+        best = jnp.argmin(jnp.sum((jnp.asarray(options) - want) ** 2, axis=1))
+        chosen = jnp.asarray(flags)[best]
+        return action(thrust0=chosen[0], thrust1=chosen[1])
 
     return controller
 

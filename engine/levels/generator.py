@@ -1,0 +1,757 @@
+"""Random levels in the style of Kinetix's level generator, sampled on the device.
+
+`sample_random_level(key, sizes, config)` builds one level from a key; it is pure and jittable with `sizes` and
+`config` static, so `jax.vmap` over keys samples a batch (see `sample_random_levels`). The procedure and its
+distributions follow Kinetix's `sample_kinetix_level` (UED parameters in `GeneratorConfig`):
+
+1. the empty arena; the floor gets a role (neutral 0.9, green 0, blue 0.02, red 0.08);
+2. two free shapes, which become the green and the blue one (a blue floor takes the blue role); a coin decides
+   which of the two may not be fixed, so they are never both fixed;
+3. forced controls, uniformly one of motor only / thruster only / both: a motor is a new shape linked by a
+   revolute joint (otherwise a free shape is added instead); a thruster goes on a dynamic shape;
+4. each remaining shape slot (P + C - 7 of them): connected shape 0.35, free shape 0.35, nothing 0.3;
+5. T - 1 extra thrusters, each with probability 0.3;
+6. with a neutral floor, green and blue swap roles with probability 0.5 (removes the left/right bias of step 2);
+7. the non-arena polygons, the circles, the joints and the thrusters are put in random slot order.
+
+Free and connected shapes are chosen among K placement proposals (8; 1 in scenes of at most 7 shapes, which
+also never fix shapes): the proposal whose scene has the fewest touching contact points wins, a connected shape
+whose two shapes cannot both be seen around their joint counting 10 more.
+
+The whole level is built by one `lax.scan` over a fixed list of attempts (add a free shape, a connected shape,
+a thruster, or nothing), writing into the slot arrays with one-hot selects, so the compiled program stays small
+for every size (Kinetix's large-size generator took minutes to compile).
+
+`add_free_shape`, `add_connected_shape` and `add_thruster` are the single-attempt building blocks, also used
+by the ACCEL mutations (`engine.levels.mutations`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from engine.levels.level import (
+    NUM_MOTOR_BINDINGS,
+    NUM_THRUSTER_BINDINGS,
+    ROLE_BLUE,
+    ROLE_GREEN,
+    ROLE_NEUTRAL,
+    ROLE_RED,
+    Level,
+    level_from_scene,
+)
+from engine.physics.geometry import rotate
+from engine.physics.mass import circle_mass_properties, polygon_mass_properties
+from engine.physics.narrowphase import detect_contacts
+from engine.physics.scene import ARENA_SIZE, FLOOR_TOP, empty_scene, refresh_collision_filter
+from engine.physics.sizes import SceneSizes
+from engine.physics.state import SimState
+
+Array = jax.Array
+
+_SQRT2 = math.sqrt(2.0)
+_TWO_PI = 2.0 * math.pi
+
+# Attempt kinds of the generator's scan.
+_NOTHING, _FREE_SHAPE, _CONNECTED_SHAPE, _THRUSTER = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """Kinetix's `UEDParams` defaults, under descriptive names (Kinetix's name in brackets where it differs).
+
+    Hashable: pass it as a static argument. Constants Kinetix hard-codes are fields here too, with its values.
+    """
+
+    # Shape dimensions. Rectangle half-extents are U(min_half_extent, max_shape_size / (2 sqrt 2)) per axis, one
+    # axis stretched by large_dimension_scale with large_dimension_chance; circle radii are
+    # U(min_radius, max_shape_size / 2 * circle_max_size_coeff).
+    max_shape_size: float = 1.0
+    goal_size_factor: float = 1.0  # [goal_body_size_factor] size multiplier of free green/blue shapes
+    large_dimension_chance: float = 0.3  # [large_rect_dim_chance]
+    large_dimension_scale: float = 2.0  # [large_rect_dim_scale]
+    circle_max_size_coeff: float = 0.8
+    min_half_extent: float = 0.05  # hard-coded in Kinetix
+    min_radius: float = 0.1  # hard-coded in Kinetix
+    density: float = 1.0  # hard-coded in Kinetix
+    # Free-shape placement: green in the left half and blue in the right half with this chance.
+    opposite_side_chance: float = 0.5  # [goal_body_opposide_side_chance]
+    # Fixation of free shapes: p = min(fixate_chance_min + fixate_chance_scale * mass, fixate_chance_max); a fixed
+    # shape in the upper half moves down by half the arena with the bottom bias (more for green/blue/red shapes).
+    fixate_chance_min: float = 0.02
+    fixate_chance_max: float = 1.0
+    fixate_chance_scale: float = 4.0
+    fixate_bottom_bias: float = 0.0  # [fixate_shape_bottom_bias]
+    fixate_bottom_bias_special_role: float = 0.6  # [fixate_shape_bottom_bias_special_role]
+    # Connected shapes.
+    revolute_chance: float = 0.5  # hard-coded in Kinetix (its joint_fixed_chance is unused)
+    min_revolute_joints: int = 2  # [min_rjoints_bias] joints are revolute while fewer than this exist
+    connect_to_fixed_weight: float = 0.05  # [connect_to_fixated_prob_coeff] target weight of a fixed shape
+    visibility_margin: float = 0.05  # [connect_visibility_min]
+    no_visibility_penalty: float = 10.0  # [connect_no_visibility_bias] added to a hidden proposal's score
+    motor_on_chance: float = 0.8
+    motor_min_speed: float = 0.4
+    motor_max_speed: float = 3.0
+    motor_min_power: float = 1.0
+    motor_max_power: float = 3.0  # rectangle-rectangle joints
+    wheel_max_power: float = 1.0  # joints with a circle ("high-powered wheels break the engine")
+    joint_limit_chance: float = 0.4  # rectangle-rectangle revolute joints only
+    joint_limit_max: float = math.pi
+    # Thrusters: power = mass * thruster_power_multiplier * U(thruster_min_factor, thruster_max_factor).
+    thruster_power_multiplier: float = 2.0
+    thruster_min_factor: float = 0.5  # hard-coded in Kinetix
+    thruster_max_factor: float = 2.0  # hard-coded in Kinetix
+    thruster_align_com_chance: float = 0.8  # [thruster_align_com_prob] aim through the centre of mass
+    # Composition of the level.
+    add_connected_shape_chance: float = 0.35
+    add_free_shape_chance: float = 0.35  # [add_shape_chance]
+    add_nothing_chance: float = 0.3  # [add_no_shape_chance]
+    add_thruster_chance: float = 0.3
+    num_proposals: int = 8  # [add_shape_n_proposals]
+    small_scene_max_shapes: int = 7  # P + C at most this: 1 proposal, no fixation (Kinetix's S rule)
+    red_weight: float = 1.0 / 3.0  # weight of red against neutral (1) while the level has no red shape
+    floor_role_probs: tuple[float, float, float, float] = (0.9, 0.0, 0.02, 0.08)  # neutral, green, blue, red
+    swap_green_blue_chance: float = 0.5
+    permute_slots: bool = True  # Kinetix's final random slot order
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Small helpers
+
+
+def uniforms(key: Array, shape) -> Array:
+    """All the uniform [0, 1) numbers an operation needs, from one draw: every separate `jax.random` call adds a
+    threefry hash to the program, and dozens of them cost seconds of compile time."""
+    return jax.random.uniform(key, shape, jnp.float32)
+
+
+def _between(u: Array, low, high) -> Array:
+    return low + u * (high - low)
+
+
+def choose(u: Array, weights) -> tuple[Array, Array]:
+    """An index drawn with probability proportional to `weights` (>= 0) from a uniform `u` in [0, 1), and whether
+    any weight was positive (if none was, the index is meaningless). Zero-weight entries are never drawn."""
+    weights = jnp.asarray(weights, jnp.float32)
+    cumulative = jnp.cumsum(weights)
+    total = cumulative[-1]
+    threshold = total * (1.0 - u)  # in (0, total]
+    index = jnp.sum(cumulative < threshold).astype(jnp.int32)
+    return jnp.minimum(index, weights.shape[0] - 1), total > 0
+
+
+def first_free(active: Array, start: int = 0) -> tuple[Array, Array]:
+    """(first slot at or after `start` that is not active, whether there is one)."""
+    if active.shape[0] <= start:
+        return jnp.asarray(0, jnp.int32), jnp.asarray(False)
+    tail = active[start:]
+    slot = jnp.argmin(tail).astype(jnp.int32)
+    return slot + start, ~tail[slot]
+
+
+def _put(old: Array, mask: Array, new) -> Array:
+    """`old` with the slots in `mask` (shape old.shape[:1]) replaced by `new` (broadcast)."""
+    mask = mask.reshape(mask.shape + (1,) * (old.ndim - 1))
+    return jnp.where(mask, jnp.asarray(new, old.dtype), old)
+
+
+def _non_arena(sizes: SceneSizes) -> Array:
+    return jnp.arange(sizes.num_bodies) >= sizes.num_static_polygons
+
+
+def role_counts(level: Level) -> Array:
+    """[4] number of active bodies of each role, the arena (hence the floor) included."""
+    active = level.state.bodies.active
+    return (jax.nn.one_hot(level.roles, 4, dtype=jnp.int32) * active[:, None]).sum(axis=0)
+
+
+def joint_counts(level: Level) -> Array:
+    """[N] number of active joints on each body."""
+    joints = level.state.joints
+    body = jnp.arange(level.roles.shape[0])
+    on = joints.active[:, None]
+    return (((joints.a_index[:, None] == body) & on).sum(0) + ((joints.b_index[:, None] == body) & on).sum(0)).astype(
+        jnp.int32
+    )
+
+
+def circle_radius_of(state: SimState, body: Array, sizes: SceneSizes) -> Array:
+    """The radius of `body` if it is a circle (meaningless otherwise; 0 in scenes without circles)."""
+    if sizes.num_circles == 0:
+        return jnp.asarray(0.0, jnp.float32)
+    return state.circle_radius[jnp.clip(body - sizes.num_polygons, 0, sizes.num_circles - 1)]
+
+
+def _rectangle_vertices(half: Array, max_vertices: int) -> Array:
+    """Kinetix's rectangle: clockwise from the top-right corner, centred; padded with zeros to max_vertices."""
+    signs = jnp.asarray([[1.0, 1.0], [1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0]], jnp.float32)
+    return jnp.zeros((max_vertices, 2), jnp.float32).at[:4].set(signs * half)
+
+
+def local_half_extents(vertices: Array, n_vertices: Array) -> Array:
+    """[2] half-size of a polygon's axis-aligned box in its own frame."""
+    valid = (jnp.arange(vertices.shape[0]) < n_vertices)[:, None]
+    high = jnp.where(valid, vertices, -jnp.inf).max(axis=0)
+    low = jnp.where(valid, vertices, jnp.inf).min(axis=0)
+    return (high - low) / 2.0
+
+
+def _random_point_in_polygon(u: Array, vertices: Array, n_vertices: Array) -> Array:
+    """Kinetix's rule, from two uniforms: uniform in a triangle; uniform in the local axis-aligned box of a larger
+    polygon."""
+    f1, f2 = u[0], u[1]
+    v0, v1, v2 = vertices[0], vertices[1], vertices[2]
+    in_triangle = v0 + jnp.sqrt(f1) * (v1 - v0 + f2 * (v2 - v1))
+    valid = (jnp.arange(vertices.shape[0]) < n_vertices)[:, None]
+    high = jnp.where(valid, vertices, -jnp.inf).max(axis=0)
+    low = jnp.where(valid, vertices, jnp.inf).min(axis=0)
+    in_box = low + jnp.stack([f1, f2]) * (high - low)
+    return jnp.where(n_vertices <= 3, in_triangle, in_box)
+
+
+class SampledShape(NamedTuple):
+    half: Array  # [2] rectangle half-extents (Kinetix's values are drawn for circles too; used for the margin)
+    radius: Array  # circle radius (min_radius for rectangles, as in Kinetix)
+    vertices: Array  # [V, 2] rectangle vertices
+    inverse_mass: Array  # of the chosen kind at config.density
+    inverse_inertia: Array
+
+
+SHAPE_UNIFORMS = 5
+
+
+def sample_shape(u: Array, is_rect: Array, max_size: Array, config: GeneratorConfig, max_vertices: int):
+    """Dimensions of a new rectangle or circle (Kinetix's `sample_dimensions`) from SHAPE_UNIFORMS uniforms, and
+    its mass properties in Jax2D's convention (what Kinetix levels carry)."""
+    cap_half = max_size / (2.0 * _SQRT2)
+    cap_radius = max_size / 2.0 * config.circle_max_size_coeff
+    half = jnp.where(is_rect, u[0:2], 0.0) * (cap_half - config.min_half_extent) + config.min_half_extent
+    long_axis = jnp.floor(u[2] * 2.0)
+    stretch = jnp.where(u[3] < config.large_dimension_chance, config.large_dimension_scale, 1.0)
+    half = half * jnp.where(jnp.arange(2) == long_axis, stretch, 1.0)
+    radius = jnp.where(is_rect, 0.0, u[4]) * (cap_radius - config.min_radius) + config.min_radius
+    vertices = _rectangle_vertices(half, max_vertices)
+    density = jnp.asarray(config.density, jnp.float32)
+    _, _, poly_im, poly_ii = polygon_mass_properties(vertices, 4, density, "jax2d")
+    circle_im, circle_ii = circle_mass_properties(radius, density, "jax2d")
+    return SampledShape(
+        half=half,
+        radius=radius,
+        vertices=vertices,
+        inverse_mass=jnp.where(is_rect, poly_im, circle_im),
+        inverse_inertia=jnp.where(is_rect, poly_ii, circle_ii),
+    )
+
+
+def _draw_role(u: Array, level: Level, allowed: Array, config: GeneratorConfig) -> Array:
+    """Kinetix's role rule: green and blue first (uniform between the missing ones, the floor counting); then
+    neutral (weight 1) or red (red_weight, only while there is no red shape). `allowed` masks roles out."""
+    counts = role_counts(level)
+    needs_green, needs_blue, needs_red = counts[ROLE_GREEN] == 0, counts[ROLE_BLUE] == 0, counts[ROLE_RED] == 0
+    both = ~needs_green & ~needs_blue
+    weights = jnp.stack([both, needs_green, needs_blue, both & needs_red]).astype(jnp.float32)
+    weights = weights * jnp.asarray([1.0, 1.0, 1.0, config.red_weight], jnp.float32) * allowed
+    role, any_allowed = choose(u, weights)
+    return jnp.where(any_allowed, role, ROLE_NEUTRAL)
+
+
+def _allowed_roles_next_to(target_role: Array) -> Array:
+    """[4] roles a shape joined to a `target_role` shape may take: no green-blue links, nothing special on red."""
+    role = jnp.arange(4)
+    special = (target_role == ROLE_GREEN) | (target_role == ROLE_BLUE)
+    allowed = jnp.where(special, (role != 3 - target_role) & (role != ROLE_RED), True)
+    allowed = jnp.where(target_role == ROLE_RED, (role != ROLE_GREEN) & (role != ROLE_BLUE), allowed)
+    return allowed.astype(jnp.float32)
+
+
+def _box_inner_distance(half: Array, point: Array) -> Array:
+    """Distance from a point inside a box to the box's nearest side."""
+    return jnp.minimum(half[0] - jnp.abs(point[0]), half[1] - jnp.abs(point[1]))
+
+
+def _box_outer_distance(half: Array, point: Array) -> Array:
+    """Distance from a point to the box's farthest corner."""
+    dx = jnp.maximum(jnp.abs(half[0] - point[0]), jnp.abs(-half[0] - point[0]))
+    dy = jnp.maximum(jnp.abs(half[1] - point[1]), jnp.abs(-half[1] - point[1]))
+    return jnp.sqrt(dx * dx + dy * dy)
+
+
+def _sticks_out(margin, rect_a, half_a, radius_a, anchor_a, rect_b, half_b, radius_b, anchor_b) -> Array:
+    """Whether shape a, pinned at anchor_a to b's anchor_b, can be seen beyond b (Kinetix's visibility test)."""
+    reach_a = _box_outer_distance(half_a, anchor_a)
+    cover_b = _box_inner_distance(half_b, anchor_b)
+    return jnp.where(
+        rect_a,
+        jnp.where(rect_b, reach_a > cover_b + margin, reach_a > radius_b + margin),
+        jnp.where(rect_b, cover_b + margin < radius_a, False),
+    )
+
+
+def refresh_anchor_positions(state: SimState) -> SimState:
+    """Recompute joints' and thrusters' world positions from the bodies (what a step would write)."""
+    bodies, joints, thrusters = state.bodies, state.joints, state.thrusters
+    a = joints.a_index
+    joint_world = bodies.position[a] + rotate(bodies.rotation[a], joints.a_relative_pos)
+    t = thrusters.body_index
+    thruster_world = bodies.position[t] + rotate(bodies.rotation[t], thrusters.relative_position)
+    return state.replace(
+        joints=joints.replace(global_position=joint_world),
+        thrusters=thrusters.replace(global_position=thruster_world),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Single attempts
+
+
+SHAPE_ADD_UNIFORMS = 23 + SHAPE_UNIFORMS
+
+
+def add_shape_from_uniforms(
+    u: Array,
+    level: Level,
+    sizes: SceneSizes,
+    config: GeneratorConfig,
+    connected: Array,
+    force_no_fixate: Array,
+    force_revolute: Array,
+) -> tuple[Level, Array]:
+    """Add a free shape or (if `connected`) a shape joined to an existing one. Returns the level (unchanged when
+    there is no room or no target) and whether both shapes of a new joint stick out of each other (True for
+    free shapes). `u` holds SHAPE_ADD_UNIFORMS uniforms. The collision filter is not refreshed here."""
+    P, N, S, V = sizes.num_polygons, sizes.num_bodies, sizes.num_static_polygons, sizes.max_polygon_vertices
+    state = level.state
+    bodies, joints = state.bodies, state.joints
+    body = jnp.arange(N)
+    is_polygon_slot = body < P
+    connected = jnp.asarray(connected)
+
+    poly_slot, poly_free = first_free(bodies.active[:P], start=S)
+    circle_slot, circle_free = first_free(bodies.active[P:])
+    circle_slot = circle_slot + P
+
+    # Target of a connected shape: active non-arena shapes, fixed ones rarely, rectangles with fewer than two
+    # joints and circles with none; a circle target needs room for a new rectangle (no circle-circle links).
+    links = joint_counts(level)
+    weight = (bodies.active & _non_arena(sizes)).astype(jnp.float32)
+    weight = weight * jnp.where(bodies.inverse_mass == 0, config.connect_to_fixed_weight, 1.0)
+    weight = weight * jnp.where(is_polygon_slot, jnp.maximum(2.0 - links, 0.0) / 2.0, (links == 0) * 1.0)
+    rect_weight = jnp.where(is_polygon_slot, weight, 0.0)
+    circle_weight = jnp.where(is_polygon_slot, 0.0, weight)
+    target_kind, has_target = choose(u[0], jnp.stack([rect_weight.sum() > 0, (circle_weight.sum() > 0) & poly_free]))
+    target_is_rect = target_kind == 0
+    target, _ = choose(u[1], jnp.where(target_is_rect, rect_weight, circle_weight))
+    joint_slot, joint_free = first_free(joints.active)
+
+    kind, has_room = choose(u[2], jnp.stack([poly_free, circle_free]))
+    is_rect = (kind == 0) | (connected & ~target_is_rect)
+    index = jnp.where(is_rect, poly_slot, circle_slot)
+    valid = has_room & (~connected | (has_target & joint_free))
+
+    target_role = level.roles[target]
+    allowed = jnp.where(connected, _allowed_roles_next_to(target_role), 1.0)
+    role = _draw_role(u[3], level, allowed, config)
+    goal = (role == ROLE_GREEN) | (role == ROLE_BLUE)
+    max_size = config.max_shape_size * jnp.where(goal & ~connected, config.goal_size_factor, 1.0)
+    shape = sample_shape(u[23:], is_rect, max_size, config, V)
+    rotation = u[4] * _TWO_PI
+
+    # Free placement: inside the arena with a margin, green left / blue right with opposite_side_chance.
+    margin = jnp.maximum(_SQRT2 * shape.half.max(), shape.radius)
+    low = jnp.stack([margin, margin + FLOOR_TOP])
+    high = jnp.stack([ARENA_SIZE - margin, ARENA_SIZE - margin])
+    opposite = u[5] < config.opposite_side_chance
+    high = high.at[0].add(jnp.where(opposite & (role == ROLE_GREEN), -ARENA_SIZE / 2.0, 0.0))
+    low = low.at[0].add(jnp.where(opposite & (role == ROLE_BLUE), ARENA_SIZE / 2.0, 0.0))
+    free_position = _between(u[6:8], low, high)
+    mass = 1.0 / shape.inverse_mass
+    fix_chance = jnp.minimum(config.fixate_chance_min + config.fixate_chance_scale * mass, config.fixate_chance_max)
+    fixed = (u[8] < fix_chance) & ~force_no_fixate & ~connected
+    bias = config.fixate_bottom_bias + config.fixate_bottom_bias_special_role * (role != ROLE_NEUTRAL)
+    to_bottom = fixed & (u[9] < bias) & (free_position[1] >= ARENA_SIZE / 2.0)
+    free_position = free_position.at[1].add(jnp.where(to_bottom, -ARENA_SIZE / 2.0, 0.0))
+
+    # Connected placement: anchors uniform in rectangles (local box), at circle centres; the new shape is put so
+    # that the anchors coincide.
+    new_anchor = jnp.where(is_rect, (2.0 * u[10:12] - 1.0) * shape.half, 0.0)
+    target_poly = jnp.minimum(target, P - 1)
+    target_vertices = state.polygon_vertices[target_poly]
+    target_n = state.polygon_n_vertices[target_poly]
+    target_anchor = jnp.where(
+        target_is_rect, _random_point_in_polygon(u[12:14], target_vertices, target_n), jnp.zeros(2)
+    )
+    target_rotation = bodies.rotation[target]
+    anchor_world = bodies.position[target] + rotate(target_rotation, target_anchor)
+    joined_position = anchor_world - rotate(rotation, new_anchor)
+    position = jnp.where(connected, joined_position, free_position)
+
+    # The new body and its task data.
+    hot = (body == index) & valid
+    new_bodies = bodies.replace(
+        position=_put(bodies.position, hot, position),
+        rotation=_put(bodies.rotation, hot, rotation),
+        velocity=_put(bodies.velocity, hot, 0.0),
+        angular_velocity=_put(bodies.angular_velocity, hot, 0.0),
+        inverse_mass=_put(bodies.inverse_mass, hot, jnp.where(fixed, 0.0, shape.inverse_mass)),
+        inverse_inertia=_put(bodies.inverse_inertia, hot, jnp.where(fixed, 0.0, shape.inverse_inertia)),
+        friction=_put(bodies.friction, hot, 1.0),
+        restitution=_put(bodies.restitution, hot, 0.0),
+        collision_mode=_put(bodies.collision_mode, hot, 1),
+        active=_put(bodies.active, hot, True),
+    )
+    poly_hot = hot[:P] & is_rect
+    circle_hot = hot[P:] & ~is_rect
+    state = state.replace(
+        bodies=new_bodies,
+        polygon_vertices=_put(state.polygon_vertices, poly_hot, shape.vertices),
+        polygon_n_vertices=_put(state.polygon_n_vertices, poly_hot, 4),
+        circle_radius=_put(state.circle_radius, circle_hot, shape.radius),
+    )
+
+    # The joint (connected shapes only), with a_index < b_index.
+    new_is_a = index < target
+    a_index, b_index = jnp.minimum(index, target), jnp.maximum(index, target)
+    a_anchor = jnp.where(new_is_a, new_anchor, target_anchor)
+    b_anchor = jnp.where(new_is_a, target_anchor, new_anchor)
+    rotation_a = jnp.where(new_is_a, rotation, target_rotation)
+    rotation_b = jnp.where(new_is_a, target_rotation, rotation)
+    revolutes = (joints.active & ~joints.is_fixed_joint).sum()
+    revolute = (
+        (u[14] < config.revolute_chance) | force_revolute | (revolutes < config.min_revolute_joints)
+    )
+    rect_rect = is_rect & target_is_rect
+    motor_on = (u[15] < config.motor_on_chance) & revolute
+    speed = _between(u[16], config.motor_min_speed, config.motor_max_speed)
+    power = jnp.where(
+        rect_rect,
+        _between(u[17], config.motor_min_power, config.motor_max_power),
+        _between(u[18], config.motor_min_power, config.wheel_max_power),
+    )
+    limits = (u[19] < config.joint_limit_chance) & rect_rect & revolute
+    min_rotation = jnp.where(limits, _between(u[20], -config.joint_limit_max, 0.0), 0.0)
+    max_rotation = jnp.where(limits, _between(u[21], 0.0, config.joint_limit_max), 0.0)
+    binding = jnp.minimum(jnp.floor(u[22] * NUM_MOTOR_BINDINGS), NUM_MOTOR_BINDINGS - 1).astype(jnp.int32)
+    j_hot = (jnp.arange(sizes.num_joints) == joint_slot) & valid & connected
+    j = joints
+    joints = j.replace(
+        a_index=_put(j.a_index, j_hot, a_index),
+        b_index=_put(j.b_index, j_hot, b_index),
+        a_relative_pos=_put(j.a_relative_pos, j_hot, a_anchor),
+        b_relative_pos=_put(j.b_relative_pos, j_hot, b_anchor),
+        # Kinetix: a fixed joint holds the current relative angle; a revolute joint's reference (the origin of its
+        # limits) is 0.
+        rotation=_put(j.rotation, j_hot, jnp.where(revolute, 0.0, rotation_b - rotation_a)),
+        active=_put(j.active, j_hot, True),
+        is_fixed_joint=_put(j.is_fixed_joint, j_hot, ~revolute),
+        motor_on=_put(j.motor_on, j_hot, motor_on),
+        motor_speed=_put(j.motor_speed, j_hot, jnp.where(revolute, speed, 0.0)),
+        motor_power=_put(j.motor_power, j_hot, jnp.where(revolute, power, 0.0)),
+        motor_has_joint_limits=_put(j.motor_has_joint_limits, j_hot, limits),
+        min_rotation=_put(j.min_rotation, j_hot, min_rotation),
+        max_rotation=_put(j.max_rotation, j_hot, max_rotation),
+        acc_impulse=_put(j.acc_impulse, j_hot, 0.0),
+        acc_r_impulse=_put(j.acc_r_impulse, j_hot, 0.0),
+        global_position=_put(j.global_position, j_hot, anchor_world),
+    )
+    level = level.replace(
+        state=state.replace(joints=joints),
+        roles=_put(level.roles, hot, role),
+        densities=_put(level.densities, hot, config.density),
+        motor_bindings=_put(level.motor_bindings, j_hot, binding),
+    )
+
+    # Can both shapes be seen, whatever the joint angle? (Only used to rank proposals.) Kinetix evaluates this
+    # after ordering the joint's anchors by body index, so when the new shape has the higher index each shape is
+    # tested at the other's anchor. We keep that: it shapes the level distribution (a new circle on a rectangle
+    # then counts as hidden unless its radius exceeds the rectangle's shorter half-side plus the margin, which
+    # makes large levels rectangle-heavy, as Kinetix's are).
+    new_test_anchor, target_test_anchor = a_anchor, b_anchor
+    target_half = local_half_extents(target_vertices, target_n)
+    target_radius = circle_radius_of(state, target, sizes)
+    new_half = jnp.where(is_rect, shape.half, 0.0)
+    m = config.visibility_margin
+    visible = _sticks_out(
+        m, is_rect, new_half, shape.radius, new_test_anchor,
+        target_is_rect, target_half, target_radius, target_test_anchor,
+    ) & _sticks_out(
+        m, target_is_rect, target_half, target_radius, target_test_anchor,
+        is_rect, new_half, shape.radius, new_test_anchor,
+    )
+    return level, jnp.where(connected, visible, True)
+
+
+def add_free_shape(
+    key: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig(), force_no_fixate=False
+) -> Level:
+    """Add one unattached rectangle or circle (Kinetix's `mutate_add_shape`); no-op when no slot is free."""
+    u = uniforms(key, (SHAPE_ADD_UNIFORMS,))
+    level, _ = add_shape_from_uniforms(u, level, sizes, config, False, jnp.asarray(force_no_fixate), False)
+    return level
+
+
+def add_connected_shape(
+    key: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig(), force_revolute=False
+) -> tuple[Level, Array]:
+    """Add one shape joined to an existing one (Kinetix's `mutate_add_connected_shape`). Returns the level (with
+    a refreshed collision filter) and whether both joined shapes stick out of each other. No-op when there is no
+    free shape slot, no free joint slot or no shape that can take another joint."""
+    u = uniforms(key, (SHAPE_ADD_UNIFORMS,))
+    level, visible = add_shape_from_uniforms(u, level, sizes, config, True, False, jnp.asarray(force_revolute))
+    return level.replace(state=refresh_collision_filter(level.state)), visible
+
+
+THRUSTER_ADD_UNIFORMS = 10
+
+
+def add_thruster(key: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig()) -> Level:
+    """Put a thruster on a random dynamic shape (Kinetix's `mutate_add_thruster`); no-op when no thruster slot is
+    free or no shape is dynamic."""
+    return add_thruster_from_uniforms(uniforms(key, (THRUSTER_ADD_UNIFORMS,)), level, sizes, config)
+
+
+def add_thruster_from_uniforms(u: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig) -> Level:
+    """`add_thruster` driven by THRUSTER_ADD_UNIFORMS uniforms instead of a key."""
+    if sizes.num_thrusters == 0:
+        return level
+    P = sizes.num_polygons
+    state = level.state
+    bodies, thrusters = state.bodies, state.thrusters
+    target, has_target = choose(u[0], bodies.active & (bodies.inverse_mass != 0))
+    slot, free = first_free(thrusters.active)
+    valid = has_target & free
+    poly = jnp.minimum(target, P - 1)
+    on_polygon = _random_point_in_polygon(u[1:3], state.polygon_vertices[poly], state.polygon_n_vertices[poly])
+    radius = circle_radius_of(state, target, sizes)
+    angle = u[3] * _TWO_PI
+    on_circle = u[4] * radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+    relative = jnp.where(target < P, on_polygon, on_circle)
+    # Mostly aimed through the centre of mass (towards or away from it), otherwise at a random angle.
+    aim = jnp.where(u[5] > 0.5, 1.0, -1.0) * relative
+    aim = jnp.where(jnp.all(aim == 0), jnp.asarray([1.0, 0.0]), aim)
+    direction = jnp.where(
+        u[6] < config.thruster_align_com_chance, jnp.arctan2(aim[1], aim[0]), u[7] * _TWO_PI
+    )
+    inverse_mass = bodies.inverse_mass[target]
+    mass = 1.0 / jnp.where(inverse_mass == 0, 1.0, inverse_mass)
+    factor = _between(u[8], config.thruster_min_factor, config.thruster_max_factor)
+    binding = jnp.minimum(jnp.floor(u[9] * NUM_THRUSTER_BINDINGS), NUM_THRUSTER_BINDINGS - 1).astype(jnp.int32)
+    hot = (jnp.arange(sizes.num_thrusters) == slot) & valid
+    world = bodies.position[target] + rotate(bodies.rotation[target], relative)
+    new = thrusters.replace(
+        body_index=_put(thrusters.body_index, hot, target),
+        relative_position=_put(thrusters.relative_position, hot, relative),
+        rotation=_put(thrusters.rotation, hot, direction),
+        power=_put(thrusters.power, hot, mass * config.thruster_power_multiplier * factor),
+        active=_put(thrusters.active, hot, True),
+        global_position=_put(thrusters.global_position, hot, world),
+    )
+    return level.replace(
+        state=state.replace(thrusters=new), thruster_bindings=_put(level.thruster_bindings, hot, binding)
+    )
+
+
+class _NewShapePairs(NamedTuple):
+    """The pair lists `detect_contacts` reads, restricted to pairs with one given body (duck-types PairTables)."""
+
+    num_rr: int
+    num_cr: int
+    num_cc: int
+    rr_a: Array
+    rr_b: Array
+    cr_circle: Array
+    cr_polygon: Array
+    cc_a: Array
+    cc_b: Array
+
+
+def _others(count: int, skip: Array) -> Array:
+    """0..count-1 without `skip`: count - 1 indices."""
+    k = jnp.arange(count - 1, dtype=jnp.int32)
+    return k + (k >= skip)
+
+
+def new_shape_contacts(state: SimState, sizes: SceneSizes, poly_slot: Array, circle_slot: Array, is_rect: Array):
+    """Touching contact points (as the engine's narrow phase counts them: two for a deep polygon pair) between the
+    shape just written to `poly_slot` (if `is_rect`) or `circle_slot` (a body index) and every other body. Pairs
+    keep the engine's orientation (lower polygon index first; the circle first in circle-polygon pairs)."""
+    P, C = sizes.num_polygons, sizes.num_circles
+    rr_other = _others(P, poly_slot)
+    circle = circle_slot - P
+    cc_other = _others(C, circle) if C > 1 else jnp.zeros((0,), jnp.int32)
+    pairs = _NewShapePairs(
+        num_rr=P - 1,
+        num_cr=C + P,
+        num_cc=max(C - 1, 0),
+        rr_a=jnp.minimum(poly_slot, rr_other),
+        rr_b=jnp.maximum(poly_slot, rr_other),
+        # first the circles against the new polygon, then the new circle against the polygons
+        cr_circle=jnp.concatenate([jnp.arange(C, dtype=jnp.int32), jnp.full((P,), circle, jnp.int32)]),
+        cr_polygon=jnp.concatenate([jnp.full((C,), poly_slot, jnp.int32), jnp.arange(P, dtype=jnp.int32)]),
+        cc_a=jnp.minimum(circle, cc_other),
+        cc_b=jnp.maximum(circle, cc_other),
+    )
+    touching = detect_contacts(state, pairs).touching.astype(jnp.int32)
+    rr_end = 2 * (P - 1)
+    as_rect = touching[:rr_end].sum() + touching[rr_end : rr_end + C].sum()
+    as_circle = touching[rr_end + C :].sum()
+    return jnp.where(is_rect, as_rect, as_circle)
+
+
+def _add_shape_filtered(
+    u: Array,
+    level: Level,
+    sizes: SceneSizes,
+    config: GeneratorConfig,
+    connected: Array,
+    force_no_fixate: Array,
+    force_revolute: Array,
+) -> Level:
+    """The best of the proposals (one per row of `u`, [K, SHAPE_ADD_UNIFORMS]): fewest touching contact points,
+    plus a penalty for a connected shape hidden by its partner. Kinetix counts every contact of the scene; all
+    proposals write the same slot of the same scene, so counting only the new shape's contacts ranks them
+    identically at a fraction of the cost."""
+    propose = functools.partial(
+        add_shape_from_uniforms, sizes=sizes, config=config, connected=connected, force_no_fixate=force_no_fixate,
+        force_revolute=force_revolute,
+    )
+    if u.shape[0] == 1:
+        return propose(u[0], level)[0]
+    candidates, visible = jax.vmap(lambda row: propose(row, level))(u)
+    poly_slot, _ = first_free(level.state.bodies.active[: sizes.num_polygons], start=sizes.num_static_polygons)
+    circle_slot, _ = first_free(level.state.bodies.active[sizes.num_polygons :])
+    circle_slot = circle_slot + sizes.num_polygons
+    is_rect = candidates.state.bodies.active[:, poly_slot] & ~level.state.bodies.active[poly_slot]
+    contacts = jax.vmap(lambda s, r: new_shape_contacts(s, sizes, poly_slot, circle_slot, r))(
+        candidates.state, is_rect
+    )
+    score = contacts + jnp.where(visible, 0.0, config.no_visibility_penalty)
+    best = jnp.argmin(score)
+    # A chain of selects rather than a gather by `best`: cheaper once vmapped over levels.
+    return jax.tree.map(
+        lambda x: functools.reduce(lambda acc, k: jnp.where(best == k, x[k], acc), range(1, x.shape[0]), x[0]),
+        candidates,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Whole levels
+
+
+def permute_slots(key: Array, level: Level, sizes: SceneSizes) -> Level:
+    """Shuffle the non-arena polygons, the circles, the joints and the thrusters among their slots, remapping the
+    joints' and thrusters' body indices. The collision filter is not refreshed here."""
+    P, C, S = sizes.num_polygons, sizes.num_circles, sizes.num_static_polygons
+    J, T = sizes.num_joints, sizes.num_thrusters
+    u = uniforms(key, (P - S + C + J + T,))
+    # argsort of uniforms: a uniformly random permutation (ties have probability ~0).
+    cuts = [P - S, P - S + C, P - S + C + J]
+    poly_u, circle_u, joint_u, thruster_u = jnp.split(u, cuts)
+    poly_order = jnp.concatenate([jnp.arange(S), S + jnp.argsort(poly_u)]).astype(jnp.int32)
+    circle_order = jnp.argsort(circle_u).astype(jnp.int32)
+    joint_order, thruster_order = jnp.argsort(joint_u), jnp.argsort(thruster_u)
+    order = jnp.concatenate([poly_order, P + circle_order])  # new slot i holds old body order[i]
+    new_index = jnp.argsort(order).astype(jnp.int32)  # old body b is now body new_index[b]
+    state = level.state
+    joints, thrusters = state.joints, state.thrusters
+    joints = joints.replace(a_index=new_index[joints.a_index], b_index=new_index[joints.b_index])
+    thrusters = thrusters.replace(body_index=new_index[thrusters.body_index])
+    state = state.replace(
+        bodies=jax.tree.map(lambda x: x[order], state.bodies),
+        polygon_vertices=state.polygon_vertices[poly_order],
+        polygon_n_vertices=state.polygon_n_vertices[poly_order],
+        circle_radius=state.circle_radius[circle_order],
+        joints=jax.tree.map(lambda x: x[joint_order], joints),
+        thrusters=jax.tree.map(lambda x: x[thruster_order], thrusters),
+    )
+    return level.replace(
+        state=state,
+        roles=level.roles[order],
+        densities=level.densities[order],
+        motor_bindings=level.motor_bindings[joint_order],
+        thruster_bindings=level.thruster_bindings[thruster_order],
+    )
+
+
+def is_small_scene(sizes: SceneSizes, config: GeneratorConfig) -> bool:
+    """Kinetix's S rule: scenes with at most `small_scene_max_shapes` shapes use 1 proposal and never fix."""
+    return sizes.num_polygons + sizes.num_circles <= config.small_scene_max_shapes
+
+
+def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig()) -> Level:
+    """One random level (see the module docstring). Pure; jit with `sizes` and `config` static; vmap over keys."""
+    P, C, T, S = sizes.num_polygons, sizes.num_circles, sizes.num_thrusters, sizes.num_static_polygons
+    small = is_small_scene(sizes, config)
+    num_proposals = 1 if small else config.num_proposals
+    num_rest = max(P + C - 3 - S, 0)
+    num_extra = max(T - 1, 0)
+    num_attempts = 4 + num_rest + num_extra
+    k_level, k_attempts, k_permute = jax.random.split(key, 3)
+    u = uniforms(k_level, (5 + num_rest + num_extra,))
+
+    level = level_from_scene(empty_scene(sizes))
+    floor_role, _ = choose(u[0], jnp.asarray(config.floor_role_probs, jnp.float32))
+    if S > 0:
+        level = level.replace(roles=level.roles.at[0].set(floor_role))
+
+    # The attempts, in order: green/blue free shapes (never both fixable), forced controls, the other slots,
+    # extra thrusters.
+    green_may_not_fix = (u[1] < 0.5) | (floor_role == ROLE_BLUE)
+    control = jnp.floor(u[2] * 3.0)  # 0 motor only, 1 thruster only, 2 both
+    force_motor, force_thruster = control != 1, control != 0
+    rest_probs = jnp.asarray(
+        [config.add_connected_shape_chance, config.add_free_shape_chance, config.add_nothing_chance], jnp.float32
+    )
+    rest_pick = jax.vmap(lambda x: choose(x, rest_probs)[0])(u[5 : 5 + num_rest])
+    rest_kinds = jnp.asarray([_CONNECTED_SHAPE, _FREE_SHAPE, _NOTHING], jnp.int32)[rest_pick]
+    extra = u[5 + num_rest :] < config.add_thruster_chance
+    kinds = jnp.concatenate([
+        jnp.asarray([_FREE_SHAPE, _FREE_SHAPE], jnp.int32),
+        jnp.where(force_motor, _CONNECTED_SHAPE, _FREE_SHAPE)[None].astype(jnp.int32),
+        jnp.where(force_thruster, _THRUSTER, _NOTHING)[None].astype(jnp.int32),
+        rest_kinds,
+        jnp.where(extra, _THRUSTER, _NOTHING).astype(jnp.int32),
+    ])
+    no_fixate = jnp.zeros((num_attempts,), bool).at[0].set(green_may_not_fix).at[1].set(~green_may_not_fix)
+    no_fixate = no_fixate | small
+    force_revolute = jnp.zeros((num_attempts,), bool).at[2].set(force_motor)
+
+    def attempt(level: Level, inputs) -> tuple[Level, None]:
+        kind, no_fix, revolute, k = inputs
+        # Drawn here rather than for all attempts up front: a large batch then never holds every draw at once.
+        draws = uniforms(k, (num_proposals * SHAPE_ADD_UNIFORMS + THRUSTER_ADD_UNIFORMS,))
+        shape_rows = draws[: num_proposals * SHAPE_ADD_UNIFORMS].reshape(num_proposals, SHAPE_ADD_UNIFORMS)
+        thruster_row = draws[num_proposals * SHAPE_ADD_UNIFORMS :]
+        connected = kind == _CONNECTED_SHAPE
+        with_shape = _add_shape_filtered(shape_rows, level, sizes, config, connected, no_fix, revolute)
+        with_thruster = add_thruster_from_uniforms(thruster_row, level, sizes, config)
+        is_shape = (kind == _FREE_SHAPE) | connected
+        pick = lambda s, t, n: jnp.where(is_shape, s, jnp.where(kind == _THRUSTER, t, n))  # noqa: E731
+        return jax.tree.map(pick, with_shape, with_thruster, level), None
+
+    attempt_keys = jax.random.split(k_attempts, num_attempts)
+    level, _ = jax.lax.scan(attempt, level, (kinds, no_fixate, force_revolute, attempt_keys))
+
+    # Swap green and blue (neutral floor only), then shuffle the slots.
+    swap = (u[3] < config.swap_green_blue_chance) & (floor_role == ROLE_NEUTRAL)
+    roles = level.roles
+    swapped = jnp.where(roles == ROLE_GREEN, ROLE_BLUE, jnp.where(roles == ROLE_BLUE, ROLE_GREEN, roles))
+    level = level.replace(roles=jnp.where(swap, swapped, roles))
+    if config.permute_slots:
+        level = permute_slots(k_permute, level, sizes)
+    state = refresh_anchor_positions(refresh_collision_filter(level.state))
+    return level.replace(state=state)
+
+
+@functools.partial(jax.jit, static_argnames=("num_levels", "sizes", "config"))
+def sample_random_levels(
+    key: Array, num_levels: int, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig()
+) -> Level:
+    """A batch of `num_levels` random levels (leading axis on every leaf), jitted."""
+    keys = jax.random.split(key, num_levels)
+    return jax.vmap(lambda k: sample_random_level(k, sizes, config))(keys)
