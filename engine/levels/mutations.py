@@ -192,11 +192,14 @@ def settle(level: Level, sizes: SceneSizes, steps: int) -> Level:
 # `apply_edit` does that once after any of them. The two shape additions are in `_apply`.
 
 
+def _deactivate_one(u: Array, active: Array) -> Array:
+    """`active` with one of its active slots (chosen by the uniform `u`) switched off; unchanged if none is."""
+    slot, any_active = choose(u, active)
+    return active & ~((jnp.arange(active.shape[0]) == slot) & any_active)
+
+
 def _remove_joint(u, level, sizes, config):
-    joints = level.state.joints
-    slot, any_joint = choose(u[0], joints.active)
-    hot = (jnp.arange(sizes.num_joints) == slot) & any_joint
-    joints = joints.replace(active=joints.active & ~hot)
+    joints = level.state.joints.replace(active=_deactivate_one(u[0], level.state.joints.active))
     return level.replace(state=level.state.replace(joints=joints)), jnp.asarray(False)
 
 
@@ -233,10 +236,7 @@ def _add_thruster(u, level, sizes, config):
 
 
 def _remove_thruster(u, level, sizes, config):
-    thrusters = level.state.thrusters
-    slot, any_thruster = choose(u[0], thrusters.active)
-    hot = (jnp.arange(sizes.num_thrusters) == slot) & any_thruster
-    thrusters = thrusters.replace(active=thrusters.active & ~hot)
+    thrusters = level.state.thrusters.replace(active=_deactivate_one(u[0], level.state.thrusters.active))
     return level.replace(state=level.state.replace(thrusters=thrusters)), jnp.asarray(False)
 
 
