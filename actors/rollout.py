@@ -5,8 +5,10 @@ processes call it (jitted on its own) and publish what it returns. It knows noth
 `policy(params, obs, key) -> (action, log_prob, value)` over a batch of observations, so any network fits.
 
 Levels reach the environments through `levels` (a `Level` batch of K, shared by all environments): an episode
-that ends restarts on the next level of the batch (see `engine.env.env`). The rollout also tallies, per level of
-the batch, how many episodes ended there and how many were solved; that is what a curriculum scores levels by.
+that ends restarts on the next level of the batch (see `engine.env.env`). Every step records the id of the level
+it was played on (`EnvState.level`), so results are credited by level id even when the caller swaps the batch
+while episodes are running (`actors.trajectory.level_results`). The caller wraps the steps into a
+`TrajectoryBatch` with the bootstrap observation (`carry.obs` after the rollout) and its policy version.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from actors.trajectory import Trajectory
 from engine.env.env import step as env_step
 from engine.env.spec import EnvParams, EnvSpec
 from engine.env.state import EnvState
@@ -26,33 +29,12 @@ Array = jax.Array
 Policy = Callable[[Any, Any, Array], tuple[Array, Array, Array]]
 
 
-class Trajectory(NamedTuple):
-    """Time-major experience of E environments over T steps (leaves [T, E, ...])."""
-
-    obs: Any  # the observation the action was chosen from
-    action: Array
-    log_prob: Array  # of the action under the behaviour policy
-    value: Array  # the behaviour policy's value estimate of obs
-    reward: Array
-    done: Array  # the step ended an episode (the next obs belongs to a fresh one)
-    solved: Array  # the episode ended with green touching blue on this step
-    truncated: Array  # the episode was cut off by the time limit on this step (not a terminal state)
-
-
 class RolloutCarry(NamedTuple):
     """What one rollout hands to the next."""
 
     env_state: EnvState  # [E]
     obs: Any  # [E, ...] observation of env_state
     key: Array
-
-
-class LevelResults(NamedTuple):
-    """Per level of the batch (leaves [K]): episodes that ended on it during the rollout."""
-
-    episodes: Array  # int32
-    solved: Array  # int32
-    return_sum: Array  # float32, sum of the finished episodes' returns
 
 
 class RolloutStats(NamedTuple):
@@ -67,11 +49,6 @@ class RolloutStats(NamedTuple):
     length_sum: Array
 
 
-def current_level_index(env_state: EnvState, num_levels: int) -> Array:
-    """Index into the level batch of the level each environment is playing now (its `next_level` minus one)."""
-    return (env_state.next_level - 1) % num_levels
-
-
 def rollout(
     policy: Policy,
     params: Any,
@@ -80,24 +57,17 @@ def rollout(
     carry: RolloutCarry,
     levels: Level,
     num_steps: int,
-) -> tuple[RolloutCarry, Trajectory, Array, LevelResults, RolloutStats]:
-    """Run `num_steps` steps of every environment. Returns (carry, trajectory, last value, per-level results,
-    stats); the last value is the policy's estimate for the final observation, which bootstraps returns."""
-    num_levels = levels.roles.shape[0]
+) -> tuple[RolloutCarry, Trajectory, RolloutStats]:
+    """Run `num_steps` steps of every environment. Returns (carry, steps [T, E], whole-batch episode stats)."""
     step_all = jax.vmap(env_step, in_axes=(None, None, 0, 0, None))
 
-    def one_step(state: tuple[RolloutCarry, LevelResults], _):
-        (env_state, obs, key), results = state
+    def one_step(carry: RolloutCarry, _):
+        env_state, obs, key = carry
         key, act_key = jax.random.split(key)
         action, log_prob, value = policy(params, obs, act_key)
-        playing = current_level_index(env_state, num_levels)
+        level_id = env_state.level.level_id
         next_obs, env_state, reward, done, info = step_all(spec, env_params, env_state, action, levels)
-        ended = done.astype(jnp.int32)
-        results = LevelResults(
-            episodes=results.episodes.at[playing].add(ended),
-            solved=results.solved.at[playing].add(info["solved"].astype(jnp.int32)),
-            return_sum=results.return_sum.at[playing].add(jnp.where(done, info["returned_episode_return"], 0.0)),
-        )
+        finished_return = jnp.where(done, info["returned_episode_return"], 0.0)
         transition = Trajectory(
             obs=obs,
             action=action,
@@ -107,25 +77,20 @@ def rollout(
             done=done,
             solved=info["solved"],
             truncated=info["timed_out"],
+            episode_return=finished_return,
+            level_id=level_id,
         )
         episode = RolloutStats(
-            episodes=ended.sum(),
+            episodes=done.astype(jnp.int32).sum(),
             solved=info["solved"].sum(),
             failed=info["failed"].sum(),
             timed_out=info["timed_out"].sum(),
             nan=info["nan"].sum(),
-            return_sum=jnp.where(done, info["returned_episode_return"], 0.0).sum(),
+            return_sum=finished_return.sum(),
             length_sum=jnp.where(done, info["returned_episode_length"], 0).sum(),
         )
-        return (RolloutCarry(env_state, next_obs, key), results), (transition, episode)
+        return RolloutCarry(env_state, next_obs, key), (transition, episode)
 
-    empty = LevelResults(
-        episodes=jnp.zeros(num_levels, jnp.int32),
-        solved=jnp.zeros(num_levels, jnp.int32),
-        return_sum=jnp.zeros(num_levels, jnp.float32),
-    )
-    (carry, results), (trajectory, per_step) = jax.lax.scan(one_step, (carry, empty), None, length=num_steps)
-    key, last_key = jax.random.split(carry.key)
-    _, _, last_value = policy(params, carry.obs, last_key)
+    carry, (trajectory, per_step) = jax.lax.scan(one_step, carry, None, length=num_steps)
     stats = jax.tree.map(lambda x: x.sum(), per_step)
-    return carry._replace(key=key), trajectory, last_value, results, stats
+    return carry, trajectory, stats

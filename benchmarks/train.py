@@ -22,6 +22,7 @@ import time
 import jax
 
 from actors.rollout import rollout
+from actors.trajectory import make_batch
 from benchmarks._harness import emit, environment, progress, require_levels, time_jitted
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.kinetix_json import load_kinetix_level
@@ -58,11 +59,12 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
     roll = jax.jit(lambda c: rollout(agent.act, c.train.params, spec, trainer.env_params, c.envs, levels,
                                      ppo.num_steps))
     _, rollout_s = time_jitted(lambda: roll(state["carry"]), repeats)
-    _, trajectory, _, _, _ = roll(state["carry"])
-    update = jax.jit(lambda c, t, k: ppo_update(c.train, t, c.envs.obs, k, apply_fn=agent.apply,
+    envs, trajectory, _ = roll(state["carry"])
+    batch = make_batch(trajectory, envs.obs, state["carry"].train.policy_version)
+    update = jax.jit(lambda c, b, k: ppo_update(c.train, b, k, apply_fn=agent.apply,
                                                  distribution=agent.distribution, optimizer=trainer.optimizer,
                                                  config=ppo))
-    _, update_s = time_jitted(lambda: update(state["carry"], trajectory, jax.random.PRNGKey(1)), repeats)
+    _, update_s = time_jitted(lambda: update(state["carry"], batch, jax.random.PRNGKey(1)), repeats)
 
     steps = ppo.num_envs * ppo.num_steps
     return {

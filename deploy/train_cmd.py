@@ -1,4 +1,5 @@
-"""`impulse train` and `impulse eval`: command-line glue around `learner.run` and `learner.evaluate`."""
+"""`impulse train` and `impulse eval`: the fused run (`learner.run.FusedRun`) driven by the shared run loop, and
+evaluation of a checkpoint."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import argparse
 import json
 import logging
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
@@ -37,6 +39,55 @@ def enable_compile_cache() -> Path:
     return directory
 
 
+@dataclass
+class RunSummary:
+    updates: int
+    env_steps: int
+    compile_s: float
+    steps_per_s: float
+    """Env steps per second of this process's training (rollout and update, after compiling)."""
+    final_metrics: dict[str, float]
+    eval_scores: dict[str, dict[str, float]] | None
+
+
+def train_run(
+    config: TrainConfig,
+    run_dir: Path,
+    config_toml: str,
+    resume: bool = False,
+    stop_after_updates: int | None = None,
+) -> RunSummary:
+    """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
+    checkpointing on the configured cadence and when stopped, then evaluate if the run is complete."""
+    from deploy.runloop import run_loop
+    from learner.progress import ProgressLine
+    from learner.run import FusedRun
+
+    run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates)
+    try:
+        loop = run_loop(
+            run,
+            metrics_path=run_dir / "metrics.jsonl",
+            checkpoint_every=config.checkpoint.every_updates,
+            total_env_steps=run.trainer.num_updates * run.steps_per_update,
+            env_steps_done=run.env_steps,
+            updates_done=run.update,
+            window_size=config.checkpoint.every_updates,
+            progress=ProgressLine(run.trainer.num_updates * run.steps_per_update),
+        )
+    finally:
+        run.close()
+    scores = run.evaluate_at_end()
+    return RunSummary(
+        updates=run.update,
+        env_steps=run.env_steps,
+        compile_s=run.compile_s,
+        steps_per_s=loop.steps_per_s,
+        final_metrics=loop.last,
+        eval_scores=scores,
+    )
+
+
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--resume", type=Path, metavar="RUN_DIR",
@@ -50,7 +101,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace, config: TrainConfig) -> int:
-    from learner.run import RunError, train_run  # JAX loads only when a run starts
+    from learner.run import RunError  # JAX loads only when a run starts
 
     enable_compile_cache()
     if args.resume is not None:

@@ -1,15 +1,20 @@
 """Checkpoints with orbax: everything needed to continue a run bit for bit, written in the background.
 
-A checkpoint holds one pytree (whatever the trainer carries between iterations: parameters, optimiser state,
-environment state, random keys) plus JSON counters and the resolved config. Orbax writes each step into a
-temporary directory and renames it when complete, so a process killed mid-write (kill -9) leaves the previous
-checkpoints intact and the partial one is ignored and cleaned up on the next start.
+A checkpoint is a set of named items, so that each reader restores only what it needs:
+- `train`: parameters, optimiser state and policy version (a pytree), with the JSON items `counters` (updates,
+  env steps, the metrics window) and `config` (the resolved TOML) beside it. Every mode writes it; evaluation
+  restores it alone, so `impulse eval` reads checkpoints of fused and distributed runs alike.
+- `envs`: every environment's state and the random keys of a fused run (fused mode only).
+- `curriculum`: a curriculum's buffer and knobs, when a run has one.
+Orbax writes each step into a temporary directory and renames it when complete, so a process killed mid-write
+(kill -9) leaves the previous checkpoints intact and the partial one is ignored and cleaned up on the next start.
 
 Kept: the newest `keep_last` checkpoints and, when a metric is given, the best one by that metric.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +25,10 @@ from orbax.checkpoint.checkpoint_managers import preservation_policy
 from learner.config import CheckpointConfig
 
 BEST_METRIC = "solve_rate"
+TRAIN = "train"
+ENVS = "envs"
+CURRICULUM = "curriculum"
+ARRAY_ITEMS = (TRAIN, ENVS, CURRICULUM)
 
 
 class CheckpointError(RuntimeError):
@@ -50,14 +59,23 @@ class Checkpointer:
         self._manager = ocp.CheckpointManager(self.directory, options=options)
 
     def save(
-        self, step: int, state: Any, counters: dict[str, Any], config_toml: str, solve_rate: float | None = None
+        self,
+        step: int,
+        items: Mapping[str, Any],
+        counters: dict[str, Any],
+        config_toml: str,
+        solve_rate: float | None = None,
     ) -> None:
-        """Start writing checkpoint `step` in the background (the arrays are copied off the device first)."""
+        """Start writing checkpoint `step` in the background (the arrays are copied off the device first).
+        `items` maps item names (`ARRAY_ITEMS`; `train` is required) to pytrees."""
+        unknown = set(items) - set(ARRAY_ITEMS)
+        if unknown or TRAIN not in items:
+            raise ValueError(f"checkpoint items must include {TRAIN!r} and be among {ARRAY_ITEMS}, got {sorted(items)}")
         metrics = None if solve_rate is None else {BEST_METRIC: float(solve_rate)}
         self._manager.save(
             step,
             args=ocp.args.Composite(
-                state=ocp.args.StandardSave(state),
+                **{name: ocp.args.StandardSave(tree) for name, tree in items.items()},
                 counters=ocp.args.JsonSave(counters),
                 config=ocp.args.JsonSave({"toml": config_toml}),
             ),
@@ -70,17 +88,33 @@ class Checkpointer:
     def all_steps(self) -> list[int]:
         return list(self._manager.all_steps())
 
-    def restore(self, template: Any, step: int | None = None) -> tuple[Any, dict[str, Any], str]:
-        """(state, counters, config TOML) of checkpoint `step` (default: the newest), shaped like `template`."""
+    def restore(
+        self, templates: Mapping[str, Any], step: int | None = None
+    ) -> tuple[dict[str, Any], dict[str, Any], str]:
+        """(items, counters, config TOML) of checkpoint `step` (default: the newest). Only the items named in
+        `templates` are read, each shaped like its template."""
+        self.wait()  # a save still being written is not on disk yet
         step = self.latest_step() if step is None else step
         if step is None:
             raise CheckpointError(f"no complete checkpoint in {self.directory}")
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
+        present = {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()}
+        if TRAIN not in present:
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} was written by an older Impulse (one combined 'state' "
+                "item, before checkpoints were split into train/envs items); it cannot be restored: start a new run"
+            )
+        missing = set(templates) - present
+        if missing:
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} has no {', '.join(sorted(missing))} item "
+                f"(it holds {', '.join(sorted(present & set(ARRAY_ITEMS)))}); was it written by another mode?"
+            )
+        abstract = {name: jax.tree.map(ocp.utils.to_shape_dtype_struct, t) for name, t in templates.items()}
         try:
             restored = self._manager.restore(
                 step,
                 args=ocp.args.Composite(
-                    state=ocp.args.StandardRestore(abstract),
+                    **{name: ocp.args.StandardRestore(tree) for name, tree in abstract.items()},
                     counters=ocp.args.JsonRestore(),
                     config=ocp.args.JsonRestore(),
                 ),
@@ -90,7 +124,8 @@ class Checkpointer:
                 f"checkpoint {step} in {self.directory} does not match this run's state "
                 f"(different network, sizes or number of environments?): {err}"
             ) from err
-        return restored["state"], dict(restored["counters"]), restored["config"]["toml"]
+        items = {name: restored[name] for name in templates}
+        return items, dict(restored["counters"]), restored["config"]["toml"]
 
     def read_config(self, step: int | None = None) -> str:
         """The resolved config TOML saved with a checkpoint, without restoring its arrays."""

@@ -20,12 +20,13 @@ import jax
 import jax.numpy as jnp
 
 from actors.rollout import RolloutCarry, rollout
+from actors.trajectory import make_batch
 from engine.env.env import reset_batch
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import Level
 from learner.agent import Agent
 from learner.config import PPOConfig
-from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
+from learner.update import TrainState, make_optimizer, ppo_update
 
 Array = jax.Array
 LevelSampler = Callable[[Array], Level]  # key -> a batch of levels
@@ -71,16 +72,14 @@ class FusedTrainer:
         key, level_key, update_key = jax.random.split(carry.key, 3)
         if self.sample_levels is not None:
             levels = self.sample_levels(level_key)
-        envs, trajectory, _, _, stats = rollout(
+        envs, trajectory, stats = rollout(
             self.agent.act, carry.train.params, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps
         )
-        # Fused mode acts with the parameters it trains, so the lag is always 0; recorded for parity with the
-        # distributed learner's metrics.
-        lag = check_policy_lag(carry.train.policy_version, carry.train.policy_version, self.ppo.max_policy_lag)
+        # The parameters that acted are the ones trained, so the batch's version equals the learner's: lag 0.
+        batch = make_batch(trajectory, envs.obs, carry.train.policy_version)
         train, losses = ppo_update(
             carry.train,
-            trajectory,
-            envs.obs,
+            batch,
             update_key,
             apply_fn=self.agent.apply,
             distribution=self.agent.distribution,
@@ -102,7 +101,6 @@ class FusedTrainer:
             "episode_return": jnp.where(episodes > 0, stats.return_sum / safe, jnp.nan),
             "episode_length": jnp.where(episodes > 0, stats.length_sum / safe, jnp.nan),
             "reward_per_step": trajectory.reward.mean(),
-            "policy_lag": lag.lag,
         }
         return FusedCarry(train, envs, key), metrics
 

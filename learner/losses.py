@@ -4,6 +4,9 @@ Each piece is a small pure function of arrays, so that tests can check it by han
 network on a minibatch and puts them together. Ratios are taken against the behaviour policy's log-probabilities
 (those recorded when the data was collected), so a lagging actor's data is weighted by pi_current / mu; the clip
 keeps that ratio near 1 for the gradient, as in on-policy PPO.
+
+Every mean is over the samples the batch trains on: a `weight` of 0 (a step of a level a curriculum only
+evaluates) removes a sample from the loss and the statistics without changing any shape.
 """
 
 from __future__ import annotations
@@ -28,34 +31,48 @@ class PPOBatch(NamedTuple):
     old_value: Array  # the acting policy's value estimate, the centre of the value clip
     advantage: Array
     target: Array  # value target (GAE lambda-return or V-trace v_s)
+    weight: Array  # 1.0 for samples to learn from, 0.0 for those to leave out
 
 
-def normalize_advantages(advantages: Array, eps: float = 1e-8) -> Array:
-    """Zero mean, unit standard deviation over all entries."""
-    return (advantages - advantages.mean()) / (advantages.std() + eps)
+def weighted_mean(x: Array, weight: Array | None = None) -> Array:
+    """The mean of `x` over the samples with weight 1 (the plain mean without weights); 0 if none count."""
+    if weight is None:
+        return jnp.mean(x)
+    return jnp.sum(x * weight) / jnp.maximum(jnp.sum(weight), 1.0)
 
 
-def policy_loss(log_prob: Array, behaviour_log_prob: Array, advantages: Array, clip_eps: float) -> Array:
+def normalize_advantages(advantages: Array, eps: float = 1e-8, weight: Array | None = None) -> Array:
+    """Zero mean, unit standard deviation over the counted entries."""
+    mean = weighted_mean(advantages, weight)
+    std = jnp.sqrt(weighted_mean(jnp.square(advantages - mean), weight))
+    return (advantages - mean) / (std + eps)
+
+
+def policy_loss(
+    log_prob: Array, behaviour_log_prob: Array, advantages: Array, clip_eps: float, weight: Array | None = None
+) -> Array:
     """Clipped surrogate: -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)), r = exp(log_prob - behaviour_log_prob)."""
     ratio = jnp.exp(log_prob - behaviour_log_prob)
     unclipped = ratio * advantages
     clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
-    return -jnp.mean(jnp.minimum(unclipped, clipped))
+    return -weighted_mean(jnp.minimum(unclipped, clipped), weight)
 
 
-def value_loss(values: Array, old_values: Array, targets: Array, clip_eps: float | None) -> Array:
+def value_loss(
+    values: Array, old_values: Array, targets: Array, clip_eps: float | None, weight: Array | None = None
+) -> Array:
     """0.5 mean squared error to the targets; with `clip_eps`, the pessimistic (larger) of the errors of the
     prediction and of the prediction clipped to old_values +- clip_eps."""
     error = jnp.square(values - targets)
     if clip_eps is not None:
         clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
         error = jnp.maximum(error, jnp.square(clipped - targets))
-    return 0.5 * jnp.mean(error)
+    return 0.5 * weighted_mean(error, weight)
 
 
-def entropy_bonus(entropy: Array) -> Array:
+def entropy_bonus(entropy: Array, weight: Array | None = None) -> Array:
     """Mean entropy of the policy over the batch (subtracted from the loss, scaled by ent_coef)."""
-    return jnp.mean(entropy)
+    return weighted_mean(entropy, weight)
 
 
 def total_loss(policy: Array, value: Array, entropy: Array, vf_coef: float, ent_coef: float) -> Array:
@@ -63,15 +80,15 @@ def total_loss(policy: Array, value: Array, entropy: Array, vf_coef: float, ent_
     return policy + vf_coef * value - ent_coef * entropy
 
 
-def approx_kl(log_ratio: Array) -> Array:
+def approx_kl(log_ratio: Array, weight: Array | None = None) -> Array:
     """Estimate of KL(mu || pi) from log_ratio = log pi - log mu of actions drawn from mu: mean((r - 1) - log r),
     unbiased and never negative (Schulman's k3 estimator)."""
-    return jnp.mean(jnp.expm1(log_ratio) - log_ratio)
+    return weighted_mean(jnp.expm1(log_ratio) - log_ratio, weight)
 
 
-def clip_fraction(log_ratio: Array, clip_eps: float) -> Array:
+def clip_fraction(log_ratio: Array, clip_eps: float, weight: Array | None = None) -> Array:
     """Fraction of samples whose ratio lies outside [1 - eps, 1 + eps]."""
-    return jnp.mean((jnp.abs(jnp.exp(log_ratio) - 1.0) > clip_eps).astype(jnp.float32))
+    return weighted_mean((jnp.abs(jnp.exp(log_ratio) - 1.0) > clip_eps).astype(jnp.float32), weight)
 
 
 def ppo_loss(
@@ -85,10 +102,14 @@ def ppo_loss(
     total_loss, policy_loss, value_loss, entropy, approx_kl, clip_fraction."""
     dist_params, values = apply_fn(params, batch.obs)
     log_prob = distribution.log_prob(dist_params, batch.action)
-    advantages = normalize_advantages(batch.advantage) if config.normalize_advantages else batch.advantage
-    pi_loss = policy_loss(log_prob, batch.behaviour_log_prob, advantages, config.clip_eps)
-    v_loss = value_loss(values, batch.old_value, batch.target, config.clip_eps if config.clip_value else None)
-    entropy = entropy_bonus(distribution.entropy(dist_params))
+    weight = batch.weight
+    advantages = batch.advantage
+    if config.normalize_advantages:
+        advantages = normalize_advantages(advantages, weight=weight)
+    pi_loss = policy_loss(log_prob, batch.behaviour_log_prob, advantages, config.clip_eps, weight)
+    v_loss = value_loss(values, batch.old_value, batch.target, config.clip_eps if config.clip_value else None,
+                        weight)
+    entropy = entropy_bonus(distribution.entropy(dist_params), weight)
     loss = total_loss(pi_loss, v_loss, entropy, config.vf_coef, config.ent_coef)
     log_ratio = jax.lax.stop_gradient(log_prob - batch.behaviour_log_prob)
     metrics = {
@@ -96,7 +117,7 @@ def ppo_loss(
         "policy_loss": pi_loss,
         "value_loss": v_loss,
         "entropy": entropy,
-        "approx_kl": approx_kl(log_ratio),
-        "clip_fraction": clip_fraction(log_ratio, config.clip_eps),
+        "approx_kl": approx_kl(log_ratio, weight),
+        "clip_fraction": clip_fraction(log_ratio, config.clip_eps, weight),
     }
     return loss, metrics

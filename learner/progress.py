@@ -1,8 +1,9 @@
 """What a person watching a training run sees, and what a script reading it afterwards parses.
 
 `MetricsFile` appends one JSON object per line and flushes it, so a crash loses at most the line being written.
-`ProgressLine` redraws one status line on a terminal (steps/s, return, solve rate, ETA) and falls back to a
-log line every few seconds when the output is not a terminal (CI logs, `nohup`).
+`CycleReport` is what one cycle of any long-running process (fused trainer, learner, actor) tells the shared run
+loop (`deploy.runloop`). `ProgressLine` redraws one status line on a terminal (steps/s, return, solve rate, ETA)
+and falls back to a log line every few seconds when the output is not a terminal (CI logs, `nohup`).
 """
 
 from __future__ import annotations
@@ -12,10 +13,23 @@ import logging
 import math
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class CycleReport:
+    """What one cycle of a service did."""
+
+    env_steps: int = 0
+    """Environment steps produced (actors, fused) or consumed (learner) in this cycle."""
+    updates: int = 0
+    """Parameter updates made in this cycle (drives the checkpoint cadence)."""
+    metrics: dict[str, float] = field(default_factory=dict)
+    """Per-cycle values for metrics.jsonl; `episodes`, `solved` and `return_sum` feed the window."""
 
 
 def _plain(value: Any) -> Any:

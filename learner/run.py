@@ -1,8 +1,8 @@
-"""A fused training run from a `TrainConfig`: levels, trainer, progress, metrics, checkpoints, resume, final
-evaluation. `impulse train` is a thin wrapper around `train_run`.
+"""A fused training run from a `TrainConfig`, as a service the shared run loop drives (`deploy.runloop`):
+levels, trainer, resume, checkpoints, final evaluation. `impulse train` composes it with the loop.
 
 Run directory layout: `config.toml` (the resolved config, written by the command), `metrics.jsonl` (one line per
-update), `checkpoints/<update>/` (orbax), `eval.json` (the final evaluation).
+update), `checkpoints/<update>/` (orbax items `train` and `envs`), `eval.json` (the final evaluation).
 A run killed at any point resumes from its newest complete checkpoint with `--resume`; the iterations after it
 are recomputed exactly, so the resumed run ends with the same parameters as one that was never interrupted.
 """
@@ -12,9 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-import signal
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,28 +23,18 @@ from engine.env.spec import env_from_config
 from engine.levels.level import Level
 from engine.levels.sets import HANDMADE, RANDOM, load_level_set
 from learner.agent import Agent, make_agent
-from learner.checkpoint import Checkpointer, CheckpointError
+from learner.checkpoint import ENVS, TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
 from learner.evaluate import LevelScores, evaluate
 from learner.fused import FusedCarry, FusedTrainer
 from learner.networks import describe_parameters
-from learner.progress import MetricsFile, ProgressLine
+from learner.progress import CycleReport
 
 log = logging.getLogger(__name__)
 
 
 class RunError(RuntimeError):
     """A run cannot start or resume (existing run directory, mismatched checkpoint, no levels)."""
-
-
-@dataclass
-class RunSummary:
-    updates: int
-    env_steps: int
-    compile_s: float
-    steps_per_s: float
-    final_metrics: dict[str, float]
-    eval_scores: dict[str, dict[str, float]] | None
 
 
 def _random_level_sampler(config: TrainConfig, sizes):
@@ -103,29 +91,6 @@ def format_scores(table: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-class _StopFlag:
-    """SIGINT/SIGTERM ask the loop to checkpoint and stop at the end of the current update."""
-
-    def __init__(self) -> None:
-        self.stop = False
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> _StopFlag:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame) -> None:
-        if self.stop:  # second signal: give up at once
-            raise KeyboardInterrupt
-        log.warning("stopping after this update (checkpointing first); send again to abort")
-        self.stop = True
-
-    def __exit__(self, *exc) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
 def build(config: TrainConfig) -> tuple[FusedTrainer, Agent, list[str], Level | None]:
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
@@ -137,125 +102,97 @@ def build(config: TrainConfig) -> tuple[FusedTrainer, Agent, list[str], Level | 
     return trainer, agent, names, levels
 
 
-def train_run(
-    config: TrainConfig,
-    run_dir: Path,
-    config_toml: str,
-    resume: bool = False,
-    stop_after_updates: int | None = None,
-) -> RunSummary:
-    """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks)."""
-    trainer, agent, names, levels = build(config)
-    steps_per_update = config.ppo.num_envs * config.ppo.num_steps
-    checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
-    if not resume and checkpoints.latest_step() is not None:
-        checkpoints.close()
-        raise RunError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose another name")
+class FusedRun:
+    """The fused trainer as a run-loop service: one `cycle` is one jitted iteration (rollout + PPO update)."""
 
-    init, iterate = trainer.jitted()
-    key = jax.random.PRNGKey(config.seed)
-    carry: FusedCarry = init(key, levels)
-    log.info(
-        "network %s, %s parameters:\n%s",
-        config.network.kind,
-        f"{sum(x.size for x in jax.tree.leaves(carry.train.params)):,}",
-        describe_parameters(carry.train.params),
-    )
-    update = 0
-    if resume:
-        step = checkpoints.latest_step()
-        if step is None:
-            raise RunError(f"nothing to resume: no complete checkpoint in {checkpoints.directory}")
+    def __init__(self, config: TrainConfig, run_dir: Path, config_toml: str, resume: bool = False,
+                 stop_after_updates: int | None = None):
+        self.config = config
+        self.run_dir = run_dir
+        self.config_toml = config_toml
+        self.trainer, self.agent, self.names, self.levels = build(config)
+        self.steps_per_update = config.ppo.num_envs * config.ppo.num_steps
+        self.checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
+        if not resume and self.checkpoints.latest_step() is not None:
+            self.checkpoints.close()
+            raise RunError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose another name")
+        init, iterate = self.trainer.jitted()
+        self.carry: FusedCarry = init(jax.random.PRNGKey(config.seed), self.levels)
+        log.info(
+            "network %s, %s parameters:\n%s",
+            config.network.kind,
+            f"{sum(x.size for x in jax.tree.leaves(self.carry.train.params)):,}",
+            describe_parameters(self.carry.train.params),
+        )
+        self.update = 0
+        if resume:
+            self._restore()
+        start = time.perf_counter()
+        self._iterate = iterate.lower(self.carry, self.levels).compile()
+        self.compile_s = time.perf_counter() - start
+        log.info("compiled the training step in %.1f s (%s envs x %s steps)", self.compile_s,
+                 config.ppo.num_envs, config.ppo.num_steps)
+        self.target = self.trainer.num_updates
+        if stop_after_updates is not None:
+            self.target = min(self.target, self.update + stop_after_updates)
+
+    def _restore(self) -> None:
+        if self.checkpoints.latest_step() is None:
+            raise RunError(f"nothing to resume: no complete checkpoint in {self.checkpoints.directory}")
         try:
-            carry, counters, _ = checkpoints.restore(carry, step)
+            items, counters, _ = self.checkpoints.restore(fused_checkpoint_items(self.carry))
         except CheckpointError as err:
             raise RunError(str(err)) from err
-        update = int(counters["update"])
-        log.info("resumed from checkpoint %d (update %d, %s env steps)", step, update, f"{counters['env_steps']:,}")
+        self.carry = fused_carry_from_items(items)
+        self.update = int(counters["update"])
+        log.info("resumed from checkpoint %d (update %d, %s env steps)", self.checkpoints.latest_step(),
+                 self.update, f"{counters['env_steps']:,}")
 
-    start = time.perf_counter()
-    compiled = iterate.lower(carry, levels).compile()
-    compile_s = time.perf_counter() - start
-    log.info("compiled the training step in %.1f s (%s envs x %s steps)", compile_s, config.ppo.num_envs,
-             config.ppo.num_steps)
+    @property
+    def env_steps(self) -> int:
+        return self.update * self.steps_per_update
 
-    metrics_file = MetricsFile(run_dir / "metrics.jsonl")
-    target = trainer.num_updates
-    if stop_after_updates is not None:
-        target = min(target, update + stop_after_updates)
-    progress = ProgressLine(trainer.num_updates * steps_per_update)
-    window: list[dict[str, float]] = []
-    last: dict[str, float] = {}
-    config_text = config_toml
-    run_start = time.perf_counter()
-    steps_done_here = 0
-    try:
-        with _StopFlag() as stop:
-            while update < target and not stop.stop:
-                t0 = time.perf_counter()
-                carry, metrics = compiled(carry, levels)
-                metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-                update += 1
-                steps_done_here += steps_per_update
-                elapsed = time.perf_counter() - t0
-                record = {
-                    "update": update,
-                    "env_steps": update * steps_per_update,
-                    "steps_per_s": steps_per_update / elapsed,
-                    "time_s": round(time.time(), 3),
-                    **metrics,
-                }
-                metrics_file.write(record)
-                window = (window + [record])[-max(1, config.checkpoint.every_updates) :]
-                last = record
-                progress.update(update * steps_per_update, steps_done_here / (time.perf_counter() - run_start),
-                                _window_summary(window))
-                if update % config.checkpoint.every_updates == 0 or update == target or stop.stop:
-                    _save(checkpoints, update, steps_per_update, carry, config_text, window)
-            if stop.stop and update % config.checkpoint.every_updates:
-                _save(checkpoints, update, steps_per_update, carry, config_text, window)
-    finally:
-        progress.close()
-        metrics_file.close()
-        checkpoints.close()
+    def finished(self) -> bool:
+        return self.update >= self.target
 
-    train_time = time.perf_counter() - run_start
-    scores_table = None
-    if update >= trainer.num_updates and config.eval.attempts > 0:
-        eval_names, eval_levels = _eval_levels(config, agent.spec.sizes, names, levels)
-        if eval_levels is not None and eval_names:
-            scores = evaluate(agent, carry.train.params, trainer.env_params, eval_levels,
-                              jax.random.PRNGKey(config.seed + 1), attempts=config.eval.attempts)
-            scores_table = _scores_table(eval_names, scores)
-            (run_dir / "eval.json").write_text(json.dumps(scores_table, indent=2))
-            log.info("evaluation over %d attempts per level:\n%s", config.eval.attempts, format_scores(scores_table))
-    return RunSummary(
-        updates=update,
-        env_steps=update * steps_per_update,
-        compile_s=compile_s,
-        steps_per_s=steps_done_here / train_time if train_time > 0 else 0.0,
-        final_metrics=last,
-        eval_scores=scores_table,
-    )
+    def cycle(self) -> CycleReport:
+        start = time.perf_counter()
+        self.carry, metrics = self._iterate(self.carry, self.levels)
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        self.update += 1
+        metrics["steps_per_s"] = self.steps_per_update / (time.perf_counter() - start)
+        return CycleReport(env_steps=self.steps_per_update, updates=1, metrics=metrics)
+
+    def save(self, summary: dict[str, float]) -> None:
+        counters = {"update": self.update, "env_steps": self.env_steps, **summary}
+        self.checkpoints.save(self.update, fused_checkpoint_items(self.carry), counters, self.config_toml,
+                              solve_rate=summary.get("solve_rate"))
+
+    def close(self) -> None:
+        self.checkpoints.close()
+
+    def evaluate_at_end(self) -> dict[str, dict[str, float]] | None:
+        """Scores on the evaluation levels once the whole run is done (written to eval.json), else None."""
+        if self.update < self.trainer.num_updates or self.config.eval.attempts <= 0:
+            return None
+        eval_names, eval_levels = _eval_levels(self.config, self.agent.spec.sizes, self.names, self.levels)
+        if eval_levels is None or not eval_names:
+            return None
+        scores = evaluate(self.agent, self.carry.train.params, self.trainer.env_params, eval_levels,
+                          jax.random.PRNGKey(self.config.seed + 1), attempts=self.config.eval.attempts)
+        table = _scores_table(eval_names, scores)
+        (self.run_dir / "eval.json").write_text(json.dumps(table, indent=2))
+        log.info("evaluation over %d attempts per level:\n%s", self.config.eval.attempts, format_scores(table))
+        return table
 
 
-def _window_summary(window: list[dict[str, float]]) -> dict[str, float]:
-    """Solve rate and return over the episodes that ended in the recent updates (not a mean of means)."""
-    episodes = sum(r["episodes"] for r in window)
-    if episodes == 0:
-        return {"episodes": 0}
-    return {
-        "episodes": int(episodes),
-        "solve_rate": sum(r["solved"] for r in window) / episodes,
-        "episode_return": sum(r["return_sum"] for r in window) / episodes,
-    }
+def fused_checkpoint_items(carry: FusedCarry) -> dict[str, Any]:
+    """A fused carry as checkpoint items: `train`, and `envs` (environments and the iteration key)."""
+    return {TRAIN: carry.train, ENVS: {"rollout": carry.envs, "key": carry.key}}
 
 
-def _save(checkpoints: Checkpointer, update: int, steps_per_update: int, carry: FusedCarry, config_text: str,
-          window: list[dict[str, float]]) -> None:
-    summary = _window_summary(window)
-    counters = {"update": update, "env_steps": update * steps_per_update, **summary}
-    checkpoints.save(update, carry, counters, config_text, solve_rate=summary.get("solve_rate"))
+def fused_carry_from_items(items: dict[str, Any]) -> FusedCarry:
+    return FusedCarry(items[TRAIN], items[ENVS]["rollout"], items[ENVS]["key"])
 
 
 def evaluate_run(
@@ -279,12 +216,12 @@ def evaluate_run(
         eval_names, eval_levels = _eval_levels(config, sizes, names, train_levels)
         if eval_levels is None:
             raise RunError("no evaluation levels: pass --levels")
-    template = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), train_levels)
+    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         try:
-            carry, _, _ = checkpoints.restore(template, step)
+            items, _, _ = checkpoints.restore({TRAIN: template}, step)
         except CheckpointError as err:
             raise RunError(str(err)) from err
-    scores = evaluate(agent, carry.train.params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
+    scores = evaluate(agent, items[TRAIN].params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
                       attempts=attempts or config.eval.attempts, greedy=greedy)
     return _scores_table(eval_names, scores)

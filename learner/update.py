@@ -1,9 +1,12 @@
 """The PPO update: one pure function of (train state, trajectory batch), used unchanged by the fused trainer and
 the distributed learner.
 
-A batch is E environment sequences of T steps collected by a behaviour policy that may be some versions older
-than the one being trained. Targets and advantages come from GAE (on-policy, `correction = "none"`) or V-trace
-(importance-weighted, robust to policy lag) computed once per update with the current parameters; then
+A batch (`actors.trajectory.TrajectoryBatch`) is E environment sequences of T steps collected by a behaviour
+policy that may be some versions older than the one being trained; the update measures that lag against the
+batch's behaviour version (whether to train on a stale batch at all is the caller's decision, see
+`check_policy_lag`), and learns only from the steps the batch's train mask keeps. Targets and advantages come
+from GAE (on-policy, `correction = "none"`) or V-trace (importance-weighted, robust to policy lag) computed once
+per update with the current parameters; then
 `update_epochs` passes over `num_minibatches` minibatches of whole sequences apply the clipped PPO loss against
 the behaviour log-probabilities.
 """
@@ -16,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from actors.rollout import Trajectory
+from actors.trajectory import Trajectory, TrajectoryBatch
 from learner.config import PPOConfig
 from learner.losses import PPOBatch, ppo_loss
 from learner.returns import gae, vtrace
@@ -85,8 +88,7 @@ def targets_and_advantages(
 
 def ppo_update(
     state: TrainState,
-    trajectory: Trajectory,
-    last_obs: Any,
+    batch: TrajectoryBatch,
     key: Array,
     *,
     apply_fn,
@@ -94,7 +96,9 @@ def ppo_update(
     optimizer: optax.GradientTransformation,
     config: PPOConfig,
 ) -> tuple[TrainState, dict[str, Array]]:
-    """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps."""
+    """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps, plus
+    `policy_lag`, the versions between the batch's behaviour policy and `state`."""
+    trajectory = batch.steps
     num_steps, num_envs = trajectory.reward.shape
 
     def evaluate(params, obs, action):
@@ -104,7 +108,7 @@ def ppo_update(
     flat = lambda x: x.reshape((num_steps * num_envs,) + x.shape[2:])  # noqa: E731
     log_prob, values = evaluate(state.params, jax.tree.map(flat, trajectory.obs), flat(trajectory.action))
     log_prob, values = log_prob.reshape(num_steps, num_envs), values.reshape(num_steps, num_envs)
-    _, last_value = apply_fn(state.params, last_obs)
+    _, last_value = apply_fn(state.params, batch.bootstrap_obs)
     if config.correction == "vtrace":
         targets, advantages = targets_and_advantages(
             config, trajectory, values, last_value, log_prob - trajectory.log_prob
@@ -114,13 +118,14 @@ def ppo_update(
         targets, advantages = targets_and_advantages(
             config, trajectory, trajectory.value, last_value, jnp.zeros_like(log_prob)
         )
-    batch = PPOBatch(
+    samples = PPOBatch(
         obs=trajectory.obs,
         action=trajectory.action,
         behaviour_log_prob=trajectory.log_prob,
         old_value=trajectory.value,
         advantage=jax.lax.stop_gradient(advantages),
         target=jax.lax.stop_gradient(targets),
+        weight=batch.train_mask.astype(jnp.float32),
     )
 
     def loss_fn(params, minibatch: PPOBatch):
@@ -143,10 +148,12 @@ def ppo_update(
             x = jnp.take(x, order, axis=1).reshape((num_steps, config.num_minibatches, per) + x.shape[2:])
             return jnp.moveaxis(x, 1, 0).reshape((config.num_minibatches, num_steps * per) + x.shape[3:])
 
-        return jax.lax.scan(minibatch_step, carry, jax.tree.map(split, batch))
+        return jax.lax.scan(minibatch_step, carry, jax.tree.map(split, samples))
 
     (params, opt_state), metrics = jax.lax.scan(
         epoch, (state.params, state.opt_state), jax.random.split(key, config.update_epochs)
     )
     metrics = jax.tree.map(jnp.mean, metrics)
+    metrics["policy_lag"] = check_policy_lag(batch.behaviour_version, state.policy_version, 0).lag
+    metrics["trained_fraction"] = batch.train_mask.mean()
     return TrainState(params, opt_state, state.policy_version + 1), metrics

@@ -45,6 +45,7 @@ from engine.levels.level import (
     ROLE_RED,
     Level,
     level_from_scene,
+    random_level_id,
 )
 from engine.physics.geometry import rotate
 from engine.physics.mass import circle_mass_properties, polygon_mass_properties
@@ -678,6 +679,10 @@ def permute_slots(key: Array, level: Level, sizes: SceneSizes) -> Level:
     )
 
 
+LEVEL_ID_STREAM = 0x1D
+"""`fold_in` tag that derives a random level's id from its key."""
+
+
 def is_small_scene(sizes: SceneSizes, config: GeneratorConfig) -> bool:
     """Kinetix's S rule: scenes with at most `small_scene_max_shapes` shapes use 1 proposal and never fix."""
     return sizes.num_polygons + sizes.num_circles <= config.small_scene_max_shapes
@@ -745,7 +750,8 @@ def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig =
     if config.permute_slots:
         level = permute_slots(k_permute, level, sizes)
     state = refresh_anchor_positions(refresh_collision_filter(level.state))
-    return level.replace(state=state)
+    # The id comes from a side stream of the key, so adding it left every other draw unchanged.
+    return level.replace(state=state, level_id=random_level_id(jax.random.fold_in(key, LEVEL_ID_STREAM)))
 
 
 @functools.partial(jax.jit, static_argnames=("num_levels", "sizes", "config"))

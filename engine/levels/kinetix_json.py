@@ -31,7 +31,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
+from engine.levels.level import (
+    NUM_MOTOR_BINDINGS,
+    NUM_THRUSTER_BINDINGS,
+    ROLE_NAMES,
+    UNASSIGNED_LEVEL_ID,
+    Level,
+    level_id_words,
+    with_content_id,
+)
 from engine.physics.pairs import pair_tables
 from engine.physics.params import SimParams
 from engine.physics.scene import empty_scene, refresh_collision_filter
@@ -91,14 +99,16 @@ class KinetixLevel:
 
     @property
     def level(self) -> Level:
-        """The scene and its task data as one pytree, roles and densities in body order."""
-        return Level(
+        """The scene and its task data as one pytree, roles and densities in body order; its id is the content
+        hash, so the same file loaded twice is the same level."""
+        return with_content_id(Level(
             state=self.state,
             roles=jnp.asarray(np.concatenate([self.polygon_roles, self.circle_roles]), jnp.int32),
             densities=jnp.asarray(np.concatenate([self.polygon_densities, self.circle_densities]), jnp.float32),
             motor_bindings=jnp.asarray(self.motor_bindings, jnp.int32),
             thruster_bindings=jnp.asarray(self.thruster_bindings, jnp.int32),
-        )
+            level_id=jnp.asarray(level_id_words(UNASSIGNED_LEVEL_ID)),
+        ))
 
 
 # ---------------------------------------------------------------------------------------------------------------

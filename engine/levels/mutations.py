@@ -49,7 +49,7 @@ from engine.levels.generator import (
     sample_shape,
     uniforms,
 )
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level
+from engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, random_level_id
 from engine.physics.geometry import rotate
 from engine.physics.mass import circle_mass_properties, polygon_mass_properties
 from engine.physics.params import SimParams
@@ -397,11 +397,16 @@ def apply_edit(
         edit = EDIT_INDEX[edit]
     return _apply(uniforms(key, (EDIT_UNIFORMS,)), level, sizes, jnp.asarray(edit, jnp.int32), config)
 
+CHILD_ID_STREAM = 0x2D
+"""`fold_in` tag that derives a mutated child's id from the mutation key."""
+
 
 def mutate_level(key: Array, level: Level, sizes: SceneSizes, config: MutationConfig = MutationConfig()) -> Level:
-    """`config.num_edits` random edits in a row (ACCEL's mutation). Pure; jit with `sizes` and `config` static."""
+    """`config.num_edits` random edits in a row (ACCEL's mutation). Pure; jit with `sizes` and `config` static.
+    The child is a new level, with a new id drawn from `key`."""
+    child_id = random_level_id(jax.random.fold_in(key, CHILD_ID_STREAM))
     if config.num_edits == 0:
-        return level
+        return level.replace(level_id=child_id)
     draws = uniforms(key, (config.num_edits, 1 + EDIT_UNIFORMS))
 
     def one_edit(level: Level, u: Array) -> tuple[Level, Array]:
@@ -409,7 +414,7 @@ def mutate_level(key: Array, level: Level, sizes: SceneSizes, config: MutationCo
         return _apply(u[1:], level, sizes, edit, config), edit
 
     level, _ = jax.lax.scan(one_edit, level, draws)
-    return level
+    return level.replace(level_id=child_id)
 
 
 @functools.partial(jax.jit, static_argnames=("sizes", "config"))

@@ -9,9 +9,10 @@ from pathlib import Path
 import jax
 
 from deploy.config import config_to_toml, resolve_config
+from deploy.train_cmd import train_run
 from learner.config import TrainConfig
 from learner.evaluate import evaluate
-from learner.run import build, train_run
+from learner.run import build
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"

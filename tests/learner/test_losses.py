@@ -86,6 +86,7 @@ def test_ppo_loss_by_hand() -> None:
         old_value=OLD_VALUES,
         advantage=ADVANTAGES,
         target=TARGETS,
+        weight=jnp.ones(4),
     )
     params = {"logit": jnp.zeros(()), "value": VALUES}
     loss, metrics = ppo_loss(params, fixed_policy, Categorical(2), batch, config)
@@ -112,6 +113,7 @@ def test_ppo_loss_normalises_advantages_and_differentiates() -> None:
         old_value=jnp.zeros((2, 2)),
         advantage=jnp.array([[1.0, 2.0], [3.0, 4.0]]),
         target=jnp.ones((2, 2)),
+        weight=jnp.ones((2, 2)),
     )
     params = {"logit": jnp.zeros(()), "value": jnp.zeros((2, 2))}
     (loss, metrics), grads = jax.value_and_grad(ppo_loss, has_aux=True)(
@@ -123,3 +125,27 @@ def test_ppo_loss_normalises_advantages_and_differentiates() -> None:
     assert float(metrics["value_loss"]) == pytest.approx(0.5, abs=1e-6)
     assert float(metrics["approx_kl"]) == 0.0 and float(metrics["clip_fraction"]) == 0.0
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
+
+
+def test_weight_zero_leaves_samples_out_of_loss_and_statistics() -> None:
+    """A batch with masked-out samples gives the loss and metrics of the kept samples alone."""
+    config = PPOConfig(clip_eps=0.2)  # advantages normalised over the kept samples only
+    full = PPOBatch(
+        obs=jnp.zeros(4),
+        action=jnp.array([0, 1, 0, 1]),
+        behaviour_log_prob=jnp.log(0.5 / jnp.asarray(RATIOS)),
+        old_value=OLD_VALUES,
+        advantage=ADVANTAGES,
+        target=TARGETS,
+        weight=jnp.array([1.0, 0.0, 1.0, 0.0]),
+    )
+    kept = jax.tree.map(lambda x: x[jnp.array([0, 2])], full._replace(weight=jnp.ones(4)))
+    params = {"logit": jnp.zeros(()), "value": VALUES}
+    kept_params = {"logit": jnp.zeros(()), "value": VALUES[jnp.array([0, 2])]}
+    loss, metrics = ppo_loss(params, fixed_policy, Categorical(2), full, config)
+    kept_loss, kept_metrics = ppo_loss(kept_params, fixed_policy, Categorical(2), kept, config)
+    assert float(loss) == pytest.approx(float(kept_loss), abs=1e-6)
+    for name in kept_metrics:
+        assert float(metrics[name]) == pytest.approx(float(kept_metrics[name]), abs=1e-6), name
+    nothing, _ = ppo_loss(params, fixed_policy, Categorical(2), full._replace(weight=jnp.zeros(4)), config)
+    assert float(nothing) == 0.0

@@ -233,6 +233,7 @@ def test_ppo_loss_gradients_flow_through_the_network() -> None:
         old_value=jnp.zeros((2, 3)),
         advantage=jnp.arange(6.0).reshape(2, 3),
         target=jnp.ones((2, 3)),
+        weight=jnp.ones((2, 3)),
     )
     grad_fn = jax.jit(jax.value_and_grad(ppo_loss, has_aux=True), static_argnums=(1, 2, 4))
     (loss, metrics), grads = grad_fn(params, network.apply, MULTI, batch, PPOConfig())

@@ -11,3 +11,34 @@ def test_lag_is_versions_behind_and_limit_is_inclusive():
     check = check_policy_lag(jnp.array([10, 8, 6, 5]), 10, max_policy_lag=4)
     assert check.lag.tolist() == [0, 2, 4, 5]
     assert check.accepted.tolist() == [True, True, True, False]
+
+
+def test_the_update_measures_lag_from_the_batch_versions():
+    """`ppo_update` reports learner version minus the batch's behaviour version; fused batches carry the
+    learner's own version, hence lag 0."""
+    import jax
+
+    from actors.trajectory import Trajectory, make_batch
+    from engine.env.observations import observation_shape
+    from engine.env.spec import EnvSpec
+    from learner.agent import make_agent
+    from learner.config import NetworkConfig, PPOConfig
+    from learner.update import TrainState, make_optimizer, ppo_update
+
+    spec = EnvSpec(observation="symbolic")
+    agent = make_agent(NetworkConfig(kind="flat", width=8, depth=1, flat_embedding_size=8), spec)
+    config = PPOConfig(num_envs=2, num_steps=3, num_minibatches=1, update_epochs=1)
+    params = agent.init(jax.random.key(0))
+    optimizer = make_optimizer(config, 10)
+    obs = jnp.zeros((3, 2) + observation_shape(spec).shape)
+    action, log_prob, value = jax.vmap(lambda o: agent.act(params, o, jax.random.key(1)))(obs)
+    zeros = jnp.zeros((3, 2))
+    steps = Trajectory(obs, action, log_prob, value, zeros, zeros.astype(bool), zeros.astype(bool),
+                       zeros.astype(bool), zeros, jnp.zeros((3, 2, 2), jnp.uint32))
+    state = TrainState(params, optimizer.init(params), jnp.asarray(9, jnp.int32))
+    update = jax.jit(lambda s, b: ppo_update(s, b, jax.random.key(2), apply_fn=agent.apply,
+                                             distribution=agent.distribution, optimizer=optimizer, config=config))
+    new_state, metrics = update(state, make_batch(steps, obs[-1], behaviour_version=6))
+    assert int(metrics["policy_lag"]) == 3 and int(new_state.policy_version) == 10
+    _, metrics = update(state, make_batch(steps, obs[-1], behaviour_version=state.policy_version))
+    assert int(metrics["policy_lag"]) == 0

@@ -16,7 +16,7 @@ import numpy as np
 from deploy.config import resolve_config
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
-from learner.run import build
+from learner.run import build, fused_checkpoint_items
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"
@@ -47,9 +47,9 @@ def _final_params(run_dir: Path):
     template = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), levels)
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
-        carry, counters, _ = checkpoints.restore(template)
+        items, counters, _ = checkpoints.restore(fused_checkpoint_items(template))
     assert counters["update"] == UPDATES
-    return carry
+    return items
 
 
 def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from level_samples import SIZES, problems, random_levels, summary, to_host
 
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED
+from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_id_values
 from engine.levels.mutations import (
     EDIT_NAMES,
     MutationConfig,
@@ -310,14 +310,18 @@ def test_mutated_levels_keep_the_task_invariants():
     assert changed.mean() > 0.95, "five edits almost always change a level"
 
 
-def test_mutation_is_deterministic_and_zero_edits_is_identity():
+def test_mutation_is_deterministic_and_zero_edits_copies_the_level_under_a_new_id():
     before, after = mutated_s()
     again = to_host(mutate_levels(jax.random.key(5), random_levels("s", MUTATED_COUNT, 11), SIZES["s"]))
     for x, y in zip(jax.tree.leaves(again), jax.tree.leaves(after), strict=True):
         np.testing.assert_array_equal(x, y)
     level = jax.tree.map(lambda x: x[0], random_levels("s", MUTATED_COUNT, 11))
     same = mutate_level(jax.random.key(0), level, SIZES["s"], MutationConfig(num_edits=0))
+    assert bool((same.level_id != level.level_id).any()), "a child is a new level"
+    same = same.replace(level_id=level.level_id)
     assert all(bool((x == y).all()) for x, y in zip(jax.tree.leaves(same), jax.tree.leaves(level), strict=True))
+    ids = level_id_values(after.level_id)
+    assert len(set(ids.tolist())) == len(ids) and not set(ids.tolist()) & set(level_id_values(before.level_id).tolist())
 
 
 def test_operator_weights_follow_the_config_and_the_level():

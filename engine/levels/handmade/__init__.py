@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from engine.levels.handmade import designs
-from engine.levels.level import Level
+from engine.levels.level import Level, with_content_id
 from engine.physics.sizes import SceneSizes, size_preset
 
 LEVEL_DIR = Path(__file__).resolve().parent
@@ -101,12 +101,13 @@ def description(name: str) -> str:
 
 
 def build(name: str, sizes: SceneSizes | None = None) -> Level:
-    """The level built into `sizes` (default: its own size; a larger size adds inactive slots)."""
+    """The level built into `sizes` (default: its own size; a larger size adds inactive slots), with its content
+    hash as its id, as when its exported file is loaded."""
     entry = _get(name)
     target = entry.sizes if sizes is None else sizes
     if not entry.sizes.fits_in(target):
         raise ValueError(f"hand-made level {name} (size {entry.size.upper()}) does not fit the requested sizes")
-    return entry.builder(target)
+    return with_content_id(entry.builder(target))
 
 
 def level_file(name: str) -> Path:

@@ -35,7 +35,7 @@ def level_differences(a: Level, b: Level) -> list[str]:
 def check(name: str) -> list[str]:
     """Every problem with one level's design and its exported file (empty when all is well)."""
     entry = handmade.LEVELS[name]
-    level = entry.builder(entry.sizes)
+    level = handmade.build(name)
     problems = [f"design: {p}" for p in validate_scene(level.state)]
     if not entry.path.exists():
         return problems + [f"{entry.path.name} missing (run python -m engine.levels.handmade.build)"]

@@ -1,0 +1,100 @@
+"""The trajectory batch: the one type of experience that crosses from an actor to the learner.
+
+Fused mode builds it inside its jitted loop and hands it straight to `learner.update.ppo_update`; an actor process
+builds the same thing, the bus carries it as arrays, and the learner rebuilds it and calls the same update. The
+contract, field by field:
+
+- `steps`: [T, E] time-major transitions (`Trajectory`), including the id of the level every environment played at
+  every step, so results are credited to levels by id and a curriculum can mask levels out of the gradient;
+- `bootstrap_obs`: [E] the observation after the last step, which bootstraps the value targets;
+- `behaviour_version`: the learner's policy version of the parameters that acted; the learner measures policy lag
+  against it (0 in fused mode because the two versions are equal);
+- `train_mask`: [T, E] which steps the update learns from (all of them, unless a curriculum marks levels that are
+  only being evaluated);
+- `actor_id`, `seq`: who produced the batch and its number in that actor's stream (fused mode: actor 0).
+
+Per-level results (`LevelResults`) are computed from the steps on the host, keyed by level id.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from engine.levels.level import level_id_values
+
+Array = jax.Array
+
+
+class Trajectory(NamedTuple):
+    """Time-major experience of E environments over T steps (leaves [T, E, ...])."""
+
+    obs: Any  # the observation the action was chosen from
+    action: Array
+    log_prob: Array  # of the action under the behaviour policy
+    value: Array  # the behaviour policy's value estimate of obs
+    reward: Array
+    done: Array  # the step ended an episode (the next obs belongs to a fresh one)
+    solved: Array  # the episode ended with green touching blue on this step
+    truncated: Array  # the episode was cut off by the time limit on this step (not a terminal state)
+    episode_return: Array  # the finished episode's return on the step that ends it, 0 elsewhere
+    level_id: Array  # [T, E, LEVEL_ID_WORDS] uint32: the level this step was played on
+
+
+class TrajectoryBatch(NamedTuple):
+    """What an actor sends and `ppo_update` consumes (see the module docstring)."""
+
+    steps: Trajectory
+    bootstrap_obs: Any
+    behaviour_version: Array  # int32 scalar
+    train_mask: Array  # bool [T, E]
+    actor_id: Array  # int32 scalar
+    seq: Array  # int32 scalar
+
+
+def make_batch(
+    steps: Trajectory,
+    bootstrap_obs: Any,
+    behaviour_version: Array | int,
+    actor_id: Array | int = 0,
+    seq: Array | int = 0,
+    train_mask: Array | None = None,
+) -> TrajectoryBatch:
+    """A batch with every step trained on unless `train_mask` says otherwise. Jittable."""
+    if train_mask is None:
+        train_mask = jnp.ones(steps.reward.shape, bool)
+    return TrajectoryBatch(
+        steps=steps,
+        bootstrap_obs=bootstrap_obs,
+        behaviour_version=jnp.asarray(behaviour_version, jnp.int32),
+        train_mask=train_mask,
+        actor_id=jnp.asarray(actor_id, jnp.int32),
+        seq=jnp.asarray(seq, jnp.int32),
+    )
+
+
+class LevelResults(NamedTuple):
+    """Episodes that ended during a batch, per level id (numpy, leaves [K], ids unique and sorted)."""
+
+    level_id: np.ndarray  # uint64
+    episodes: np.ndarray  # int64
+    solved: np.ndarray  # int64
+    return_sum: np.ndarray  # float64, sum of the finished episodes' returns
+
+
+def level_results(steps: Trajectory) -> LevelResults:
+    """Tally finished episodes by the id of the level they were played on (host side). An episode belongs to the
+    level in `level_id` at the step that ends it, whatever batch of levels the actor holds by then."""
+    done = np.asarray(steps.done, bool)
+    ids = level_id_values(np.asarray(steps.level_id)[done])
+    unique, index = np.unique(ids, return_inverse=True)
+    count = lambda weights: np.bincount(index, weights, minlength=unique.size)  # noqa: E731
+    return LevelResults(
+        level_id=unique,
+        episodes=count(None).astype(np.int64),
+        solved=count(np.asarray(steps.solved, bool)[done]).astype(np.int64),
+        return_sum=count(np.asarray(steps.episode_return, np.float64)[done]),
+    )

@@ -1,0 +1,168 @@
+"""The run loop every long-running Impulse process shares: `impulse train` (fused) and each distributed service.
+
+A process hands the loop a `Service`: an object that does one cycle of its work at a time (one fused iteration,
+one learner update, one actor rollout) and can write a checkpoint. The loop owns what every process needs and
+none should copy:
+
+- the stop flag: the first Ctrl-C or SIGTERM asks the loop to finish the current cycle, checkpoint and stop; a
+  second one aborts at once;
+- the metrics window: the solve rate and return over the episodes of the last few cycles (summed counts, not a
+  mean of per-cycle means), shown on the progress line and stored with each checkpoint;
+- the checkpoint cadence: every `checkpoint_every` updates, and once more when the loop ends for any reason;
+- `metrics.jsonl` (one line per cycle that did something) and the progress line.
+
+Services are duck-typed (`Service` is a Protocol) and report with `learner.progress.CycleReport`, so the rooms
+that implement them never import `deploy`.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from learner.progress import CycleReport, MetricsFile, ProgressLine
+
+log = logging.getLogger("impulse.run")
+
+
+class Service(Protocol):
+    """One process's work as the run loop drives it."""
+
+    def cycle(self) -> CycleReport | None:
+        """Do one unit of work; None when there was nothing to do (the loop then waits briefly)."""
+
+    def save(self, summary: dict[str, float]) -> None:
+        """Write a checkpoint (a service without state to keep does nothing); `summary` is the window's."""
+
+    def finished(self) -> bool:
+        """Whether the run's goal is reached."""
+
+
+class StopFlag:
+    """SIGINT/SIGTERM ask the loop to checkpoint and stop after the current cycle; a second signal aborts."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopFlag:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.stop:
+            raise KeyboardInterrupt
+        log.warning("stopping after this cycle (checkpointing first); send again to abort")
+        self.stop = True
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class MetricsWindow:
+    """Episode outcomes over the last `size` cycles that finished episodes."""
+
+    def __init__(self, size: int):
+        self._records: deque[dict[str, float]] = deque(maxlen=max(1, size))
+
+    def add(self, metrics: dict[str, float]) -> None:
+        if metrics.get("episodes"):
+            self._records.append(metrics)
+
+    def summary(self) -> dict[str, float]:
+        """{"episodes", "solve_rate", "episode_return"} over the window; {"episodes": 0} before any episode."""
+        episodes = sum(r["episodes"] for r in self._records)
+        if episodes == 0:
+            return {"episodes": 0}
+        return {
+            "episodes": int(episodes),
+            "solve_rate": sum(r.get("solved", 0.0) for r in self._records) / episodes,
+            "episode_return": sum(r.get("return_sum", 0.0) for r in self._records) / episodes,
+        }
+
+
+@dataclass
+class LoopSummary:
+    cycles: int
+    updates: int
+    env_steps: int
+    seconds: float
+    stopped: bool
+    """Ended by a signal or `should_stop` rather than by the service finishing."""
+    last: dict[str, float]
+    window: dict[str, float]
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.env_steps / self.seconds if self.seconds > 0 else 0.0
+
+
+def run_loop(
+    service: Service,
+    *,
+    metrics_path: Path | None,
+    checkpoint_every: int,
+    total_env_steps: int,
+    env_steps_done: int = 0,
+    updates_done: int = 0,
+    window_size: int = 10,
+    idle_wait_s: float = 0.005,
+    progress: ProgressLine | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    on_cycle: Callable[[dict[str, Any]], None] | None = None,
+) -> LoopSummary:
+    """Drive `service` until it is finished, a signal arrives or `should_stop()` is true, then checkpoint once
+    more (unless that update was just saved). `env_steps_done` and `updates_done` continue a resumed run's
+    counters; each metrics.jsonl line carries the running totals."""
+    metrics_file = MetricsFile(metrics_path) if metrics_path is not None else None
+    progress = progress if progress is not None else ProgressLine(total_env_steps)
+    window = MetricsWindow(window_size)
+    env_steps, updates, cycles = env_steps_done, updates_done, 0
+    saved_at = updates_done
+    last: dict[str, float] = {}
+    start = time.perf_counter()
+    steps_here = 0
+    stopped = False
+    try:
+        with StopFlag() as stop:
+            while not service.finished():
+                if stop.stop or (should_stop is not None and should_stop()):
+                    stopped = True
+                    break
+                report = service.cycle()
+                if report is None:
+                    time.sleep(idle_wait_s)
+                    continue
+                cycles += 1
+                env_steps += report.env_steps
+                steps_here += report.env_steps
+                updates += report.updates
+                window.add(report.metrics)
+                elapsed = time.perf_counter() - start
+                last = {"update": updates, "env_steps": env_steps, "time_s": round(time.time(), 3),
+                        **report.metrics}
+                if metrics_file is not None:
+                    metrics_file.write(last)
+                if on_cycle is not None:
+                    on_cycle(last)
+                progress.update(env_steps, steps_here / elapsed if elapsed > 0 else 0.0, window.summary())
+                due = checkpoint_every > 0 and updates // checkpoint_every > saved_at // checkpoint_every
+                if report.updates and due:
+                    service.save(window.summary())
+                    saved_at = updates
+            stopped = stopped or stop.stop
+            if updates != saved_at or updates == 0:
+                service.save(window.summary())
+    finally:
+        progress.close()
+        if metrics_file is not None:
+            metrics_file.close()
+    return LoopSummary(cycles, updates, env_steps, time.perf_counter() - start, stopped, last, window.summary())
