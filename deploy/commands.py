@@ -12,11 +12,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from deploy import levels_cmd
+from deploy import launch_cmd, levels_cmd, services_cmd
 from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
 
-ISSUE_DISTRIBUTED = "the distributed-mode issues (not yet filed)"
+ISSUE_CURRICULUM = "the curriculum issue (DR, PLR, ACCEL, SFL, in fused mode and as a live service)"
+ISSUE_MULTI_HOST = "the multi-host issue (routers, TLS, several machines)"
+ISSUE_MONITORING = "the live-monitoring issue (Rerun)"
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
 
@@ -52,35 +54,43 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "launch",
         "run learner, curriculum and actors as local processes",
-        "Local multi-process run: one learner, one curriculum service, N actors and an optional Rerun viewer, "
-        "talking over Zenoh, with a live status display.",
-        pending=ISSUE_DISTRIBUTED,
+        "Local multi-process run: one learner and actors.num_actors actors (and, once built, the curriculum "
+        "service and a Rerun viewer) as separate processes talking over Zenoh, with a live status display. A "
+        "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
+        "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
+        config=TrainConfig,
+        run=launch_cmd.run_launch,
+        arguments=launch_cmd.add_launch_arguments,
     ),
     Command(
         "learner",
         "run the learner process alone (multi-host)",
         "The learner service: receives trajectories, applies corrected PPO updates, publishes weights, "
         "checkpoints.",
-        pending=ISSUE_DISTRIBUTED,
+        config=TrainConfig,
+        run=services_cmd.run_learner,
+        arguments=services_cmd.add_learner_arguments,
     ),
     Command(
         "actor",
         "run one actor process alone (multi-host)",
         "An actor service: runs batched rollouts with the newest weights and publishes trajectories and level "
         "results.",
-        pending=ISSUE_DISTRIBUTED,
+        config=TrainConfig,
+        run=services_cmd.run_actor,
+        arguments=services_cmd.add_actor_arguments,
     ),
     Command(
         "curriculum",
         "run the curriculum service alone (multi-host)",
         "The curriculum service: keeps the level buffer, scores level results and serves level batches.",
-        pending=ISSUE_DISTRIBUTED,
+        pending=ISSUE_CURRICULUM,
     ),
     Command(
         "router",
         "run a Zenoh router for a multi-host run",
         "A Zenoh router for one host of a multi-host run, with TLS and access control from a file.",
-        pending=ISSUE_DISTRIBUTED,
+        pending=ISSUE_MULTI_HOST,
     ),
     Command(
         "eval",
@@ -104,6 +114,6 @@ COMMANDS: tuple[Command, ...] = (
         "view",
         "open the Rerun viewer on a run",
         "Open the Rerun viewer with Impulse's blueprint on a live or recorded run.",
-        pending=ISSUE_DISTRIBUTED,
+        pending=ISSUE_MONITORING,
     ),
 )

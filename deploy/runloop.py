@@ -117,11 +117,12 @@ def run_loop(
     idle_wait_s: float = 0.005,
     progress: ProgressLine | None = None,
     should_stop: Callable[[], bool] | None = None,
-    on_cycle: Callable[[dict[str, Any]], None] | None = None,
+    on_cycle: Callable[[dict[str, Any], dict[str, float]], None] | None = None,
 ) -> LoopSummary:
     """Drive `service` until it is finished, a signal arrives or `should_stop()` is true, then checkpoint once
     more (unless that update was just saved). `env_steps_done` and `updates_done` continue a resumed run's
-    counters; each metrics.jsonl line carries the running totals."""
+    counters; each metrics.jsonl line carries the running totals. `on_cycle(record, window)` sees every record
+    and the window summary after it."""
     metrics_file = MetricsFile(metrics_path) if metrics_path is not None else None
     progress = progress if progress is not None else ProgressLine(total_env_steps)
     window = MetricsWindow(window_size)
@@ -152,7 +153,7 @@ def run_loop(
                 if metrics_file is not None:
                     metrics_file.write(last)
                 if on_cycle is not None:
-                    on_cycle(last)
+                    on_cycle(last, window.summary())
                 progress.update(env_steps, steps_here / elapsed if elapsed > 0 else 0.0, window.summary())
                 due = checkpoint_every > 0 and updates // checkpoint_every > saved_at // checkpoint_every
                 if report.updates and due:

@@ -3,7 +3,8 @@
 Defaults are Kinetix's PPO setup (entity transformer, 2,048 environments, 256-step rollouts), so a run with no
 overrides is comparable with the published baselines. These are plain dataclasses filled in by issue 5 (learner
 and fused trainer) and the distributed-mode issues; `deploy.config` loads them from TOML and `key=value`
-overrides, so every field needs a default and a type it understands.
+overrides, so every field needs a default and a type it understands. The same config describes a distributed
+run: its `actors`, `learner` and `bus` sections are read by `impulse launch` and the services.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from bus.session import BusConfig
 from engine.env.config import EnvConfig
 
 
@@ -127,6 +129,50 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class ActorConfig:
+    """Actor processes of a distributed run. Each actor rolls out `ppo.num_envs` environments for `ppo.num_steps`
+    steps per cycle, so one actor batch is one learner update."""
+
+    num_actors: int = 2
+    """Actors `impulse launch` starts."""
+    credits: int = 2
+    """Trajectory batches an actor may have in flight to the learner; bounds policy lag and memory."""
+    when_no_credit: Literal["wait", "drop_oldest"] = "wait"
+    """With no credit left: "wait" pauses the actor until the learner frees one; "drop_oldest" keeps rolling out
+    and replaces its one held-back batch with the newer one (every replaced batch is counted as dropped)."""
+    credit_timeout_s: float = 30.0
+    """No acknowledgement from the learner for this long while out of credit: the batches in flight are taken
+    as lost (a learner restarted without them) and the credits are reset."""
+    memory_fraction: float = 0.0
+    """Fraction of the GPU's memory each actor process preallocates (XLA_PYTHON_CLIENT_MEM_FRACTION), so several
+    actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""
+    status_every_s: float = 1.0
+    """How often each process publishes its status line for `impulse launch`'s display."""
+
+    def __post_init__(self) -> None:
+        if self.num_actors < 0 or self.credits < 1:
+            raise ValueError(f"actors.num_actors must be >= 0 and actors.credits >= 1, got {self.num_actors}, "
+                             f"{self.credits}")
+        if not 0.0 <= self.memory_fraction < 1.0:
+            raise ValueError(f"actors.memory_fraction must be in [0, 1), got {self.memory_fraction}")
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """The learner service of a distributed run."""
+
+    publish_every: int = 1
+    """Publish the weights every this many updates."""
+    slow_down_s: float = 0.0
+    """Sleep this long after every update: simulates a slow learner (back-pressure tests and experiments)."""
+
+    def __post_init__(self) -> None:
+        if self.publish_every < 1 or self.slow_down_s < 0:
+            raise ValueError(f"learner.publish_every must be >= 1 and learner.slow_down_s >= 0, got "
+                             f"{self.publish_every}, {self.slow_down_s}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """One training run: the config `impulse train` resolves and writes as config.toml in its run directory."""
 
@@ -141,6 +187,9 @@ class TrainConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    actors: ActorConfig = field(default_factory=ActorConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
 
     def output_dir(self) -> Path:
         """The run directory with the run name filled in."""

@@ -77,7 +77,7 @@ class ProgressLine:
 
     def update(self, done: int, steps_per_second: float, metrics: dict[str, Any]) -> None:
         fraction = min(done / max(self.total, 1), 1.0)
-        eta = (self.total - done) / steps_per_second if steps_per_second > 0 else math.inf
+        eta = max(self.total - done, 0) / steps_per_second if steps_per_second > 0 else math.inf
         parts = [f"{done:,}/{self.total:,} steps", f"{steps_per_second:,.0f} steps/s", f"ETA {_duration(eta)}"]
         for key, label, fmt in (
             ("episode_return", "return", "{:.3f}"),

@@ -19,7 +19,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from engine.env.spec import env_from_config
+from engine.env.spec import EnvParams, env_from_config
 from engine.levels.level import Level
 from engine.levels.sets import HANDMADE, RANDOM, load_level_set
 from learner.agent import Agent, make_agent
@@ -173,17 +173,28 @@ class FusedRun:
 
     def evaluate_at_end(self) -> dict[str, dict[str, float]] | None:
         """Scores on the evaluation levels once the whole run is done (written to eval.json), else None."""
-        if self.update < self.trainer.num_updates or self.config.eval.attempts <= 0:
+        if self.update < self.trainer.num_updates:
             return None
-        eval_names, eval_levels = _eval_levels(self.config, self.agent.spec.sizes, self.names, self.levels)
-        if eval_levels is None or not eval_names:
-            return None
-        scores = evaluate(self.agent, self.carry.train.params, self.trainer.env_params, eval_levels,
-                          jax.random.PRNGKey(self.config.seed + 1), attempts=self.config.eval.attempts)
-        table = _scores_table(eval_names, scores)
-        (self.run_dir / "eval.json").write_text(json.dumps(table, indent=2))
-        log.info("evaluation over %d attempts per level:\n%s", self.config.eval.attempts, format_scores(table))
-        return table
+        return final_evaluation(self.config, self.agent, self.trainer.env_params, self.carry.train.params,
+                                self.run_dir)
+
+
+def final_evaluation(config: TrainConfig, agent: Agent, env_params: EnvParams, params: Any,
+                     run_dir: Path) -> dict[str, dict[str, float]] | None:
+    """Scores of `params` on the run's evaluation levels (`eval.levels`, else the training levels, else the
+    hand-made set), logged as a table and written to eval.json; None when evaluation is off or has no levels."""
+    if config.eval.attempts <= 0:
+        return None
+    names, levels = _levels(config, agent.spec.sizes)
+    eval_names, eval_levels = _eval_levels(config, agent.spec.sizes, names, levels)
+    if eval_levels is None or not eval_names:
+        return None
+    scores = evaluate(agent, params, env_params, eval_levels, jax.random.PRNGKey(config.seed + 1),
+                      attempts=config.eval.attempts)
+    table = _scores_table(eval_names, scores)
+    (run_dir / "eval.json").write_text(json.dumps(table, indent=2))
+    log.info("evaluation over %d attempts per level:\n%s", config.eval.attempts, format_scores(table))
+    return table
 
 
 def fused_checkpoint_items(carry: FusedCarry) -> dict[str, Any]:

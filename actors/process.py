@@ -1,0 +1,240 @@
+"""The actor process: environments on this process's JAX device, driven by the newest policy weights, publishing
+trajectory batches to the learner and per-level results to whoever scores levels.
+
+One cycle (driven by the shared run loop):
+1. adopt the newest weights that arrived (only between rollouts, so one batch has one behaviour version);
+2. check credits: at most `actors.credits` batches may be in flight to the learner. Out of credit, the actor
+   either waits ("wait") or keeps rolling out and holds back only its newest batch ("drop_oldest"; each replaced
+   batch is counted as dropped), so memory stays flat however slow the learner is;
+3. run the jitted rollout of `ppo.num_steps` steps in `ppo.num_envs` environments on the next level batch;
+4. publish the batch (its behaviour version and the learner epoch of the weights that acted ride in the frame
+   header) and the per-level results, and report steps/s and counts on the status line.
+
+Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
+`credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
+that. Acknowledgements name the actor's incarnation (a random number drawn at start), so a restarted actor is not
+confused by acknowledgements meant for its predecessor; and they carry the learner's epoch, so when a restarted
+learner (new epoch) appears, whatever was in flight to the old one is written off at once. If no acknowledgement
+arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written off too.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from typing import Any
+
+import jax
+import numpy as np
+
+from actors.levels import LevelSource
+from actors.rollout import RolloutCarry, rollout
+from actors.trajectory import TrajectoryBatch, level_results, make_batch
+from actors.wire import level_results_arrays, tree_arrays, tree_from_arrays, weights_schema
+from bus.codec import Kind, Message, Rejected, decode, encode
+from bus.schema import check
+from bus.session import Bus
+from bus.status import StatusPublisher
+from engine.env.env import reset_batch
+from engine.env.spec import EnvParams
+from learner.agent import Agent
+from learner.config import TrainConfig
+from learner.progress import CycleReport
+
+log = logging.getLogger("impulse.actor")
+
+ACTOR_ROLE = "actor"
+WEIGHTS_QUERY_EVERY_S = 2.0
+"""While it has no weights, an actor asks the learner's queryable this often (the cached broadcast usually
+arrives first)."""
+
+
+def actor_name(index: int) -> str:
+    return f"actor-{index}"
+
+
+class Actor:
+    """One actor process's state and its run-loop `cycle`."""
+
+    def __init__(self, config: TrainConfig, index: int, bus: Bus, agent: Agent, env_params: EnvParams,
+                 levels: LevelSource):
+        self.config = config
+        self.index = index
+        self.name = actor_name(index)
+        self.bus = bus
+        self.agent = agent
+        self.levels = levels
+        self.incarnation = secrets.randbits(31)
+        self.num_envs, self.num_steps = config.ppo.num_envs, config.ppo.num_steps
+        key = jax.random.PRNGKey(np.uint32(config.seed * 1_000_003 + index * 7919 + self.incarnation))
+        self.key, level_key = jax.random.split(key)
+        first = levels.next_batch(level_key)
+        obs, env_state = reset_batch(agent.spec, env_params, first, self.num_envs)
+        self.carry = RolloutCarry(env_state, obs, self.key)
+        spec, steps = agent.spec, self.num_steps
+        self._rollout = jax.jit(
+            lambda params, carry, levels: rollout(agent.act, params, spec, env_params, carry, levels, steps),
+            donate_argnums=1,
+        )
+        self._params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
+        self._weights_schema = weights_schema(self._params_template)
+
+        keys = bus.keys
+        self._traj = bus.publisher(keys.traj(self.name))
+        self._results = bus.publisher(keys.levels_results(self.name))
+        self._weights = bus.inbox(keys.weights_policy, 1, drop_oldest=True, latest=True)
+        self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
+        self._status = StatusPublisher(bus, config.actors.status_every_s)
+
+        self.params: Any = None
+        self.version = -1
+        self.epoch = -1
+        self.seq = 0  # batches sent by this incarnation
+        self.acked = 0  # highest sequence number the learner has taken off its queue
+        self._last_ack_time = time.monotonic()
+        self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
+        self._last_query = -float("inf")
+        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0}
+        self._steps_done = 0
+        self._started = time.monotonic()
+        self._last_cycle_s = 0.0
+
+    # -- weights ------------------------------------------------------------------------------------------
+
+    def _adopt(self, message: Message) -> None:
+        check(message, self._weights_schema)
+        if (message.learner_epoch, message.policy_version) == (self.epoch, self.version):
+            return
+        self.params = jax.device_put(tree_from_arrays(message.arrays, self._params_template))
+        if message.learner_epoch != self.epoch and self.epoch >= 0:
+            log.info("learner restarted (epoch %d -> %d): batches in flight written off", self.epoch,
+                     message.learner_epoch)
+            self._write_off()
+        self.epoch, self.version = message.learner_epoch, message.policy_version
+        self.counts["weights_adopted"] += 1
+
+    def _receive_weights(self) -> None:
+        payloads = [received.payload for received in self._weights.poll()]
+        if not payloads and self.params is None and time.monotonic() - self._last_query >= WEIGHTS_QUERY_EVERY_S:
+            self._last_query = time.monotonic()
+            payloads = self.bus.get(self.bus.keys.weights_latest, timeout_s=1.0)
+        for payload in payloads[-1:]:
+            try:
+                self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, "weights", err.detail)
+
+    # -- credits ------------------------------------------------------------------------------------------
+
+    def _write_off(self) -> None:
+        self.counts["written_off"] += self.seq - self.acked
+        self.acked = self.seq
+        self._last_ack_time = time.monotonic()
+
+    def _receive_acks(self) -> None:
+        for received in self._credits.poll():
+            try:
+                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT)
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, "credit", err.detail)
+                continue
+            if message.meta.get("incarnation") != self.incarnation:
+                continue  # meant for an earlier process with this actor's name
+            if message.learner_epoch > self.epoch >= 0:
+                self._write_off()  # a new learner: nothing sent to the old one will be acknowledged
+                continue
+            acked = message.meta.get("acked_seq")
+            if isinstance(acked, int) and self.acked < acked <= self.seq:
+                self.acked = acked
+                self._last_ack_time = time.monotonic()
+
+    @property
+    def in_flight(self) -> int:
+        return self.seq - self.acked
+
+    def _has_credit(self) -> bool:
+        if self.in_flight < self.config.actors.credits:
+            return True
+        if time.monotonic() - self._last_ack_time > self.config.actors.credit_timeout_s:
+            log.warning("no acknowledgement for %.0f s: %d batches in flight written off",
+                        self.config.actors.credit_timeout_s, self.in_flight)
+            self._write_off()
+            return True
+        return False
+
+    # -- sending ------------------------------------------------------------------------------------------
+
+    def _send(self, batch: TrajectoryBatch) -> None:
+        self.seq += 1
+        batch = batch._replace(seq=np.int32(self.seq))
+        frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=self.bus.keys.run, policy_version=self.version,
+                       learner_epoch=self.epoch, seq=self.seq, sender=self.name,
+                       meta={"incarnation": self.incarnation, "actor": self.index})
+        self._traj.put(frame)
+        self.counts["sent"] += 1
+
+    def _publish_results(self, batch: TrajectoryBatch) -> None:
+        results = level_results(batch.steps)
+        if results.level_id.size:
+            frame = encode(Kind.LEVEL_RESULTS, level_results_arrays(results), run=self.bus.keys.run,
+                           policy_version=self.version, learner_epoch=self.epoch, seq=self.seq, sender=self.name)
+            self._results.put(frame)
+
+    # -- the cycle ----------------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        elapsed = time.monotonic() - self._started
+        return {
+            "role": ACTOR_ROLE,
+            "name": self.name,
+            "steps_per_s": self._steps_done / elapsed if elapsed > 0 else 0.0,
+            "last_cycle_s": self._last_cycle_s,
+            "policy_version": self.version,
+            "learner_epoch": self.epoch,
+            "in_flight": self.in_flight,
+            "levels": self.levels.description,
+            "waiting": "weights" if self.params is None else ("credit" if not self._has_credit() else ""),
+            "rejected": self.bus.rejects.total,
+            **self.counts,
+        }
+
+    def cycle(self) -> CycleReport | None:
+        if self._status.due():
+            self._status.publish(self.status())
+        self._receive_weights()
+        self._receive_acks()
+        if self.params is None:
+            return None
+        if self._held is not None and self._has_credit():
+            self._send(self._held)
+            self._held = None
+        drop_oldest = self.config.actors.when_no_credit == "drop_oldest"
+        if not self._has_credit() and not drop_oldest:
+            return None
+        start = time.monotonic()
+        self.key, level_key = jax.random.split(self.key)
+        levels = self.levels.next_batch(level_key)
+        self.carry, steps, stats = self._rollout(self.params, self.carry, levels)
+        batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index)
+        batch = jax.device_get(batch)
+        if self._has_credit():
+            self._send(batch)
+        else:
+            if self._held is not None:
+                self.counts["dropped_no_credit"] += 1
+            self._held = batch
+        self._publish_results(batch)
+        self._last_cycle_s = time.monotonic() - start
+        env_steps = self.num_envs * self.num_steps
+        self._steps_done += env_steps
+        stats = {k: float(v) for k, v in jax.device_get(stats._asdict()).items()}
+        metrics = {"episodes": stats["episodes"], "solved": stats["solved"], "return_sum": stats["return_sum"],
+                   "policy_version": float(self.version), "steps_per_s": env_steps / self._last_cycle_s}
+        return CycleReport(env_steps=env_steps, updates=0, metrics=metrics)
+
+    def save(self, summary: dict[str, float]) -> None:
+        """An actor keeps no state worth a checkpoint: the learner and the curriculum own the run."""
+
+    def finished(self) -> bool:
+        return False

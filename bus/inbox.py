@@ -1,0 +1,164 @@
+"""Receiving handles: bounded zenoh channels drained in the caller's own thread.
+
+Zenoh can hand each sample to a Python callback, but a slow callback is an unbounded queue (the reference measured
+a 124 MB backlog) and work done inside it runs on zenoh's threads. Here every subscription, queryable and
+liveliness watcher feeds a bounded zenoh channel, and the owner drains it with `poll` or `wait` wherever it decodes
+anyway: a FIFO channel that fills up stalls the sender (real backpressure), a ring channel drops the oldest.
+Zenoh channels have no receive-with-timeout, so `wait` polls with a short sleep (at most WAIT_SLEEP_MAX_S).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import zenoh
+
+WAIT_SLEEP_MIN_S = 0.0005
+WAIT_SLEEP_MAX_S = 0.005
+"""Bounds of the sleep between two polls in `wait`: the latency it adds is at most this."""
+
+_T = TypeVar("_T")
+
+
+def _drain(try_recv: Callable[[], Any], convert: Callable[[Any], _T | None], max_items: int | None) -> list[_T]:
+    items: list[_T] = []
+    while max_items is None or len(items) < max_items:
+        raw = try_recv()
+        if raw is None:
+            break
+        item = convert(raw)
+        if item is not None:
+            items.append(item)
+    return items
+
+
+def _wait(poll_one: Callable[[], _T | None], timeout_s: float) -> _T | None:
+    deadline = time.monotonic() + timeout_s
+    sleep = WAIT_SLEEP_MIN_S
+    while True:
+        item = poll_one()
+        if item is not None:
+            return item
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return None
+        time.sleep(min(sleep, left))
+        sleep = min(sleep * 2, WAIT_SLEEP_MAX_S)
+
+
+@dataclass(frozen=True)
+class Received:
+    """One sample: its key, its payload (one copy out of zenoh) and its attachment, if any."""
+
+    key: str
+    payload: bytes
+    attachment: bytes | None
+
+
+def _received(sample: zenoh.Sample) -> Received | None:
+    if sample.kind != zenoh.SampleKind.PUT:
+        return None  # nothing in the protocol deletes keys; a DELETE carries no message
+    attachment = sample.attachment
+    return Received(
+        key=str(sample.key_expr),
+        payload=sample.payload.to_bytes(),
+        attachment=attachment.to_bytes() if attachment is not None else None,
+    )
+
+
+class Inbox:
+    """Samples of one subscription, waiting in a bounded zenoh channel until the owner takes them."""
+
+    def __init__(self, subscriber: Any, key: str) -> None:
+        self.subscriber = subscriber
+        self.key = key
+
+    def poll(self, max_items: int | None = None) -> list[Received]:
+        """Every sample waiting now (at most `max_items`), without blocking."""
+        return _drain(self.subscriber.try_recv, _received, max_items)
+
+    def wait(self, timeout_s: float) -> Received | None:
+        """The next sample, waiting up to `timeout_s` seconds for it; None if none came."""
+        return _wait(lambda: next(iter(self.poll(1)), None), timeout_s)
+
+
+class IncomingQuery:
+    """A query received by a queryable, answered from the owner's thread with exactly one `reply`.
+
+    Answering (or `reply_error`) also finalises the query, so the asker's `get` returns at once instead of
+    waiting for its timeout.
+    """
+
+    def __init__(self, query: zenoh.Query, reply_key: str) -> None:
+        self._query = query
+        self._reply_key = reply_key
+        self.key = str(query.key_expr)
+        self.parameters: dict[str, str] = dict(query.parameters)
+        payload = query.payload
+        self.payload: bytes | None = payload.to_bytes() if payload is not None else None
+        self.answered = False
+
+    def reply(self, payload: bytes | bytearray, *, attachment: bytes | None = None) -> None:
+        """Send `payload` to the asker and finish the query."""
+        self._finish(lambda: self._query.reply(self._reply_key, payload, attachment=attachment))
+
+    def reply_error(self, message: str) -> None:
+        """Tell the asker why there is no answer (its `get` drops errors) and finish the query."""
+        self._finish(lambda: self._query.reply_err(message.encode("utf-8")))
+
+    def _finish(self, send: Callable[[], None]) -> None:
+        if self.answered:
+            raise RuntimeError(f"query on {self.key!r} was already answered")
+        self.answered = True
+        try:
+            send()
+        finally:
+            self._query.drop()
+
+
+class QueryInbox:
+    """Queries to one queryable, waiting in a bounded zenoh channel until the owner answers them."""
+
+    def __init__(self, queryable: zenoh.Queryable, key: str) -> None:
+        self.queryable = queryable
+        self.key = key
+        self._concrete = not any(ch in key for ch in "*$")
+
+    def _incoming(self, query: zenoh.Query) -> IncomingQuery:
+        # Replies must name a concrete key: the queryable's own, or (serving a pattern) the one asked for.
+        return IncomingQuery(query, self.key if self._concrete else str(query.key_expr))
+
+    def poll(self, max_items: int | None = None) -> list[IncomingQuery]:
+        """Every query waiting now (at most `max_items`), without blocking."""
+        return _drain(self.queryable.try_recv, self._incoming, max_items)
+
+    def wait(self, timeout_s: float) -> IncomingQuery | None:
+        """The next query, waiting up to `timeout_s` seconds for it; None if none came."""
+        return _wait(lambda: next(iter(self.poll(1)), None), timeout_s)
+
+
+def _alive_event(sample: zenoh.Sample) -> tuple[str, bool]:
+    return str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+
+
+class AliveWatcher:
+    """Liveliness changes under a pattern: (key, True) when a token appears, (key, False) when it goes.
+
+    Tokens alive when the watcher is declared are reported first (history). The channel is a ring: a watcher
+    nobody polls must not stall zenoh's receive thread, so the oldest events are dropped once it is full.
+    """
+
+    def __init__(self, subscriber: zenoh.Subscriber, pattern: str) -> None:
+        self.subscriber = subscriber
+        self.pattern = pattern
+
+    def poll(self, max_items: int | None = None) -> list[tuple[str, bool]]:
+        """Every change waiting now, oldest first, without blocking."""
+        return _drain(self.subscriber.try_recv, _alive_event, max_items)
+
+    def wait(self, timeout_s: float) -> tuple[str, bool] | None:
+        """The next change, waiting up to `timeout_s` seconds for it; None if none came."""
+        return _wait(lambda: next(iter(self.poll(1)), None), timeout_s)

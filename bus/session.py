@@ -1,0 +1,360 @@
+"""Zenoh sessions: one configuration for every process, and a `Bus` that remembers and closes what it declares.
+
+Topology on one machine: a hub process (`run_hub`) listens on `BusConfig.hub` (loopback); learner, curriculum and
+actors are peers that connect to it. The hub is a process of its own so that any of them can restart without
+breaking the others' connections. Several machines: `connect` lists router endpoints instead.
+
+Measured with eclipse-zenoh 1.10.2 on loopback (see tests/bus/test_session.py):
+
+- Peers that connect to the hub learn each other's listen endpoints by gossip and open a direct link (each
+  lists the other and the hub in `session.info.peers_zid()`), so actor-to-learner traffic is one hop. After the
+  hub is killed, two peers kept exchanging messages over their direct link.
+- A peer killed with SIGKILL is seen gone at once (the kernel closes its sockets): a liveliness watcher gets
+  DELETE within milliseconds, and PUT again when the restarted process (same id) declares its token.
+- Connect endpoints are retried forever (`connect/timeout_ms = -1`, `connect/exit_on_failure = false`, with
+  `connect/retry` backing off from CONNECT_RETRY_INIT_MS to CONNECT_RETRY_MAX_MS). So a peer started before
+  the hub opens at once (`zenoh.open` returned in 0.5 s with nothing listening) and links up about 1 s after the
+  hub starts, and a peer whose hub is killed and restarted on the same port reconnects by itself (0.95 s here;
+  3.5 s with zenoh's default 1-4 s back-off).
+- Peers do not forward for each other (zenoh >= 1.9 has only peer-to-peer routing): a peer reaches another only
+  over their direct link, which gossip opens a few ms after `zenoh.open` returns. A put made before a
+  subscriber is known is dropped silently, so wait for `wait_matching` first. Note that `matching_status`
+  returns a MatchingStatus object that is always truthy (the stubs say bool): `while not pub.matching_status`
+  never waits, and with it 8-12 of 20 first puts were lost; `.matching` is the flag, and with it 0 of 60 were.
+  It turns True only once the direct link is up. A `get` finds only queryables already declared to it
+  (`wait_queryable`). `Bus()` returns once its set of direct links has been quiet for 50 ms, so what it does
+  first reaches the peers already known to the hub: a `get` right after `Bus()` was answered 12 of 12 times,
+  6 of 12 without that wait. A liveliness PUT arrives over the direct link, so
+  answering a newly seen token is safe. Protocols must still tolerate losing a message to a peer that joined a
+  moment ago (re-grant credits, retry queries).
+- A hub whose port is taken fails at once with a ZError from `zenoh.open` (no silent fallback).
+- A process holding an unclosed session with a Python-callback subscriber never exits (killed after 8 s); with
+  channel handlers, as here, it exited even unclosed. `Bus.close` closes anyway, undeclaring advanced
+  subscribers first (a hang reported upstream when they outlive the session; not reproduced with 1.10.2).
+- Copies of a 17.7 MB trajectory from `encode` to `decode` (benchmarks/bus_copies.py): encode 1, ZBytes 1,
+  shared-memory pool 1 (or the socket path), `to_bytes` 1, decode 0. Put -> received as bytes took 8 ms with
+  shared memory (19 of 20 messages went through the 64 MiB pool, one fell back to the socket; 3.0-3.4 GB/s
+  back to back) and 22-28 ms without (0.74-0.88 GB/s).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import zenoh
+import zenoh.ext
+
+from bus.inbox import AliveWatcher, Inbox, QueryInbox
+from bus.keys import Keys, check_name
+from bus.rejects import RejectCounter
+
+PEER_LISTEN = "tcp/127.0.0.1:0"
+"""Where a non-hub peer listens (any free port, loopback only) so the hub's gossip can link peers directly."""
+CONNECT_RETRY_INIT_MS = 250
+CONNECT_RETRY_MAX_MS = 1000
+"""Back-off of connect retries: a peer finds a (re)started hub within about a second."""
+LINK_SETTLE_QUIET_S = 0.05
+LINK_SETTLE_MAX_S = 1.0
+"""`Bus()` returns once its set of directly linked peers has not changed for LINK_SETTLE_QUIET_S (at most
+LINK_SETTLE_MAX_S): peers only deliver over direct links, which gossip opens just after `zenoh.open` returns."""
+LINK_SETTLE_POLL_S = 0.002
+ALIVE_CHANNEL_SIZE = 1024
+MATCHING_POLL_S = 0.01
+
+
+def _check_endpoint(endpoint: object, what: str) -> str:
+    if not isinstance(endpoint, str) or "/" not in endpoint or any(ch.isspace() for ch in endpoint):
+        raise ValueError(f"{what} {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
+    protocol, _, address = endpoint.partition("/")
+    if not protocol or not address:
+        raise ValueError(f"{what} {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
+    return endpoint
+
+
+def _check_positive(name: str, value: object, kind: type | tuple[type, ...]) -> None:
+    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0:
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How a process reaches the bus; a section of the run's TOML config, hence only simple types."""
+
+    hub: str = "tcp/127.0.0.1:7447"
+    """Endpoint of the one-machine hub: the hub listens on it, every other process connects to it."""
+    connect: tuple[str, ...] = ()
+    """Several machines: the routers to connect to. When non-empty it replaces `hub` for connecting."""
+    shared_memory: bool = True
+    """Large messages between processes of one machine go through shared memory instead of the socket."""
+    shm_pool_mib: int = 64
+    """Shared-memory pool per process; a message that does not fit falls back to the socket (keep >= 2x the
+    largest message: 16 MiB messages were no faster than TCP with zenoh's default 16 MiB pool)."""
+    lease_ms: int = 3000
+    """A hung peer (socket open, process stopped) is declared gone after about this long."""
+    block_timeout_ms: int = 60000
+    """How long a blocking put waits for a full queue before zenoh drops the message (longest receiver pause)."""
+    query_timeout_s: float = 10.0
+    """Default timeout of `Bus.get`."""
+
+    def __post_init__(self) -> None:
+        _check_endpoint(self.hub, "bus.hub")
+        connect = self.connect
+        if isinstance(connect, str) or not isinstance(connect, tuple | list):
+            raise ValueError(f"bus.connect must be a list of endpoints, got {connect!r}")
+        object.__setattr__(self, "connect", tuple(_check_endpoint(e, "bus.connect entry") for e in connect))
+        if not isinstance(self.shared_memory, bool):
+            raise ValueError(f"bus.shared_memory must be true or false, got {self.shared_memory!r}")
+        _check_positive("bus.shm_pool_mib", self.shm_pool_mib, int)
+        _check_positive("bus.lease_ms", self.lease_ms, int)
+        _check_positive("bus.block_timeout_ms", self.block_timeout_ms, int)
+        _check_positive("bus.query_timeout_s", self.query_timeout_s, int | float)
+
+
+def zenoh_config(config: BusConfig, *, listen: bool) -> zenoh.Config:
+    """The zenoh configuration of a hub (`listen=True`: listens on `config.hub`) or of a peer (connects to it).
+
+    Peer mode, multicast scouting off (nothing leaves loopback unless configured), gossip on (peers link
+    directly), timestamping on (the advanced publisher/subscriber need it), connect endpoints retried forever.
+    """
+    settings: dict[str, Any] = {
+        "mode": "peer",
+        "scouting/multicast/enabled": False,
+        "timestamping/enabled": True,
+        "listen/endpoints": [config.hub] if listen else [PEER_LISTEN],
+        "connect/endpoints": list(config.connect) if listen or config.connect else [config.hub],
+        "connect/timeout_ms": -1,
+        "connect/exit_on_failure": False,
+        "connect/retry": {
+            "period_init_ms": CONNECT_RETRY_INIT_MS,
+            "period_max_ms": CONNECT_RETRY_MAX_MS,
+            "period_increase_factor": 2.0,
+        },
+        "transport/shared_memory/enabled": config.shared_memory,
+        "transport/shared_memory/transport_optimization/pool_size": config.shm_pool_mib << 20,
+        "transport/link/tx/lease": config.lease_ms,
+        "transport/link/tx/queue/congestion_control/block/wait_before_close": config.block_timeout_ms * 1000,
+    }
+    conf = zenoh.Config()
+    for key, value in settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    return conf
+
+
+class Bus:
+    """One process's zenoh session, its liveliness token, and every entity declared through it.
+
+    `close()` (or leaving the `with` block) undeclares them all, advanced subscribers first, then closes the
+    session; a session left open keeps the process from exiting.
+    """
+
+    def __init__(self, config: BusConfig, run: str, role: str, ident: str, *, listen: bool = False) -> None:
+        self.config = config
+        self.keys = Keys(run)
+        self.role = check_name(role, "role")
+        self.ident = check_name(ident, "id")
+        self.rejects = RejectCounter()
+        self._advanced_subscribers: list[Any] = []
+        self._entities: list[Any] = []
+        self._closed = False
+        self.session = zenoh.open(zenoh_config(config, listen=listen))
+        try:
+            self._settle_links()
+            self.alive_key = self.keys.alive(self.role, self.ident)
+            self._remember(self.session.liveliness().declare_token(self.alive_key))
+        except BaseException:
+            self.session.close()
+            raise
+
+    def linked_peers(self) -> set[str]:
+        """Zenoh ids of the sessions this one has a direct link to (the hub and, through gossip, the others)."""
+        return {str(zid) for zid in self.session.info.peers_zid()}
+
+    def _settle_links(self) -> None:
+        deadline = time.monotonic() + LINK_SETTLE_MAX_S
+        peers = self.linked_peers()
+        quiet_since = time.monotonic()
+        while time.monotonic() < deadline and time.monotonic() - quiet_since < LINK_SETTLE_QUIET_S:
+            time.sleep(LINK_SETTLE_POLL_S)
+            now = self.linked_peers()
+            if now != peers:
+                peers, quiet_since = now, time.monotonic()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"the bus of {self.role}/{self.ident} is closed")
+
+    def _remember(self, entity: Any) -> Any:
+        self._entities.append(entity)
+        return entity
+
+    def publisher(
+        self,
+        key: str,
+        *,
+        block: bool = True,
+        priority: zenoh.Priority = zenoh.Priority.DATA,
+        express: bool = False,
+    ) -> zenoh.Publisher:
+        """A publisher on `key`. `block=True` waits (up to block_timeout_ms) when the receiver's queue is full
+        (trajectories, weights, levels); `block=False` drops instead (metrics)."""
+        self._check_open()
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        return self._remember(
+            self.session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                congestion_control=congestion,
+                priority=priority,
+                express=express,
+            )
+        )
+
+    def latest_publisher(self, key: str) -> zenoh.ext.AdvancedPublisher:
+        """A publisher that keeps its newest sample, so an `inbox(key, latest=True)` declared later still gets it
+        (the weights broadcast)."""
+        self._check_open()
+        return self._remember(
+            zenoh.ext.declare_advanced_publisher(
+                self.session,
+                key,
+                encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.DATA_HIGH,
+                cache=zenoh.ext.CacheConfig(max_samples=1),
+                publisher_detection=True,
+            )
+        )
+
+    def inbox(self, key: str, capacity: int, *, drop_oldest: bool = False, latest: bool = False) -> Inbox:
+        """Subscribe to `key` into a channel of `capacity` samples, drained with `Inbox.poll`/`wait`.
+
+        A full FIFO channel (the default) holds the senders back; `drop_oldest` keeps only the newest samples
+        instead. `latest=True` also fetches the newest sample cached by a `latest_publisher`, even one published
+        before this call.
+        """
+        self._check_open()
+        _check_positive("inbox capacity", capacity, int)
+        channel = zenoh.handlers.RingChannel(capacity) if drop_oldest else zenoh.handlers.FifoChannel(capacity)
+        if not latest:
+            return Inbox(self._remember(self.session.declare_subscriber(key, channel)), key)
+        history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1)
+        subscriber = zenoh.ext.declare_advanced_subscriber(self.session, key, channel, history=history)
+        self._advanced_subscribers.append(subscriber)
+        return Inbox(subscriber, key)
+
+    def queryable(self, key: str, capacity: int) -> QueryInbox:
+        """Serve queries on `key`; they wait in a channel of `capacity` until `QueryInbox.poll` hands them out."""
+        self._check_open()
+        _check_positive("queryable capacity", capacity, int)
+        queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(capacity))
+        return QueryInbox(self._remember(queryable), key)
+
+    def get(
+        self, key: str, *, payload: bytes | None = None, parameters: str = "", timeout_s: float | None = None
+    ) -> list[bytes]:
+        """Ask the queryables on `key` (with `parameters` like "n=64;actor=a0") and return the successful
+        replies' payloads; empty if nobody answered within `timeout_s` (default: config.query_timeout_s)."""
+        selector = f"{key}?{parameters}" if parameters else key
+        timeout = self.config.query_timeout_s if timeout_s is None else timeout_s
+        replies = self.session.get(selector, payload=payload, timeout=timeout)
+        return [reply.ok.payload.to_bytes() for reply in replies if reply.ok is not None]
+
+    def wait_queryable(self, key: str, timeout_s: float) -> bool:
+        """Wait until some queryable serves `key` (a `get` sent before that finds nobody); False on timeout."""
+        querier = self.session.declare_querier(key)
+        try:
+            return self.wait_matching(querier, timeout_s)
+        finally:
+            querier.undeclare()
+
+    def watch_alive(self, pattern: str) -> AliveWatcher:
+        """Watch liveliness tokens under `pattern` (see `Keys.alive_pattern`); tokens alive now come first."""
+        self._check_open()
+        channel = zenoh.handlers.RingChannel(ALIVE_CHANNEL_SIZE)
+        subscriber = self.session.liveliness().declare_subscriber(pattern, channel, history=True)
+        return AliveWatcher(self._remember(subscriber), pattern)
+
+    def alive_now(self, pattern: str, timeout_s: float = 2.0) -> list[str]:
+        """Keys of the liveliness tokens under `pattern` alive now, sorted."""
+        replies = self.session.liveliness().get(pattern, timeout=timeout_s)
+        return sorted(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
+
+    @staticmethod
+    def wait_matching(publisher: zenoh.Publisher | zenoh.Querier, timeout_s: float) -> bool:
+        """Wait until some subscriber matches `publisher` (a put before that is lost); False on timeout.
+
+        Not for `latest_publisher`s, which have no matching status and need none: their cache serves late subscribers.
+        """
+        deadline = time.monotonic() + timeout_s
+        while not publisher.matching_status.matching:  # the status object itself is always truthy
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(MATCHING_POLL_S)
+        return True
+
+    @property
+    def closed(self) -> bool:
+        """Whether `close()` has run."""
+        return self._closed
+
+    def close(self) -> None:
+        """Undeclare everything (advanced subscribers first, then the rest newest first) and close the session.
+        Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        for entity in [*self._advanced_subscribers, *reversed(self._entities)]:
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass  # already undeclared by its user; closing must go on
+        self._advanced_subscribers.clear()
+        self._entities.clear()
+        self.session.close()
+
+
+class Hub:
+    """The one-machine hub: a peer session listening on `config.hub`, open until `close()`.
+
+    It carries no traffic of its own; it is the fixed address through which peers find each other.
+    """
+
+    def __init__(self, config: BusConfig) -> None:
+        self.config = config
+        self.session = zenoh.open(zenoh_config(config, listen=True))
+
+    def __enter__(self) -> Hub:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the session (safe to call twice)."""
+        if not self.session.is_closed():
+            self.session.close()
+
+
+def run_hub(config: BusConfig, stop: threading.Event | Callable[[], bool], poll_s: float = 0.1) -> None:
+    """Keep a `Hub` open until `stop` is set (an Event) or returns True (a callable); for the launcher's hub
+    process."""
+    stopped = stop.is_set if isinstance(stop, threading.Event) else stop
+    with Hub(config):
+        while not stopped():
+            time.sleep(poll_s)

@@ -1,0 +1,129 @@
+"""`impulse launch`: a whole distributed run on this machine, as separate processes.
+
+The launcher itself is the bus hub (a zenoh peer listening on `bus.hub`), so the learner and each actor can die
+and come back without breaking the others' connections. It starts the learner and `actors.num_actors` actors
+(`impulse learner --run RUN_DIR`, `impulse actor --run RUN_DIR --index N`), shows their status lines, restarts a
+process that dies (the learner with `--resume`, from its newest checkpoint) after a back-off, and ends when the
+learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first and then the learner, which writes a
+final checkpoint; a second Ctrl-C kills everything at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+from deploy.config import ConfigError, resolve_config, write_resolved_config
+from deploy.runloop import StopFlag
+from deploy.status_display import StatusDisplay, render
+from deploy.supervisor import Child, Supervisor, describe_exit
+from learner.config import TrainConfig
+
+log = logging.getLogger("impulse.launch")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+LEARNER = "learner"
+POLL_S = 0.2
+ACTOR_STOP_TIMEOUT_S = 20.0
+LEARNER_STOP_TIMEOUT_S = 180.0
+
+
+def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there")
+    parser.add_argument("--status-every", type=float, default=10.0, metavar="SECONDS",
+                        help="when the output is not a terminal, log the status lines this often (default 10)")
+
+
+def _service_argv(role: str, run_dir: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "deploy.cli", role, "--run", str(run_dir), *extra]
+
+
+def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
+    if args.resume is not None:
+        saved = args.resume / "config.toml"
+        if not saved.is_file():
+            print(f"impulse launch: {args.resume} has no config.toml; is it a run directory?", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            config = resolve_config(TrainConfig, saved, args.overrides)
+        except ConfigError as err:
+            print(f"impulse launch: config error: {err}", file=sys.stderr)
+            return EXIT_USAGE
+        run_dir = args.resume
+    else:
+        run_dir = config.output_dir()
+        if (run_dir / config.checkpoint.directory).is_dir() and any((run_dir / config.checkpoint.directory).iterdir()):
+            print(f"impulse launch: {run_dir} already holds checkpoints: resume it with --resume {run_dir}, or "
+                  "choose another name", file=sys.stderr)
+            return EXIT_FAILED
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_resolved_config(config, run_dir)
+    from bus.session import Bus  # zenoh loads only when a launch really starts
+
+    resume_first = args.resume is not None
+    children = [Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
+                                                             *(["--resume"] if restart or resume_first else [])),
+                      run_dir / "logs" / "learner.log")]
+    for index in range(config.actors.num_actors):
+        children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
+                                                                                        str(i)),
+                              run_dir / "logs" / f"actor-{index}.log"))
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    supervisor = Supervisor(children, env)
+    display = StatusDisplay(log_every_s=args.status_every)
+    log.info("run %s in %s: learner and %d actors; logs in %s", config.name, run_dir, config.actors.num_actors,
+             run_dir / "logs")
+    with Bus(config.bus, config.name, "launcher", "main", listen=True) as bus:
+        statuses_inbox = bus.inbox(bus.keys.metrics_all, 256, drop_oldest=True)
+        statuses: dict[str, dict] = {}
+        for child in children:
+            supervisor.start(child.name)
+        finished = False
+        with StopFlag() as stop:
+            while not stop.stop:
+                for received in statuses_inbox.poll():
+                    _read_status(received, bus, statuses)
+                for child, code in supervisor.exited():
+                    if child.name == LEARNER and code == 0:
+                        finished = True
+                        break
+                    delay = supervisor.restart_later(child)
+                    log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_exit(code), delay,
+                                " with --resume" if child.name == LEARNER else "")
+                    display.forget()
+                if finished:
+                    log.info("the learner finished the run; stopping the actors")
+                    break
+                supervisor.restart_due()
+                if display.due():
+                    display.show(render(statuses, children, LEARNER))
+                time.sleep(POLL_S)
+            interrupted = stop.stop
+            actor_names = [c.name for c in children if c.name != LEARNER]
+            supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
+            if not finished:
+                log.info("stopping the learner (it writes a final checkpoint)")
+                supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
+            display.show(render(statuses, children, LEARNER))
+    summary = (run_dir / "eval.json")
+    if finished and summary.is_file():
+        log.info("evaluation written to %s", summary)
+    return 0 if finished or interrupted else EXIT_FAILED
+
+
+def _read_status(received, bus, statuses: dict[str, dict]) -> None:
+    from bus.codec import Rejected
+    from bus.status import read_status
+
+    try:
+        sender, status = read_status(received, bus.keys.run)
+    except Rejected as err:
+        bus.rejects.record(err.reason, received.key, err.detail)
+        return
+    statuses[status.get("name", sender.rsplit("/", 1)[-1])] = status

@@ -1,0 +1,143 @@
+"""`impulse learner` and `impulse actor`: one distributed service per process, driven by the shared run loop.
+
+`impulse launch` starts these as child processes on one machine (`--run RUN_DIR`, reading the config it wrote
+there); they can also be started by hand, on one machine or several (`--connect ENDPOINT`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import os
+import sys
+from pathlib import Path
+
+from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from deploy.train_cmd import enable_compile_cache
+from learner.config import TrainConfig
+
+log = logging.getLogger("impulse.service")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def add_service_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
+                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
+                        "overrides still apply")
+    parser.add_argument("--connect", metavar="ENDPOINT",
+                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tcp/10.0.0.5:7447")
+
+
+def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the newest checkpoint in the run directory (fresh if there is none)")
+    parser.add_argument("--hub", action="store_true",
+                        help="also be the bus hub (listen on bus.hub) when no `impulse launch` provides one")
+
+
+def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--index", type=int, default=0, metavar="N", help="this actor's number (default 0)")
+
+
+def _resolve(args: argparse.Namespace, config: TrainConfig, command: str) -> tuple[TrainConfig, Path] | None:
+    if args.run is not None:
+        saved = args.run / "config.toml"
+        if not saved.is_file():
+            print(f"impulse {command}: {args.run} has no config.toml; is it a run directory?", file=sys.stderr)
+            return None
+        try:
+            config = resolve_config(TrainConfig, saved, args.overrides)
+        except ConfigError as err:
+            print(f"impulse {command}: config error: {err}", file=sys.stderr)
+            return None
+        run_dir = args.run
+    else:
+        run_dir = config.output_dir()
+    if args.connect:
+        try:
+            config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, connect=(args.connect,)))
+        except ValueError as err:
+            print(f"impulse {command}: --connect: {err}", file=sys.stderr)
+            return None
+    return config, run_dir
+
+
+def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
+    resolved = _resolve(args, config, "learner")
+    if resolved is None:
+        return EXIT_USAGE
+    config, run_dir = resolved
+    enable_compile_cache()
+    from bus.session import Bus
+    from deploy.runloop import run_loop
+    from engine.env.spec import env_from_config
+    from learner.agent import make_agent
+    from learner.run import final_evaluation
+    from learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if args.run is None:
+        write_resolved_config(config, run_dir)
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    with Bus(config.bus, config.name, LEARNER_ROLE, LEARNER_ID, listen=args.hub) as bus:
+        try:
+            service = LearnerService(config, run_dir, config_to_toml(config), bus, agent, env_params,
+                                     resume=args.resume)
+        except LearnerError as err:
+            print(f"impulse learner: {err}", file=sys.stderr)
+            return EXIT_FAILED
+        log.info("learner up: run %s, epoch %d, policy version %d, %d of %d updates done", config.name,
+                 service.epoch, service.version, service.update, service.num_updates)
+        try:
+            run_loop(
+                service,
+                metrics_path=run_dir / "metrics.jsonl",
+                checkpoint_every=config.checkpoint.every_updates,
+                total_env_steps=service.num_updates * service.steps_per_batch,
+                env_steps_done=service.env_steps,
+                updates_done=service.update,
+                window_size=config.checkpoint.every_updates,
+                on_cycle=lambda record, window: service.note_window(window),
+            )
+        finally:
+            service.close()
+        finished = service.finished()
+        params = service.train.params
+    if finished:
+        final_evaluation(config, agent, env_params, params, run_dir)
+        log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
+    return 0
+
+
+def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
+    resolved = _resolve(args, config, "actor")
+    if resolved is None:
+        return EXIT_USAGE
+    config, _ = resolved
+    if config.actors.memory_fraction > 0:
+        # Read by JAX's GPU backend when it starts, so it must be set before the first import of jax.
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{config.actors.memory_fraction:g}")
+    enable_compile_cache()
+    from actors.levels import LocalLevels
+    from actors.process import ACTOR_ROLE, Actor, actor_name
+    from bus.session import Bus
+    from deploy.runloop import run_loop
+    from engine.env.spec import env_from_config
+    from learner.agent import make_agent
+
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    levels = LocalLevels(config.env, spec.sizes, config.ppo.num_envs)
+    with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus:
+        actor = Actor(config, args.index, bus, agent, env_params, levels)
+        log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
+                 config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)
+        share = config.total_env_steps // max(config.actors.num_actors, 1)
+        run_loop(actor, metrics_path=None, checkpoint_every=0, total_env_steps=share)
+    return 0

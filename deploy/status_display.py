@@ -1,0 +1,91 @@
+"""The live status display of `impulse launch`: one line per process, from the status messages they publish.
+
+On a terminal the block is redrawn in place once a second; otherwise (a log file, CI) it is written as log lines
+every `log_every_s` seconds, so a long run's log stays readable.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import Any, TextIO
+
+from deploy.supervisor import Child, describe_exit
+
+log = logging.getLogger("impulse.launch")
+
+
+def _number(value: Any, fmt: str = "{:,.0f}") -> str:
+    return "-" if value is None else fmt.format(value)
+
+
+def learner_line(status: dict[str, Any] | None) -> str:
+    if status is None:
+        return "waiting for its first status"
+    drops = " ".join(f"{label} {status.get(key, 0)}" for label, key in (
+        ("stale", "dropped_stale"), ("old-epoch", "dropped_old_epoch"), ("overflow", "dropped_overflow"),
+        ("lost", "lost")))
+    rejected = sum(status.get("rejected", {}).values())
+    return (f"v{status['policy_version']} epoch {status['epoch']} | update {status['update']:,}/"
+            f"{status['num_updates']:,} | {_number(status.get('updates_per_s'), '{:.2f}')} upd/s | "
+            f"{_number(status.get('consumed_steps_per_s'))} steps/s consumed | queue {status.get('queue', 0)} | "
+            f"dropped {drops} | rejected {rejected} | solved {_number(status.get('solve_rate'), '{:.0%}')}")
+
+
+def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
+    if status is None:
+        return "waiting for its first status"
+    waiting = f" | waiting for {status['waiting']}" if status.get("waiting") else ""
+    return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']} | lag "
+            f"{'-' if lag is None else lag} | in flight {status.get('in_flight', 0)} | dropped "
+            f"{status.get('dropped_no_credit', 0)} | levels {status.get('levels', '?')}{waiting}")
+
+
+def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str) -> list[str]:
+    """The display's lines: every child with its process state, then its latest status."""
+    learner = statuses.get(learner_name)
+    lags = (learner or {}).get("actor_lag", {})
+    width = max(len(c.name) for c in children)
+    lines = []
+    for child in children:
+        if child.pid is None:
+            if child.restart_at is not None:
+                state = (f"{describe_exit(child.last_exit or 0)}; restarting in "
+                         f"{max(child.restart_at - time.monotonic(), 0):.0f} s")
+            else:
+                state = "stopped" if child.last_exit is None else describe_exit(child.last_exit)
+            lines.append(f"{child.name:<{width}}  {state} (restarts {child.restarts})")
+            continue
+        status = statuses.get(child.name)
+        body = learner_line(status) if child.name == learner_name else actor_line(status, lags.get(child.name))
+        lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")
+    return lines
+
+
+class StatusDisplay:
+    def __init__(self, stream: TextIO | None = None, redraw_every_s: float = 1.0, log_every_s: float = 10.0):
+        self.stream = stream or sys.stdout
+        self.interactive = self.stream.isatty()
+        self.every_s = redraw_every_s if self.interactive else log_every_s
+        self._last = -float("inf")
+        self._drawn = 0
+
+    def due(self) -> bool:
+        return time.monotonic() - self._last >= self.every_s
+
+    def show(self, lines: list[str]) -> None:
+        self._last = time.monotonic()
+        if not self.interactive:
+            log.info("status\n  %s", "\n  ".join(lines))
+            return
+        if self._drawn:
+            self.stream.write(f"\x1b[{self._drawn}F")
+        for line in lines:
+            self.stream.write(line + "\x1b[K\n")
+        self.stream.flush()
+        self._drawn = len(lines)
+
+    def forget(self) -> None:
+        """Start the next block below whatever was printed since (a log line), instead of over it."""
+        self._drawn = 0

@@ -1,0 +1,314 @@
+"""The learner service: trajectory batches in from actors, the same PPO update as fused mode, weights out.
+
+One cycle (driven by the shared run loop):
+1. answer weight queries (an actor that starts or lost track asks `weights/latest`) and note actors joining and
+   leaving (liveliness);
+2. take every trajectory frame waiting in the bounded inbox, decode and check it in this thread (never in a
+   zenoh callback): a malformed or foreign frame is dropped and counted by reason; a duplicate sequence number is
+   dropped; a gap in an actor's sequence is counted as lost;
+3. take the oldest ready batch off the queue and acknowledge it to its actor (that frees a credit); a batch
+   acted by weights of an earlier learner epoch (before a restart) or more than `ppo.max_policy_lag` versions
+   old is dropped and counted instead of trained on;
+4. run `ppo_update` on it, publish the new weights every `learner.publish_every` updates (a cached publication for
+   late joiners, plus the queryable), and report metrics.
+
+The learner's epoch counts its restarts (stored in the checkpoint counters); weights carry (epoch, version) so
+actors notice a restarted learner, and trajectories carry the epoch of the weights that acted.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter, deque
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from actors.rollout import RolloutCarry, rollout
+from actors.trajectory import TrajectoryBatch, make_batch
+from actors.wire import checked_tree, trajectory_schema, tree_arrays, weights_meta
+from bus.codec import Kind, Message, Rejected, decode, encode
+from bus.session import Bus
+from bus.status import StatusPublisher
+from engine.env.spec import EnvParams
+from engine.levels.level import level_from_scene, stack_levels
+from engine.physics.scene import empty_scene
+from learner.agent import Agent
+from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
+from learner.config import TrainConfig
+from learner.progress import CycleReport
+from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
+
+log = logging.getLogger("impulse.learner")
+
+LEARNER_ROLE = "learner"
+LEARNER_ID = "learner"
+ACK_REFRESH_S = 1.0
+"""Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
+
+
+class LearnerError(RuntimeError):
+    """The learner cannot start (existing run without --resume, unusable checkpoint)."""
+
+
+def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps: int) -> TrajectoryBatch:
+    """The shapes and dtypes of the trajectory batch an actor with this config sends (traced, never run)."""
+    levels = stack_levels([level_from_scene(empty_scene(agent.spec.sizes))])
+
+    def one_batch() -> TrajectoryBatch:
+        from engine.env.env import reset_batch
+
+        obs, state = reset_batch(agent.spec, env_params, levels, num_envs)
+        params = agent.init(jax.random.PRNGKey(0))
+        carry = RolloutCarry(state, obs, jax.random.PRNGKey(0))
+        carry, steps, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
+        return make_batch(steps, carry.obs, 0)
+
+    return jax.eval_shape(one_batch)
+
+
+class LearnerService:
+    """The learner process's state and its run-loop `cycle`."""
+
+    def __init__(self, config: TrainConfig, run_dir: Path, config_toml: str, bus: Bus, agent: Agent,
+                 env_params: EnvParams, resume: bool = False):
+        self.config = config
+        self.config_toml = config_toml
+        self.bus = bus
+        ppo = config.ppo
+        self.steps_per_batch = ppo.num_envs * ppo.num_steps
+        self.num_updates = max(1, math.ceil(config.total_env_steps / self.steps_per_batch))
+        optimizer = make_optimizer(ppo, self.num_updates)
+        params = agent.init(jax.random.PRNGKey(config.seed))
+        self.train = TrainState(params, optimizer.init(params), np.asarray(0, np.int32))
+        self.checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
+        self.update = 0
+        self.env_steps = 0
+        self.epoch = 0
+        if self.checkpoints.latest_step() is not None:
+            if not resume:
+                self.checkpoints.close()
+                raise LearnerError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose "
+                                   "another name")
+            self._restore()
+        elif resume:
+            log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
+        self.epoch += 1
+
+        self._update = jax.jit(
+            lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,
+                                                 distribution=agent.distribution, optimizer=optimizer, config=ppo),
+            donate_argnums=0,
+        )
+        self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
+        self._schema = trajectory_schema(self._template)
+        self.key = jax.random.PRNGKey(config.seed + 7 + self.epoch)
+
+        keys = bus.keys
+        capacity = max(4, config.actors.credits * max(config.actors.num_actors, 1) * 2)
+        self._inbox = bus.inbox(keys.traj_all, capacity)
+        self._ready: deque[tuple[str, int, Message, TrajectoryBatch]] = deque()
+        self._ready_limit = capacity
+        self._weights_publisher = bus.latest_publisher(keys.weights_policy)
+        self._weights_queries = bus.queryable(keys.weights_latest, 16)
+        self._alive = bus.watch_alive(keys.alive_pattern("actor"))
+        self._status = StatusPublisher(bus, config.actors.status_every_s)
+        self._credit_publishers: dict[str, Any] = {}
+        self._acks: dict[str, tuple[int, int]] = {}  # actor -> (incarnation, highest seq taken off the queue)
+        self._last_seq: dict[tuple[str, int], int] = {}
+        self._last_ack_refresh = time.monotonic()
+        self.actors_alive: set[str] = set()
+        self.counts: Counter[str] = Counter()
+        self.lags: Counter[int] = Counter()
+        self.actor_lag: dict[str, int] = {}
+        self._weights_frame = b""
+        self._publish_weights()
+        self._started = time.monotonic()
+        self._consumed_here = 0
+        self._updates_here = 0
+        self._last_metrics: dict[str, float] = {}
+
+    def _restore(self) -> None:
+        try:
+            items, counters, _ = self.checkpoints.restore({TRAIN: self.train})
+        except CheckpointError as err:
+            raise LearnerError(str(err)) from err
+        self.train = items[TRAIN]
+        self.update = int(counters["update"])
+        self.env_steps = int(counters["env_steps"])
+        self.epoch = int(counters.get("learner_epoch", 0))
+        log.info("resumed from checkpoint %d (update %d, policy version %d, %s env steps, epoch %d)",
+                 self.checkpoints.latest_step(), self.update, int(self.train.policy_version),
+                 f"{self.env_steps:,}", self.epoch + 1)
+
+    @property
+    def version(self) -> int:
+        return int(self.train.policy_version)
+
+    # -- weights ------------------------------------------------------------------------------------------
+
+    def _publish_weights(self) -> None:
+        params = self.train.params
+        self._weights_frame = bytes(encode(Kind.WEIGHTS, tree_arrays(params), run=self.bus.keys.run,
+                                           policy_version=self.version, learner_epoch=self.epoch,
+                                           sender=LEARNER_ID, meta=weights_meta(params)))
+        self._weights_publisher.put(self._weights_frame)
+        self.counts["weights_published"] += 1
+
+    def _answer_queries(self) -> None:
+        for query in self._weights_queries.poll():
+            query.reply(self._weights_frame)
+
+    # -- actors -------------------------------------------------------------------------------------------
+
+    def _watch_actors(self) -> None:
+        for key, alive in self._alive.poll():
+            _, name = self.bus.keys.parse_alive(key)
+            if alive and name not in self.actors_alive:
+                log.info("actor %s joined", name)
+                self.actors_alive.add(name)
+            elif not alive and name in self.actors_alive:
+                log.warning("actor %s left", name)
+                self.actors_alive.discard(name)
+
+    def _acknowledge(self, actor: str, incarnation: int, seq: int) -> None:
+        self._acks[actor] = (incarnation, seq)
+        self._send_ack(actor)
+
+    def _send_ack(self, actor: str) -> None:
+        publisher = self._credit_publishers.get(actor)
+        if publisher is None:
+            publisher = self._credit_publishers[actor] = self.bus.publisher(self.bus.keys.credit(actor))
+        incarnation, seq = self._acks[actor]
+        publisher.put(encode(Kind.CREDIT, {}, run=self.bus.keys.run, policy_version=self.version,
+                             learner_epoch=self.epoch, seq=seq, sender=LEARNER_ID,
+                             meta={"incarnation": incarnation, "acked_seq": seq}))
+
+    def _refresh_acks(self) -> None:
+        if time.monotonic() - self._last_ack_refresh >= ACK_REFRESH_S:
+            self._last_ack_refresh = time.monotonic()
+            for actor in self._acks:
+                self._send_ack(actor)
+
+    # -- trajectories -------------------------------------------------------------------------------------
+
+    def _ingest(self) -> None:
+        for received in self._inbox.poll():
+            source = received.key.rsplit("/", 1)[-1]
+            try:
+                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.TRAJECTORY)
+                incarnation = message.meta.get("incarnation")
+                if not isinstance(incarnation, int) or message.sender != source:
+                    raise Rejected("schema", f"frame on {received.key} from {message.sender!r} without a valid "
+                                   "incarnation")
+                batch = checked_tree(message, self._schema, self._template)
+                stream = (source, incarnation)
+                last = self._last_seq.get(stream, 0)
+                if message.seq <= last:
+                    raise Rejected("duplicate", f"sequence number {message.seq} after {last}")
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, source, err.detail)
+                continue
+            if message.seq > last + 1:
+                self.counts["lost"] += message.seq - last - 1
+            self._last_seq[stream] = message.seq
+            if len(self._ready) >= self._ready_limit:
+                dropped, seq_dropped, old, _ = self._ready.popleft()
+                self.counts["dropped_overflow"] += 1
+                self._acknowledge(dropped, old.meta["incarnation"], seq_dropped)
+            self._ready.append((source, message.seq, message, batch))
+
+    def _take(self) -> tuple[str, Message, TrajectoryBatch] | None:
+        """The oldest batch fit to train on, acknowledging everything taken off the queue."""
+        while self._ready:
+            actor, seq, message, batch = self._ready.popleft()
+            self._acknowledge(actor, message.meta["incarnation"], seq)
+            if message.learner_epoch != self.epoch:
+                self.counts["dropped_old_epoch"] += 1
+                continue
+            lag = check_policy_lag(int(batch.behaviour_version), self.version, self.config.ppo.max_policy_lag)
+            if not bool(lag.accepted) or int(lag.lag) < 0:
+                self.counts["dropped_stale"] += 1
+                continue
+            self.lags[int(lag.lag)] += 1
+            self.actor_lag[actor] = int(lag.lag)
+            return actor, message, batch
+        return None
+
+    # -- the cycle ----------------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        elapsed = time.monotonic() - self._started
+        return {
+            "role": LEARNER_ROLE,
+            "name": LEARNER_ID,
+            "epoch": self.epoch,
+            "policy_version": self.version,
+            "update": self.update,
+            "num_updates": self.num_updates,
+            "env_steps": self.env_steps,
+            "updates_per_s": self._updates_here / elapsed if elapsed > 0 else 0.0,
+            "consumed_steps_per_s": self._consumed_here / elapsed if elapsed > 0 else 0.0,
+            "queue": len(self._ready),
+            "actors": sorted(self.actors_alive),
+            "actor_lag": self.actor_lag,
+            "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
+            "rejected": self.bus.rejects.counts(),
+            "solve_rate": self._last_metrics.get("window_solve_rate"),
+            **dict(self.counts),
+        }
+
+    def cycle(self) -> CycleReport | None:
+        if self._status.due():
+            self._status.publish(self.status())
+        self._answer_queries()
+        self._watch_actors()
+        self._ingest()
+        self._refresh_acks()
+        taken = self._take()
+        if taken is None:
+            return None
+        actor, _, batch = taken
+        steps = batch.steps
+        done = np.asarray(steps.done)
+        episodes = int(done.sum())
+        self.key, update_key = jax.random.split(self.key)
+        self.train, losses = self._update(self.train, jax.device_put(batch), update_key)
+        self.update += 1
+        self._updates_here += 1
+        self.env_steps += self.steps_per_batch
+        self._consumed_here += self.steps_per_batch
+        if self.update % self.config.learner.publish_every == 0:
+            self._publish_weights()
+        metrics = {k: float(v) for k, v in jax.device_get(losses).items()}
+        metrics.update(
+            episodes=episodes,
+            solved=float(np.asarray(steps.solved)[done].sum()),
+            return_sum=float(np.asarray(steps.episode_return)[done].sum()),
+            actor=float(batch.actor_id),
+            queue=len(self._ready),
+        )
+        if self.config.learner.slow_down_s:
+            time.sleep(self.config.learner.slow_down_s)
+        return CycleReport(env_steps=self.steps_per_batch, updates=1, metrics=metrics)
+
+    def note_window(self, window: dict[str, float]) -> None:
+        """The run loop's window summary, for the status line."""
+        self._last_metrics["window_solve_rate"] = window.get("solve_rate")
+
+    def save(self, summary: dict[str, float]) -> None:
+        self.note_window(summary)
+        counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
+                    "policy_version": self.version, **summary}
+        self.checkpoints.save(self.update, {TRAIN: self.train}, counters, self.config_toml,
+                              solve_rate=summary.get("solve_rate"))
+
+    def finished(self) -> bool:
+        return self.update >= self.num_updates
+
+    def close(self) -> None:
+        self.checkpoints.close()
