@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import secrets
 import time
+from collections import deque
 from typing import Any
 
 import jax
@@ -31,7 +32,7 @@ import numpy as np
 from actors.levels import LevelSource
 from actors.rollout import RolloutCarry, rollout
 from actors.trajectory import TrajectoryBatch, level_results, make_batch
-from actors.wire import level_results_arrays, tree_arrays, tree_from_arrays, weights_schema
+from actors.wire import PUBLISHED_AT, level_results_arrays, tree_arrays, tree_from_arrays, weights_schema
 from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.schema import check
 from bus.session import Bus
@@ -48,6 +49,17 @@ ACTOR_ROLE = "actor"
 WEIGHTS_QUERY_EVERY_S = 2.0
 """While it has no weights, an actor asks the learner's queryable this often (the cached broadcast usually
 arrives first)."""
+
+
+LATENCY_WINDOW = 100
+"""Weight broadcasts whose publish-to-adopted latency the status line summarises."""
+
+
+def _summary(values: deque[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    ordered = sorted(values)
+    return {"n": len(ordered), "p50": ordered[len(ordered) // 2], "max": ordered[-1]}
 
 
 def actor_name(index: int) -> str:
@@ -95,10 +107,12 @@ class Actor:
         self._last_ack_time = time.monotonic()
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
         self._last_query = -float("inf")
-        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0}
+        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
+                       "weights_by_query": 0}
         self._steps_done = 0
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
+        self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
 
     # -- weights ------------------------------------------------------------------------------------------
 
@@ -113,17 +127,29 @@ class Actor:
             self._write_off()
         self.epoch, self.version = message.learner_epoch, message.policy_version
         self.counts["weights_adopted"] += 1
+        published = message.meta.get(PUBLISHED_AT)
+        if isinstance(published, float):
+            self._weights_latency_ms.append(1000.0 * (time.time() - published))
 
     def _receive_weights(self) -> None:
+        """Adopt the newest weights broadcast; before the first rollout, ask the learner for its current ones."""
         payloads = [received.payload for received in self._weights.poll()]
-        if not payloads and self.params is None and time.monotonic() - self._last_query >= WEIGHTS_QUERY_EVERY_S:
+        queried = False
+        if self.params is None and time.monotonic() - self._last_query >= WEIGHTS_QUERY_EVERY_S:
             self._last_query = time.monotonic()
-            payloads = self.bus.get(self.bus.keys.weights_latest, timeout_s=1.0)
+            answers = self.bus.get(self.bus.keys.weights_latest, timeout_s=1.0)
+            queried = bool(answers) and not payloads
+            payloads = answers[-1:] + payloads
         for payload in payloads[-1:]:
             try:
                 self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "weights", err.detail)
+                continue
+            if queried:
+                self.counts["weights_by_query"] += 1
+                log.info("adopted the learner's current weights by query: version %d, epoch %d", self.version,
+                         self.epoch)
 
     # -- credits ------------------------------------------------------------------------------------------
 
@@ -196,6 +222,7 @@ class Actor:
             "levels": self.levels.description,
             "waiting": "weights" if self.params is None else ("credit" if not self._has_credit() else ""),
             "rejected": self.bus.rejects.total,
+            "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,
         }
 

@@ -83,6 +83,10 @@ def weights_schema(params_template: Any) -> Schema:
     return Schema(Kind.WEIGHTS, _specs(params_template, True), tree_hash=weights_hash(params_template))
 
 
+PUBLISHED_AT = "published_at"
+"""Weights meta: the learner's wall-clock time at publication, so actors can measure broadcast latency."""
+
+
 def weights_meta(params: Any) -> dict[str, str]:
     return {TREE_HASH_META: weights_hash(params)}
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from actors.rollout import RolloutCarry, rollout
 from actors.trajectory import TrajectoryBatch, make_batch
-from actors.wire import checked_tree, trajectory_schema, tree_arrays, weights_meta
+from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, tree_arrays, weights_meta
 from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.session import Bus
 from bus.status import StatusPublisher
@@ -155,7 +155,8 @@ class LearnerService:
         params = self.train.params
         self._weights_frame = bytes(encode(Kind.WEIGHTS, tree_arrays(params), run=self.bus.keys.run,
                                            policy_version=self.version, learner_epoch=self.epoch,
-                                           sender=LEARNER_ID, meta=weights_meta(params)))
+                                           sender=LEARNER_ID,
+                                           meta={**weights_meta(params), PUBLISHED_AT: time.time()}))
         self._weights_publisher.put(self._weights_frame)
         self.counts["weights_published"] += 1
 
