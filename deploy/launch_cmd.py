@@ -81,6 +81,7 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
              run_dir / "logs")
     with Bus(config.bus, config.name, "launcher", "main", listen=True) as bus:
         statuses_inbox = bus.inbox(bus.keys.metrics_all, 256, drop_oldest=True)
+        presence = bus.watch_alive(bus.keys.alive_pattern())
         statuses: dict[str, dict] = {}
         for child in children:
             supervisor.start(child.name)
@@ -89,6 +90,11 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
             while not stop.stop:
                 for received in statuses_inbox.poll():
                     _read_status(received, bus, statuses)
+                for key, alive in presence.poll():
+                    role, ident = bus.keys.parse_alive(key)
+                    if role != "launcher":
+                        log.info("%s %s the bus", ident, "joined" if alive else "left")
+                        display.forget()
                 for child, code in supervisor.exited():
                     if child.name == LEARNER and code == 0:
                         finished = True

@@ -8,6 +8,7 @@ STABLE_AFTER_S, so a process that crashes at start-up does not spin, and one tha
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import signal
@@ -21,6 +22,16 @@ log = logging.getLogger("impulse.launch")
 
 RESTART_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
 STABLE_AFTER_S = 60.0
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the child before exec (Linux): receive SIGTERM when the launcher dies, even by SIGKILL, so no service
+    outlives its launcher. Elsewhere a no-op."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
 
 
 @dataclass
@@ -46,8 +57,10 @@ class Child:
         restart = self.process is not None
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with self.log_path.open("ab") as out:
+            # A session of its own: a Ctrl-C at the terminal reaches the launcher only, which stops the children
+            # in order.
             self.process = subprocess.Popen(self.argv(restart), stdout=out, stderr=subprocess.STDOUT, env=env,
-                                            start_new_session=True)
+                                            start_new_session=True, preexec_fn=_die_with_parent)
         self.started_at = time.monotonic()
         self.restart_at = None
         if restart:

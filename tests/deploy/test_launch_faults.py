@@ -1,0 +1,166 @@
+"""A real distributed run (`impulse launch`: learner + 2 actor processes over Zenoh on loopback, CPU) that learns
+our easy car while it is attacked: malformed and foreign messages on every key, an actor killed with SIGKILL,
+then the learner killed with SIGKILL. It must keep training, restart what died, lose nothing beyond one
+checkpoint interval, and still reach an 80% solve rate."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import jax
+import numpy as np
+from launch_procs import (
+    QUICK_LAUNCH,
+    StatusWatcher,
+    free_port,
+    last_update,
+    metrics,
+    service_pids,
+    start_launch,
+    tail,
+    wait_for,
+)
+
+from actors.wire import tree_arrays
+from bus.codec import Kind, encode
+from deploy.config import resolve_config
+from engine.env.spec import env_from_config
+from learner.agent import make_agent
+from learner.checkpoint import Checkpointer
+from learner.config import TrainConfig
+from learner.service import batch_template
+
+UPDATES = 40
+EVERY = 4
+STEPS_PER_UPDATE = 64 * 64
+
+
+def zero_batch_arrays() -> dict[str, np.ndarray]:
+    """A well-formed trajectory batch of the quick config, all zeros."""
+    config = resolve_config(TrainConfig, QUICK_LAUNCH)
+    spec, env_params = env_from_config(config.env)
+    template = batch_template(make_agent(config.network, spec), env_params, config.ppo.num_envs,
+                              config.ppo.num_steps)
+    return tree_arrays(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template))
+
+
+def inject_malformed(watcher: StatusWatcher) -> None:
+    """Every kind of bad message, on the keys the learner and the actors listen to."""
+    bus, run = watcher.bus, watcher.run
+    arrays = zero_batch_arrays()
+    frame = lambda arrays, **kw: bytes(encode(Kind.TRAJECTORY, arrays, run=kw.pop("run", run),  # noqa: E731
+                                              sender="actor-9", meta={"incarnation": 1}, **kw))
+    good = frame(arrays, learner_epoch=0, seq=1)  # valid, but acted by weights of no learner epoch
+    nan = dict(arrays, **{"steps/reward": np.full_like(arrays["steps/reward"], np.nan)})
+    wrong_shape = dict(arrays, **{"steps/reward": np.zeros((3, 3), np.float32)})
+    trajectories = [
+        np.random.default_rng(0).bytes(5000),
+        good[: len(good) // 2],
+        b"XXXX" + good[4:],
+        frame(arrays, run="another-run", seq=2),
+        bytes(encode(Kind.WEIGHTS, arrays, run=run, sender="actor-9", meta={"incarnation": 1}, seq=3)),
+        frame(nan, seq=4, learner_epoch=1),
+        frame(wrong_shape, seq=5, learner_epoch=1),
+        good,  # accepted, then dropped: epoch 0 is no learner's
+        good,  # the same sequence number again
+    ]
+    publisher = bus.publisher(bus.keys.traj("actor-9"))
+    assert bus.wait_matching(publisher, 10), "the learner's trajectory subscription is not visible"
+    for payload in trajectories:
+        publisher.put(payload)
+    weights = bus.publisher(bus.keys.weights_policy)
+    assert bus.wait_matching(weights, 10)
+    weights.put(bytes(encode(Kind.WEIGHTS, {"w": np.zeros(3, np.float32)}, run=run, policy_version=10**6,
+                             meta={"tree_hash": "another network"})))
+    credit = bus.publisher(bus.keys.credit("actor-1"))
+    assert bus.wait_matching(credit, 10)
+    credit.put(np.random.default_rng(1).bytes(64))
+
+
+def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
+    run_dir = tmp_path / "faults"
+    port = free_port()
+    launch, log = start_launch(run_dir, port, f"total_env_steps={UPDATES * STEPS_PER_UPDATE}",
+                               f"checkpoint.every_updates={EVERY}")
+    watcher = StatusWatcher(run_dir.name, port)
+    learner_log, actor0_log = run_dir / "logs" / "learner.log", run_dir / "logs" / "actor-0.log"
+    try:
+        wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
+
+        # Malformed and foreign messages: dropped and counted, training goes on.
+        inject_malformed(watcher)
+        expected = {"truncated", "bad_magic", "wrong_run", "wrong_kind", "non_finite", "bad_shape", "duplicate"}
+
+        def learner_rejected():
+            status = watcher.poll().get("learner", {})
+            return expected <= set(status.get("rejected", {})) and status.get("dropped_old_epoch", 0) >= 1
+
+        wait_for(learner_rejected, 30, f"the learner to count rejects {expected}", launch, log)
+        wait_for(lambda: all(watcher.poll().get(f"actor-{i}", {}).get("rejected", 0) >= 1 for i in (0, 1)), 30,
+                 "both actors to count the foreign weights (and actor-1 the garbage credit)", launch, log)
+        after_injection = last_update(run_dir)
+        wait_for(lambda: last_update(run_dir) >= after_injection + 2, 60, "training to go on", launch, log)
+
+        # kill -9 an actor: the learner keeps going, the launcher restarts it, it asks for the current weights.
+        [actor0] = service_pids(run_dir, "actor", 0)
+        os.kill(actor0, signal.SIGKILL)
+        at_kill = last_update(run_dir)
+        wait_for(lambda: "actor actor-0 left" in learner_log.read_text(), 30, "the learner to see actor-0 leave")
+        wait_for(lambda: last_update(run_dir) >= at_kill + 2, 60, "the learner to keep training", launch, log)
+        wait_for(lambda: service_pids(run_dir, "actor", 0) not in ([], [actor0]), 60, "actor-0's restart",
+                 launch, log)
+        query_line = "adopted the learner's current weights by query"
+        wait_for(lambda: actor0_log.read_text().count("actor-0 up:") >= 2
+                 and query_line in actor0_log.read_text().rsplit("actor-0 up:", 1)[1], 120,
+                 "the restarted actor-0 to get the current weights by query", launch, log)
+
+        # kill -9 the learner: restarted with --resume; the actors reconnect without being restarted.
+        wait_for(lambda: last_update(run_dir) >= at_kill + EVERY + 1, 120, "a checkpoint after the actor restart",
+                 launch, log)
+        actors = {i: service_pids(run_dir, "actor", i) for i in (0, 1)}
+        [learner] = service_pids(run_dir, "learner")
+        os.kill(learner, signal.SIGKILL)
+        lines_at_kill = len(metrics(run_dir))
+        update_at_kill = last_update(run_dir)
+        resumed = wait_for(
+            lambda: re.search(r"resumed from checkpoint (\d+) \(update (\d+), policy version (\d+)",
+                              learner_log.read_text()),
+            180, "the learner's restart with --resume", launch, log)
+        step, update, version = (int(x) for x in resumed.groups())
+        assert step == update == version, "one policy version per update, checkpointed with its counters"
+        assert update_at_kill - EVERY <= update <= update_at_kill, "nothing lost beyond one checkpoint interval"
+        wait_for(lambda: last_update(run_dir) >= update + 3, 180, "training to continue after the restart",
+                 launch, log)
+        resumed_updates = [r["update"] for r in metrics(run_dir)[lines_at_kill:]]
+        assert resumed_updates == list(range(update + 1, update + 1 + len(resumed_updates))), (
+            "the resumed learner continues from the checkpoint's counters")
+        wait_for(lambda: watcher.poll().get("learner", {}).get("epoch") == 2, 30, "the restarted learner's status")
+        assert {i: service_pids(run_dir, "actor", i) for i in (0, 1)} == actors, "actors were not restarted"
+
+        assert launch.wait(timeout=600) == 0, tail(log)
+    finally:
+        watcher.close()
+        if launch.poll() is None:
+            launch.send_signal(signal.SIGTERM)
+            try:
+                launch.wait(timeout=120)
+            except subprocess.TimeoutExpired:
+                launch.kill()
+        for role in ("learner", "actor"):
+            for pid in service_pids(run_dir, role):
+                os.kill(pid, signal.SIGKILL)
+
+    scores = json.loads((run_dir / "eval.json").read_text())
+    assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores
+    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
+        assert checkpoints.latest_step() == UPDATES
+    # `impulse eval` reads the learner's train-only checkpoint.
+    evaluated = subprocess.run([sys.executable, "-m", "deploy.cli", "eval", "--checkpoint", str(run_dir),
+                                "--attempts", "4"], capture_output=True, text=True, timeout=300)
+    assert evaluated.returncode == 0 and "s_easy_car_right" in evaluated.stdout, evaluated.stderr
