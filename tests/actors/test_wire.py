@@ -1,0 +1,78 @@
+"""The wire layout of the actor-learner types: a trajectory batch and the weights survive encode/decode exactly,
+and the receivers' schemas refuse what does not fit their compiled functions."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from actors.trajectory import level_results
+from actors.wire import (
+    LEVEL_RESULTS_SCHEMA,
+    checked_tree,
+    level_results_arrays,
+    trajectory_schema,
+    tree_arrays,
+    weights_meta,
+    weights_schema,
+)
+from bus.codec import Kind, Rejected, decode, encode
+from bus.schema import check
+from engine.env.spec import EnvParams, EnvSpec
+from learner.agent import make_agent
+from learner.config import NetworkConfig
+from learner.service import batch_template
+
+RUN = "wire-test"
+NETWORK = NetworkConfig(kind="entity", width=16, depth=1, entity_encoder_size=16, entity_heads=2, entity_head_size=8)
+
+
+def random_like(template, seed: int):
+    rng = np.random.default_rng(seed)
+
+    def fill(leaf):
+        if leaf.dtype == bool:
+            return rng.random(leaf.shape) < 0.3
+        if np.issubdtype(leaf.dtype, np.integer):
+            return rng.integers(0, 3, leaf.shape).astype(leaf.dtype)
+        return rng.standard_normal(leaf.shape).astype(leaf.dtype)
+
+    return jax.tree.map(fill, template)
+
+
+def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
+    agent = make_agent(NETWORK, EnvSpec())
+    template = batch_template(agent, EnvParams(), num_envs=4, num_steps=3)
+    batch = random_like(template, 0)
+    frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=RUN, seq=1, sender="actor-0")
+    received = checked_tree(decode(bytes(frame), run=RUN, kinds=Kind.TRAJECTORY), trajectory_schema(template),
+                            template)
+    for sent, got in zip(jax.tree.leaves(batch), jax.tree.leaves(received), strict=True):
+        np.testing.assert_array_equal(sent, got)
+    results = level_results(batch.steps)
+    message = decode(bytes(encode(Kind.LEVEL_RESULTS, level_results_arrays(results), run=RUN)), run=RUN)
+    check(message, LEVEL_RESULTS_SCHEMA)
+    assert int(message.arrays["episodes"].sum()) == int(np.asarray(batch.steps.done).sum())
+
+    other = batch_template(agent, EnvParams(), num_envs=5, num_steps=3)  # an actor with another batch shape
+    frame = encode(Kind.TRAJECTORY, tree_arrays(random_like(other, 1)), run=RUN)
+    with pytest.raises(Rejected) as refused:
+        checked_tree(decode(bytes(frame), run=RUN), trajectory_schema(template), template)
+    assert refused.value.reason == "bad_shape"
+
+
+def test_weights_of_another_network_are_refused_by_their_tree_hash():
+    params = make_agent(NETWORK, EnvSpec()).init(jax.random.key(0))
+    schema = weights_schema(params)
+    frame = encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, meta=weights_meta(params))
+    got = checked_tree(decode(bytes(frame), run=RUN), schema, params)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(got), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), b)
+    wider = make_agent(dataclasses.replace(NETWORK, width=32), EnvSpec()).init(jax.random.key(0))
+    frame = encode(Kind.WEIGHTS, tree_arrays(wider), run=RUN, meta=weights_meta(wider))
+    with pytest.raises(Rejected) as refused:
+        check(decode(bytes(frame), run=RUN), schema)
+    assert refused.value.reason == "tree_hash"
