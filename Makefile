@@ -6,16 +6,42 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.impulse-installed
 
-.PHONY: run test venv
+.PHONY: run test venv bench-gpu
 
 run: $(STAMP)
-	$(VENV)/bin/impulse train --config configs/quick-cpu.toml
+	$(VENV)/bin/impulse launch --config configs/quick-launch.toml
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest
 
 venv: $(STAMP)
+
+# `make bench-gpu`: every GPU benchmark at GPU sizes in one go, against Jax2D (engine) and Kinetix (env) measured in
+# the same run, on a machine whose JAX sees a GPU. Sized for under 25 minutes on one H100: each benchmark has a time
+# limit (GPU_LIMIT seconds), so a slow one loses its last lines rather than the others. JSON lines are appended to
+# GPU_RESULTS (one start line per run names the commit), progress goes to the terminal. Building the reference
+# venv (benchmarks/reference_env.py, needs the package index) is not counted; without it, engine and env run alone.
+# Distributed: train.py's network and settings (2,048 envs x 64 steps, entity network 128 x 5, all S levels); a
+# 2,048 x 64 batch is a ~157 MB frame, so the shared-memory pool is raised to 512 MiB (>= 2x, see bus/session.py).
+GPU_RESULTS := benchmarks/results/gpu-$(shell date +%Y-%m-%d).jsonl
+GPU_LIMIT = timeout --kill-after=30 $(1) $(VENV)/bin/python -m
+
+bench-gpu: $(STAMP)
+	@$(VENV)/bin/python -c "import sys, jax; b = jax.default_backend(); sys.exit(b != 'gpu' and f'bench-gpu: JAX backend is {b}, not gpu')"
+	mkdir -p benchmarks/results
+	printf '{"bench_gpu": "start", "utc": "%s", "commit": "%s"}\n' "$$(date -u +%Y-%m-%dT%H:%M:%SZ)" \
+		"$$(git rev-parse --short HEAD 2>/dev/null)" >> $(GPU_RESULTS)
+	status=0; ref=; \
+	$(VENV)/bin/python benchmarks/reference_env.py > /dev/null \
+		|| { echo "bench-gpu: no reference venv: engine and env run without Jax2D and Kinetix" >&2; ref=--no-reference; status=1; }; \
+	$(call GPU_LIMIT,390) benchmarks.engine --num-envs 1,32768 $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,210) benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,390) benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,450) benchmarks.distributed --parts runs costs --size s --kinetix-settings \
+		--set network.width=128 --set network.depth=5 --set bus.shm_pool_mib=512 \
+		--actors 1 2 4 --updates 20 --no-fused-after --timeout 200 >> $(GPU_RESULTS) || status=1; \
+	echo "bench-gpu: JSON lines appended to $(GPU_RESULTS)"; exit $$status
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)

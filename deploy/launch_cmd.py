@@ -62,6 +62,11 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
             print(f"impulse launch: {run_dir} already holds checkpoints: resume it with --resume {run_dir}, or "
                   "choose another name", file=sys.stderr)
             return EXIT_FAILED
+    expected_lag = config.actors.num_actors * config.actors.credits
+    if expected_lag > config.ppo.max_policy_lag:
+        log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "
+                    "ppo.max_policy_lag=%d: a learner-bound run will drop batches as stale", config.actors.num_actors,
+                    config.actors.credits, expected_lag, config.ppo.max_policy_lag)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_resolved_config(config, run_dir)
     from bus.session import Bus  # zenoh loads only when a launch really starts

@@ -1,10 +1,10 @@
 """Training configuration: PPO, the network, checkpoints and the run as a whole.
 
 Defaults are Kinetix's PPO setup (entity transformer, 2,048 environments, 256-step rollouts), so a run with no
-overrides is comparable with the published baselines. These are plain dataclasses filled in by issue 5 (learner
-and fused trainer) and the distributed-mode issues; `deploy.config` loads them from TOML and `key=value`
-overrides, so every field needs a default and a type it understands. The same config describes a distributed
-run: its `actors`, `learner` and `bus` sections are read by `impulse launch` and the services.
+overrides is comparable with the published baselines. These are plain dataclasses; `deploy.config` loads them
+from TOML and `key=value` overrides, so every field needs a default and a type it understands. The same config
+describes a distributed run: its `actors`, `learner` and `bus` sections are read by `impulse launch` and the
+services.
 """
 
 from __future__ import annotations
@@ -135,8 +135,10 @@ class ActorConfig:
 
     num_actors: int = 2
     """Actors `impulse launch` starts."""
-    credits: int = 2
-    """Trajectory batches an actor may have in flight to the learner; bounds policy lag and memory."""
+    credits: int = 1
+    """Trajectory batches an actor may have in flight to the learner; bounds memory and policy lag. When the
+    learner is the bottleneck every actor keeps its credits in use, so the lag is about num_actors x credits
+    versions: keep that within ppo.max_policy_lag, or batches are dropped as stale."""
     when_no_credit: Literal["wait", "drop_oldest"] = "wait"
     """With no credit left: "wait" pauses the actor until the learner frees one; "drop_oldest" keeps rolling out
     and replaces its one held-back batch with the newer one (every replaced batch is counted as dropped)."""

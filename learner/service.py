@@ -49,6 +49,8 @@ LEARNER_ROLE = "learner"
 LEARNER_ID = "learner"
 ACK_REFRESH_S = 1.0
 """Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
+RATE_WINDOW = 20
+"""Updates over which the status line's updates/s and consumed steps/s are measured (compile time excluded)."""
 
 
 class LearnerError(RuntimeError):
@@ -127,10 +129,10 @@ class LearnerService:
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
         self._publish_weights()
-        self._started = time.monotonic()
-        self._consumed_here = 0
-        self._updates_here = 0
+        self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
+        self._max_frame_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape)
+                                        for spec in self._schema.arrays.values()) + (1 << 20)
 
     def _restore(self) -> None:
         try:
@@ -201,7 +203,8 @@ class LearnerService:
         for received in self._inbox.poll():
             source = received.key.rsplit("/", 1)[-1]
             try:
-                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.TRAJECTORY)
+                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.TRAJECTORY,
+                                 max_bytes=self._max_frame_bytes)
                 incarnation = message.meta.get("incarnation")
                 if not isinstance(incarnation, int) or message.sender != source:
                     raise Rejected("schema", f"frame on {received.key} from {message.sender!r} without a valid "
@@ -242,8 +245,14 @@ class LearnerService:
 
     # -- the cycle ----------------------------------------------------------------------------------------
 
+    def _rate(self) -> float:
+        """Updates per second over the latest RATE_WINDOW updates (0 until two are done)."""
+        if len(self._recent) < 2 or self._recent[-1] <= self._recent[0]:
+            return 0.0
+        return (len(self._recent) - 1) / (self._recent[-1] - self._recent[0])
+
     def status(self) -> dict[str, Any]:
-        elapsed = time.monotonic() - self._started
+        rate = self._rate()
         return {
             "role": LEARNER_ROLE,
             "name": LEARNER_ID,
@@ -252,8 +261,8 @@ class LearnerService:
             "update": self.update,
             "num_updates": self.num_updates,
             "env_steps": self.env_steps,
-            "updates_per_s": self._updates_here / elapsed if elapsed > 0 else 0.0,
-            "consumed_steps_per_s": self._consumed_here / elapsed if elapsed > 0 else 0.0,
+            "updates_per_s": rate,
+            "consumed_steps_per_s": rate * self.steps_per_batch,
             "queue": len(self._ready),
             "actors": sorted(self.actors_alive),
             "actor_lag": self.actor_lag,
@@ -280,9 +289,7 @@ class LearnerService:
         self.key, update_key = jax.random.split(self.key)
         self.train, losses = self._update(self.train, jax.device_put(batch), update_key)
         self.update += 1
-        self._updates_here += 1
         self.env_steps += self.steps_per_batch
-        self._consumed_here += self.steps_per_batch
         if self.update % self.config.learner.publish_every == 0:
             self._publish_weights()
         metrics = {k: float(v) for k, v in jax.device_get(losses).items()}
@@ -295,6 +302,7 @@ class LearnerService:
         )
         if self.config.learner.slow_down_s:
             time.sleep(self.config.learner.slow_down_s)
+        self._recent.append(time.monotonic())
         return CycleReport(env_steps=self.steps_per_batch, updates=1, metrics=metrics)
 
     def note_window(self, window: dict[str, float]) -> None:
