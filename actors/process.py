@@ -79,11 +79,12 @@ class Actor:
         self.levels = levels
         self.incarnation = secrets.randbits(31)
         self.num_envs, self.num_steps = config.ppo.num_envs, config.ppo.num_steps
-        key = jax.random.PRNGKey(np.uint32(config.seed * 1_000_003 + index * 7919 + self.incarnation))
-        self.key, level_key = jax.random.split(key)
+        # Seeded by the run, the actor and the incarnation: a restarted actor does not replay its predecessor.
+        seed = (config.seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
+        self.key, level_key, rollout_key = jax.random.split(jax.random.PRNGKey(seed), 3)
         first = levels.next_batch(level_key)
         obs, env_state = reset_batch(agent.spec, env_params, first, self.num_envs)
-        self.carry = RolloutCarry(env_state, obs, self.key)
+        self.carry = RolloutCarry(env_state, obs, rollout_key)
         spec, steps = agent.spec, self.num_steps
         self._rollout = jax.jit(
             lambda params, carry, levels: rollout(agent.act, params, spec, env_params, carry, levels, steps),

@@ -23,7 +23,7 @@ from deploy.config import resolve_config
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 
-WATCH_S = 36.0
+WATCH_S = 24.0
 SAMPLE_S = 2.0
 TREND_LIMIT_MIB = 48.0
 """The learner's resident memory swings by about 80 MiB within each update (one batch in flight, update
@@ -53,7 +53,7 @@ def test_slow_learner_back_pressure_keeps_memory_flat_and_ctrl_c_checkpoints(tmp
         for name in pids:
             assert after[name] - before[name] < TREND_LIMIT_MIB, (name, samples[name])
         drops = sum(statuses[f"actor-{i}"]["dropped_no_credit"] for i in (0, 1))
-        assert drops - drops_before >= 4, f"actors should have replaced held-back batches: {statuses}"
+        assert drops - drops_before >= 3, f"actors should have replaced held-back batches: {statuses}"
         assert all(statuses[f"actor-{i}"]["in_flight"] <= 1 for i in (0, 1)), statuses
         assert statuses["learner"]["queue"] <= 2, statuses["learner"]
         print(f"peak RSS MiB, first half {before}, second half {after}; batches dropped by actors {drops}")

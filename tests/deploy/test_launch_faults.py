@@ -28,6 +28,7 @@ from launch_procs import (
 
 from actors.wire import tree_arrays
 from bus.codec import Kind, encode
+from bus.keys import SCHEMA_MAJOR
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
 from learner.agent import make_agent
@@ -58,6 +59,9 @@ def inject_malformed(watcher: StatusWatcher) -> None:
     good = frame(arrays, learner_epoch=0, seq=1)  # valid, but acted by weights of no learner epoch
     nan = dict(arrays, **{"steps/reward": np.full_like(arrays["steps/reward"], np.nan)})
     wrong_shape = dict(arrays, **{"steps/reward": np.zeros((3, 3), np.float32)})
+    wrong_dtype = dict(arrays, **{"steps/reward": arrays["steps/reward"].astype(np.float64)})
+    version = frame(arrays, seq=8, learner_epoch=1)
+    next_version = bytes(version[:4]) + (SCHEMA_MAJOR + 1).to_bytes(2, "little") + bytes(version[6:])
     trajectories = [
         np.random.default_rng(0).bytes(5000),
         good[: len(good) // 2],
@@ -66,6 +70,8 @@ def inject_malformed(watcher: StatusWatcher) -> None:
         bytes(encode(Kind.WEIGHTS, arrays, run=run, sender="actor-9", meta={"incarnation": 1}, seq=3)),
         frame(nan, seq=4, learner_epoch=1),
         frame(wrong_shape, seq=5, learner_epoch=1),
+        frame(wrong_dtype, seq=6, learner_epoch=1),
+        next_version,
         good,  # accepted, then dropped: epoch 0 is no learner's
         good,  # the same sequence number again
     ]
@@ -94,7 +100,8 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
 
         # Malformed and foreign messages: dropped and counted, training goes on.
         inject_malformed(watcher)
-        expected = {"truncated", "bad_magic", "wrong_run", "wrong_kind", "non_finite", "bad_shape", "duplicate"}
+        expected = {"truncated", "bad_magic", "bad_version", "wrong_run", "wrong_kind", "bad_dtype", "non_finite",
+                    "bad_shape", "duplicate"}
 
         def learner_rejected():
             status = watcher.poll().get("learner", {})
