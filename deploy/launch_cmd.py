@@ -11,6 +11,7 @@ final checkpoint; a second Ctrl-C kills everything at once.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -110,8 +111,10 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     display.forget()
                 if finished:
                     log.info("the learner finished the run; stopping the actors")
+                    display.forget()
                     break
-                supervisor.restart_due()
+                if supervisor.restart_due():
+                    display.forget()  # Child.start logged a line
                 if display.due():
                     display.show(render(statuses, children, LEARNER))
                 time.sleep(POLL_S)
@@ -121,10 +124,13 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
             if not finished:
                 log.info("stopping the learner (it writes a final checkpoint)")
                 supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
+            display.forget()
             display.show(render(statuses, children, LEARNER))
-    summary = (run_dir / "eval.json")
-    if finished and summary.is_file():
-        log.info("evaluation written to %s", summary)
+    scores = run_dir / "eval.json"
+    if finished and scores.is_file():
+        from learner.run import format_scores  # JAX loads here only, for the table's helper
+
+        log.info("evaluation of the final policy (%s):\n%s", scores, format_scores(json.loads(scores.read_text())))
     return 0 if finished or interrupted else EXIT_FAILED
 
 

@@ -20,9 +20,12 @@ def _number(value: Any, fmt: str = "{:,.0f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
+STARTING = "starting (importing JAX, compiling; cached after the first run)"
+
+
 def learner_line(status: dict[str, Any] | None) -> str:
     if status is None:
-        return "waiting for its first status"
+        return STARTING
     drops = " ".join(f"{label} {status.get(key, 0)}" for label, key in (
         ("stale", "dropped_stale"), ("old-epoch", "dropped_old_epoch"), ("overflow", "dropped_overflow"),
         ("lost", "lost")))
@@ -35,7 +38,7 @@ def learner_line(status: dict[str, Any] | None) -> str:
 
 def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
     if status is None:
-        return "waiting for its first status"
+        return STARTING
     waiting = f" | waiting for {status['waiting']}" if status.get("waiting") else ""
     return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']} | lag "
             f"{'-' if lag is None else lag} | in flight {status.get('in_flight', 0)} | dropped "

@@ -109,12 +109,15 @@ class Supervisor:
         child.restart_at = time.monotonic() + delay
         return delay
 
-    def restart_due(self) -> None:
-        """Start the children whose back-off has passed."""
+    def restart_due(self) -> list[Child]:
+        """Start the children whose back-off has passed; returns them."""
+        started = []
         for child in self.children.values():
             if child.restart_at is not None and time.monotonic() >= child.restart_at:
                 child.last_exit = None
                 child.start(self.env)
+                started.append(child)
+        return started
 
     def stop(self, names: list[str], timeout_s: float) -> None:
         """SIGTERM the named children (their run loops finish the cycle and checkpoint), wait up to `timeout_s`,
