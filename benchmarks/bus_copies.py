@@ -169,6 +169,17 @@ def run_receiver(endpoint: str, shared_memory: bool) -> None:
         subscriber.undeclare()
 
 
+def timed_put(publisher: Any, acks: Any, frame: bytes | bytearray) -> dict[str, Any]:
+    """Put one frame and wait for the receiver's acknowledgement: its fields (`received_ns`, `decoded_ns`,
+    `via_shm`) plus `sent_ns`, all on this machine's monotonic clock."""
+    sent_ns = time.monotonic_ns()
+    publisher.put(frame)
+    ack = acks.wait(ACK_TIMEOUT_S)
+    if ack is None:
+        raise RuntimeError("no acknowledgement from the receiver")
+    return {**json.loads(ack.payload), "sent_ns": sent_ns}
+
+
 def transfer_measurements(frame: bytearray, shared_memory: bool, repeats: int, burst: int) -> None:
     endpoint = free_endpoint()
     config = BusConfig(hub=endpoint, shared_memory=shared_memory)
@@ -184,13 +195,8 @@ def transfer_measurements(frame: bytearray, shared_memory: bool, repeats: int, b
                 raise SystemExit("the receiver process never subscribed")
             latencies, decodes, via_shm = [], [], []
             for _ in range(repeats + 1):  # the first is a warm-up
-                sent_ns = time.monotonic_ns()
-                publisher.put(frame)
-                ack = acks.wait(ACK_TIMEOUT_S)
-                if ack is None:
-                    raise SystemExit("no acknowledgement from the receiver")
-                fields = json.loads(ack.payload)
-                latencies.append((fields["received_ns"] - sent_ns) / 1e6)
+                fields = timed_put(publisher, acks, frame)
+                latencies.append((fields["received_ns"] - fields["sent_ns"]) / 1e6)
                 decodes.append((fields["decoded_ns"] - fields["received_ns"]) / 1e6)
                 via_shm.append(fields["via_shm"])
             # Inferred from the timings below: with shared memory, ZBytes copy + copy into the pool + to_bytes; over

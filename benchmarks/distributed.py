@@ -642,9 +642,7 @@ def transport_ms(arrays: dict[str, np.ndarray], bus_config: BusConfig, repeats: 
     """Put -> received as bytes of one trajectory frame into another process over zenoh on loopback, one message
     at a time, sent with the run's bus settings (shared memory, pool size); the receiver of
     `benchmarks.bus_copies` acknowledges each with its monotonic receive time."""
-    import json
-
-    from benchmarks.bus_copies import ACK_TIMEOUT_S, RUN
+    from benchmarks.bus_copies import ACK_TIMEOUT_S, RUN, timed_put
     from bus.session import Bus
 
     frame = encode(Kind.TRAJECTORY, arrays, run=RUN)
@@ -661,13 +659,8 @@ def transport_ms(arrays: dict[str, np.ndarray], bus_config: BusConfig, repeats: 
                 raise RuntimeError("the transport receiver never subscribed")
 
             def one() -> tuple[float, bool]:
-                sent_ns = time.monotonic_ns()
-                publisher.put(frame)
-                ack = acks.wait(ACK_TIMEOUT_S)
-                if ack is None:
-                    raise RuntimeError("no acknowledgement from the transport receiver")
-                fields = json.loads(ack.payload)
-                return (fields["received_ns"] - sent_ns) / 1e6, bool(fields["via_shm"])
+                fields = timed_put(publisher, acks, frame)
+                return (fields["received_ns"] - fields["sent_ns"]) / 1e6, bool(fields["via_shm"])
 
             # Zenoh sends the first few large messages of a new link over the socket (5 here) before its shared
             # memory is set up; a run sends hundreds, so those are a start-up cost, reported apart.

@@ -62,6 +62,15 @@ def resolve_config(cls: type[T], toml_path: Path | None = None, overrides: Itera
     return _build(cls, tree, "", base=None)
 
 
+def load_run_config(cls: type[T], run_dir: Path | str, overrides: Iterable[str] = ()) -> T:
+    """The config a run directory was started with (its config.toml), then the overrides: how a run is resumed
+    and how `impulse launch` hands its config to the processes it starts."""
+    saved = Path(run_dir) / CONFIG_FILENAME
+    if not saved.is_file():
+        raise ConfigError(f"{run_dir} has no {CONFIG_FILENAME}; is it a run directory?")
+    return resolve_config(cls, saved, overrides)
+
+
 def config_to_dict(instance: Any) -> dict[str, Any]:
     """The instance as plain TOML-ready data: tables for dataclasses, lists for sequences, "none" for None."""
     return {f.name: _plain(getattr(instance, f.name)) for f in dataclasses.fields(instance) if f.init}

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from deploy.config import ConfigError, resolve_config, write_resolved_config
+from deploy.config import ConfigError, load_run_config, write_resolved_config
 from deploy.runloop import StopFlag
 from deploy.status_display import StatusDisplay, render
 from deploy.supervisor import Child, Supervisor, describe_exit
@@ -47,12 +47,8 @@ def _service_argv(role: str, run_dir: Path, *extra: str) -> list[str]:
 
 def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     if args.resume is not None:
-        saved = args.resume / "config.toml"
-        if not saved.is_file():
-            print(f"impulse launch: {args.resume} has no config.toml; is it a run directory?", file=sys.stderr)
-            return EXIT_USAGE
         try:
-            config = resolve_config(TrainConfig, saved, args.overrides)
+            config = load_run_config(TrainConfig, args.resume, args.overrides)
         except ConfigError as err:
             print(f"impulse launch: config error: {err}", file=sys.stderr)
             return EXIT_USAGE

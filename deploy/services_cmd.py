@@ -13,7 +13,7 @@ import os
 import sys
 from pathlib import Path
 
-from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from deploy.config import ConfigError, config_to_toml, load_run_config, write_resolved_config
 from deploy.train_cmd import enable_compile_cache
 from learner.config import TrainConfig
 
@@ -46,12 +46,8 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _resolve(args: argparse.Namespace, config: TrainConfig, command: str) -> tuple[TrainConfig, Path] | None:
     if args.run is not None:
-        saved = args.run / "config.toml"
-        if not saved.is_file():
-            print(f"impulse {command}: {args.run} has no config.toml; is it a run directory?", file=sys.stderr)
-            return None
         try:
-            config = resolve_config(TrainConfig, saved, args.overrides)
+            config = load_run_config(TrainConfig, args.run, args.overrides)
         except ConfigError as err:
             print(f"impulse {command}: config error: {err}", file=sys.stderr)
             return None

@@ -10,7 +10,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from deploy.config import ConfigError, config_to_toml, load_run_config, resolve_config, write_resolved_config
 from learner.config import TrainConfig
 
 log = logging.getLogger("impulse.train")
@@ -105,12 +105,8 @@ def run_train(args: argparse.Namespace, config: TrainConfig) -> int:
 
     enable_compile_cache()
     if args.resume is not None:
-        saved = args.resume / "config.toml"
-        if not saved.is_file():
-            print(f"impulse train: {args.resume} has no config.toml; is it a run directory?", file=sys.stderr)
-            return EXIT_USAGE
         try:
-            config = resolve_config(TrainConfig, saved, args.overrides)
+            config = load_run_config(TrainConfig, args.resume, args.overrides)
         except ConfigError as err:
             print(f"impulse train: config error: {err}", file=sys.stderr)
             return EXIT_USAGE

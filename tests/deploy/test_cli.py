@@ -119,3 +119,11 @@ def test_bench_runs_module_main_with_its_arguments(tmp_path: Path, monkeypatch: 
         bench.run("nomain", [], package="fake_benchmarks")
     with pytest.raises(bench.UnknownBenchmark, match="did you mean 'echo'"):
         bench.run("ecko", [], package="fake_benchmarks")
+
+
+def test_distributed_commands_without_a_run_directory_are_usage_errors(tmp_path: Path, capsys) -> None:
+    for argv in (["launch", "--resume", str(tmp_path)], ["learner", "--run", str(tmp_path)],
+                 ["actor", "--run", str(tmp_path), "--index", "1"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "has no config.toml" in err and err.startswith(f"impulse {argv[0]}:"), err
