@@ -221,7 +221,8 @@ class Actor:
             "learner_epoch": self.epoch,
             "in_flight": self.in_flight,
             "levels": self.levels.description,
-            "waiting": "weights" if self.params is None else ("credit" if not self._has_credit() else ""),
+            "waiting": "weights" if self.params is None else (
+                "credit" if self.in_flight >= self.config.actors.credits else ""),
             "rejected": self.bus.rejects.total,
             "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,

@@ -18,6 +18,10 @@ import sys
 import time
 from pathlib import Path
 
+from bus.codec import Rejected
+from bus.inbox import Received
+from bus.session import Bus
+from bus.status import read_status
 from deploy.config import ConfigError, load_run_config, write_resolved_config
 from deploy.runloop import StopFlag
 from deploy.status_display import StatusDisplay, render
@@ -66,7 +70,6 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     config.actors.credits, expected_lag, config.ppo.max_policy_lag)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_resolved_config(config, run_dir)
-    from bus.session import Bus  # zenoh loads only when a launch really starts
 
     resume_first = args.resume is not None
     children = [Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
@@ -130,9 +133,8 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     return 0 if finished or interrupted else EXIT_FAILED
 
 
-def _read_status(received, bus, statuses: dict[str, dict]) -> None:
-    from bus.codec import Rejected
-    from bus.status import read_status
+def _read_status(received: Received, bus: Bus, statuses: dict[str, dict]) -> None:
+    """Keep the newest status of each process; a malformed one is counted and logged like any bad message."""
 
     try:
         sender, status = read_status(received, bus.keys.run)

@@ -34,6 +34,7 @@ from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, tree_arra
 from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.session import Bus
 from bus.status import StatusPublisher
+from engine.env.env import reset_batch
 from engine.env.spec import EnvParams
 from engine.levels.level import level_from_scene, stack_levels
 from engine.physics.scene import empty_scene
@@ -62,8 +63,6 @@ def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps
     levels = stack_levels([level_from_scene(empty_scene(agent.spec.sizes))])
 
     def one_batch() -> TrajectoryBatch:
-        from engine.env.env import reset_batch
-
         obs, state = reset_batch(agent.spec, env_params, levels, num_envs)
         params = agent.init(jax.random.PRNGKey(0))
         carry = RolloutCarry(state, obs, jax.random.PRNGKey(0))
