@@ -105,7 +105,7 @@ class Actor:
         self.epoch = -1
         self.seq = 0  # batches sent by this incarnation
         self.acked = 0  # highest sequence number the learner has taken off its queue
-        self._last_ack_time = time.monotonic()
+        self._blocked_since: float | None = None  # when the actor last ran out of credit
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
         self._last_query = -float("inf")
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
@@ -157,7 +157,7 @@ class Actor:
     def _write_off(self) -> None:
         self.counts["written_off"] += self.seq - self.acked
         self.acked = self.seq
-        self._last_ack_time = time.monotonic()
+        self._blocked_since = None
 
     def _receive_acks(self) -> None:
         for received in self._credits.poll():
@@ -174,16 +174,21 @@ class Actor:
             acked = message.meta.get("acked_seq")
             if isinstance(acked, int) and self.acked < acked <= self.seq:
                 self.acked = acked
-                self._last_ack_time = time.monotonic()
+                self._blocked_since = None
 
     @property
     def in_flight(self) -> int:
         return self.seq - self.acked
 
     def _has_credit(self) -> bool:
+        """Whether a batch may be sent now; out of credit for longer than the timeout with no acknowledgement,
+        the batches in flight are written off."""
         if self.in_flight < self.config.actors.credits:
             return True
-        if time.monotonic() - self._last_ack_time > self.config.actors.credit_timeout_s:
+        now = time.monotonic()
+        if self._blocked_since is None:
+            self._blocked_since = now
+        if now - self._blocked_since > self.config.actors.credit_timeout_s:
             log.warning("no acknowledgement for %.0f s: %d batches in flight written off",
                         self.config.actors.credit_timeout_s, self.in_flight)
             self._write_off()

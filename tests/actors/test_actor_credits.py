@@ -1,0 +1,71 @@
+"""An actor's credits, driven cycle by cycle over a real bus (the test plays the learner): it never has more
+batches in flight than its credits, an acknowledgement frees one at once, and batches nobody acknowledges are
+written off after `actors.credit_timeout_s` instead of stalling the actor for ever."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+from launch_procs import QUICK_LAUNCH, free_port
+
+from actors.levels import LocalLevels
+from actors.process import Actor
+from actors.wire import tree_arrays, weights_meta
+from bus.codec import Kind, encode
+from bus.session import Bus
+from deploy.config import resolve_config
+from engine.env.spec import env_from_config
+from learner.agent import make_agent
+from learner.config import TrainConfig
+
+RUN = "credit-test"
+TIMEOUT_S = 1.5
+
+
+def cycle_until(actor: Actor, condition, timeout_s: float, what: str) -> float:
+    start = time.monotonic()
+    while not condition():
+        assert time.monotonic() - start < timeout_s, f"timed out waiting for {what}: {actor.counts}"
+        actor.cycle()
+    return time.monotonic() - start
+
+
+def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off():
+    port = free_port()
+    config = resolve_config(TrainConfig, QUICK_LAUNCH, [
+        f"bus.hub=tcp/127.0.0.1:{port}", f"actors.credit_timeout_s={TIMEOUT_S}", "ppo.num_envs=8",
+        "ppo.num_steps=8", "ppo.num_minibatches=1"])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    params = agent.init(jax.random.PRNGKey(0))
+    with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner:
+        weights = learner.latest_publisher(learner.keys.weights_policy)
+        weights.put(encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, policy_version=5, learner_epoch=1,
+                           meta=weights_meta(params)))
+        trajectories = learner.inbox(learner.keys.traj_all, 16)
+        with Bus(config.bus, RUN, "actor", "actor-0") as bus:
+            actor = Actor(config, 0, bus, agent, env_params, LocalLevels(config.env, spec.sizes, 8))
+            cycle_until(actor, lambda: actor.counts["sent"] == 1, 120, "the first batch")
+            assert actor.version == 5 and actor.in_flight == 1
+            for _ in range(20):
+                actor.cycle()
+            assert actor.counts["sent"] == 1, "no credit left: the actor waits"
+
+            waited = cycle_until(actor, lambda: actor.counts["sent"] == 2, 30, "the write-off")
+            assert actor.counts["written_off"] == 1 and waited >= TIMEOUT_S * 0.5
+
+            credit = learner.publisher(learner.keys.credit("actor-0"))
+            assert learner.wait_matching(credit, 10)
+            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
+                              meta={"incarnation": actor.incarnation, "acked_seq": 2}))
+            waited = cycle_until(actor, lambda: actor.counts["sent"] == 3, 30, "the acknowledged credit")
+            assert waited < TIMEOUT_S and actor.counts["written_off"] == 1, "freed by the acknowledgement"
+
+            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
+                              meta={"incarnation": actor.incarnation + 1, "acked_seq": 3}))
+            for _ in range(20):
+                actor.cycle()
+            assert actor.in_flight == 1, "an acknowledgement for another incarnation frees nothing"
+        received = trajectories.poll()
+    assert [len(r.payload) > 0 for r in received] == [True] * 3
