@@ -15,18 +15,20 @@ throughput with back-to-back puts (BLOCK, receiver FIFO of 4).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import socket
 import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import zenoh
 
+from benchmarks._harness import REPO
 from bus.codec import Kind, decode, encode
 from bus.schema import Schema, check
 from bus.session import Bus, BusConfig
@@ -180,72 +182,79 @@ def timed_put(publisher: Any, acks: Any, frame: bytes | bytearray) -> dict[str, 
     return {**json.loads(ack.payload), "sent_ns": sent_ns}
 
 
+@contextlib.contextmanager
+def receiver_link(bus: Bus, endpoint: str, shared_memory: bool, capacity: int) -> Iterator[tuple[Any, Any]]:
+    """The acknowledging receiver (`--receiver`) in a process of its own, linked to `bus`: yields (publisher of
+    frames, inbox of acknowledgements); on the way out the receiver is told to stop, and killed if it does not."""
+    receiver = subprocess.Popen([sys.executable, "-m", "benchmarks.bus_copies", "--receiver", endpoint, "--shm",
+                                 str(int(shared_memory))], cwd=REPO)
+    try:
+        acks = bus.inbox(bus.keys.credit("bench"), capacity)
+        publisher = bus.publisher(bus.keys.traj("bench"))
+        if not Bus.wait_matching(publisher, ACK_TIMEOUT_S):
+            raise RuntimeError("the receiver process never subscribed")
+        yield publisher, acks
+        publisher.put(b"")
+        receiver.wait(timeout=ACK_TIMEOUT_S)
+    finally:
+        if receiver.poll() is None:
+            receiver.kill()
+            receiver.wait()
+
+
 def transfer_measurements(frame: bytearray, shared_memory: bool, repeats: int, burst: int) -> None:
     endpoint = free_endpoint()
     config = BusConfig(hub=endpoint, shared_memory=shared_memory)
     label = "shm on" if shared_memory else "shm off"
-    with Bus(config, RUN, "actor", "bench", listen=True) as bus:
-        receiver = subprocess.Popen(
-            [sys.executable, "-m", "benchmarks.bus_copies", "--receiver", endpoint, "--shm", str(int(shared_memory))]
+    with Bus(config, RUN, "actor", "bench", listen=True) as bus, receiver_link(bus, endpoint, shared_memory,
+                                                                               burst + 1) as (publisher, acks):
+        latencies, decodes, via_shm = [], [], []
+        for _ in range(repeats + 1):  # the first is a warm-up
+            fields = timed_put(publisher, acks, frame)
+            latencies.append((fields["received_ns"] - fields["sent_ns"]) / 1e6)
+            decodes.append((fields["decoded_ns"] - fields["received_ns"]) / 1e6)
+            via_shm.append(fields["via_shm"])
+        # Inferred from the timings below: with shared memory, ZBytes copy + copy into the pool + to_bytes; over
+        # the socket, ZBytes copy + batch serialisation + reassembly + to_bytes (plus the kernel's own copies).
+        copies = 3 if shared_memory else 4
+        emit(
+            {
+                "what": f"put -> received as bytes, one at a time ({label})",
+                "bytes": len(frame),
+                "ms": statistics.median(latencies[1:]),
+                "copies": copies,
+                "copies_basis": "inferred",
+                "through_shm": f"{sum(via_shm[1:])}/{len(via_shm) - 1}",
+            }
         )
-        try:
-            acks = bus.inbox(bus.keys.credit("bench"), burst + 1)
-            publisher = bus.publisher(bus.keys.traj("bench"))
-            if not Bus.wait_matching(publisher, ACK_TIMEOUT_S):
-                raise SystemExit("the receiver process never subscribed")
-            latencies, decodes, via_shm = [], [], []
-            for _ in range(repeats + 1):  # the first is a warm-up
-                fields = timed_put(publisher, acks, frame)
-                latencies.append((fields["received_ns"] - fields["sent_ns"]) / 1e6)
-                decodes.append((fields["decoded_ns"] - fields["received_ns"]) / 1e6)
-                via_shm.append(fields["via_shm"])
-            # Inferred from the timings below: with shared memory, ZBytes copy + copy into the pool + to_bytes; over
-            # the socket, ZBytes copy + batch serialisation + reassembly + to_bytes (plus the kernel's own copies).
-            copies = 3 if shared_memory else 4
-            emit(
-                {
-                    "what": f"put -> received as bytes, one at a time ({label})",
-                    "bytes": len(frame),
-                    "ms": statistics.median(latencies[1:]),
-                    "copies": copies,
-                    "copies_basis": "inferred",
-                    "through_shm": f"{sum(via_shm[1:])}/{len(via_shm) - 1}",
-                }
-            )
-            emit(
-                {
-                    "what": f"decode in the receiver ({label})",
-                    "bytes": len(frame),
-                    "ms": statistics.median(decodes[1:]),
-                    "copies": 0,
-                    "copies_basis": "counted",
-                }
-            )
-            start = time.perf_counter()
-            for _ in range(burst):
-                publisher.put(frame)
-            received = 0
-            while received < burst and acks.wait(ACK_TIMEOUT_S) is not None:
-                received += 1
-            elapsed = time.perf_counter() - start
-            emit(
-                {
-                    "what": f"back-to-back puts, per message ({label})",
-                    "bytes": len(frame),
-                    "ms": elapsed / burst * 1e3,
-                    "copies": copies,
-                    "copies_basis": "inferred",
-                    "gb_per_s": round(len(frame) * burst / elapsed / 1e9, 3),
-                    "received": received,
-                    "sent": burst,
-                }
-            )
-            publisher.put(b"")
-            receiver.wait(timeout=ACK_TIMEOUT_S)
-        finally:
-            if receiver.poll() is None:
-                receiver.kill()
-                receiver.wait()
+        emit(
+            {
+                "what": f"decode in the receiver ({label})",
+                "bytes": len(frame),
+                "ms": statistics.median(decodes[1:]),
+                "copies": 0,
+                "copies_basis": "counted",
+            }
+        )
+        start = time.perf_counter()
+        for _ in range(burst):
+            publisher.put(frame)
+        received = 0
+        while received < burst and acks.wait(ACK_TIMEOUT_S) is not None:
+            received += 1
+        elapsed = time.perf_counter() - start
+        emit(
+            {
+                "what": f"back-to-back puts, per message ({label})",
+                "bytes": len(frame),
+                "ms": elapsed / burst * 1e3,
+                "copies": copies,
+                "copies_basis": "inferred",
+                "gb_per_s": round(len(frame) * burst / elapsed / 1e9, 3),
+                "received": received,
+                "sent": burst,
+            }
+        )
 
 
 def main() -> None:

@@ -642,40 +642,27 @@ def transport_ms(arrays: dict[str, np.ndarray], bus_config: BusConfig, repeats: 
     """Put -> received as bytes of one trajectory frame into another process over zenoh on loopback, one message
     at a time, sent with the run's bus settings (shared memory, pool size); the receiver of
     `benchmarks.bus_copies` acknowledges each with its monotonic receive time."""
-    from benchmarks.bus_copies import ACK_TIMEOUT_S, RUN, timed_put
+    from benchmarks.bus_copies import RUN, receiver_link, timed_put
     from bus.session import Bus
 
     frame = encode(Kind.TRAJECTORY, arrays, run=RUN)
     endpoint = free_endpoint()
     shared_memory = bus_config.shared_memory
     sender = dataclasses.replace(bus_config, hub=endpoint, connect=())
-    with Bus(sender, RUN, "actor", "bench", listen=True) as bus:
-        receiver = subprocess.Popen([sys.executable, "-m", "benchmarks.bus_copies", "--receiver", endpoint,
-                                     "--shm", str(int(shared_memory))], cwd=REPO)
-        try:
-            acks = bus.inbox(bus.keys.credit("bench"), 4)
-            publisher = bus.publisher(bus.keys.traj("bench"))
-            if not Bus.wait_matching(publisher, ACK_TIMEOUT_S):
-                raise RuntimeError("the transport receiver never subscribed")
+    with Bus(sender, RUN, "actor", "bench", listen=True) as bus, receiver_link(bus, endpoint, shared_memory,
+                                                                               4) as (publisher, acks):
+        def one() -> tuple[float, bool]:
+            fields = timed_put(publisher, acks, frame)
+            return (fields["received_ns"] - fields["sent_ns"]) / 1e6, bool(fields["via_shm"])
 
-            def one() -> tuple[float, bool]:
-                fields = timed_put(publisher, acks, frame)
-                return (fields["received_ns"] - fields["sent_ns"]) / 1e6, bool(fields["via_shm"])
-
-            # Zenoh sends the first few large messages of a new link over the socket (5 here) before its shared
-            # memory is set up; a run sends hundreds, so those are a start-up cost, reported apart.
-            warmup = [one()]
-            while shared_memory and not warmup[-1][1] and len(warmup) < TRANSPORT_MAX_WARMUP:
-                warmup.append(one())
-            measured = [one() for _ in range(repeats)]
-            latencies = [ms for ms, _ in measured]
-            through_shm = sum(shm for _, shm in measured)
-            publisher.put(b"")
-            receiver.wait(timeout=ACK_TIMEOUT_S)
-        finally:
-            if receiver.poll() is None:
-                receiver.kill()
-                receiver.wait()
+        # Zenoh sends the first few large messages of a new link over the socket (5 here) before its shared
+        # memory is set up; a run sends hundreds, so those are a start-up cost, reported apart.
+        warmup = [one()]
+        while shared_memory and not warmup[-1][1] and len(warmup) < TRANSPORT_MAX_WARMUP:
+            warmup.append(one())
+        measured = [one() for _ in range(repeats)]
+        latencies = [ms for ms, _ in measured]
+        through_shm = sum(shm for _, shm in measured)
     return {"median_ms": statistics.median(latencies), "max_ms": max(latencies), "bytes": len(frame),
             "shared_memory": shared_memory, "shm_pool_mib": bus_config.shm_pool_mib,
             "through_shm": f"{through_shm}/{repeats}",
