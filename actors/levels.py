@@ -1,48 +1,102 @@
 """Where an actor's levels come from. An actor asks its level source for the batch of levels its environments
-take their next episodes from, once per rollout; the local source below reads the run's `env.levels` (a level
-file or folder, our hand-made set, or fresh random levels each rollout). A curriculum client implements the same
-interface, so the actor does not change when levels come from a curriculum service."""
+take their next episodes from, once per rollout. The local source reads the run's `env.levels` (a level file or
+folder, or our hand-made set); the curriculum source asks the curriculum service, the authority on levels in a
+run on random levels. Both hand out a `curriculum.state.LevelBatch` (levels, whether each is trained on, where
+each came from), so the actor does not care which one it has.
+"""
 
 from __future__ import annotations
 
+import logging
+import time
 from typing import Protocol
 
 import jax
+import jax.numpy as jnp
 
+from bus.codec import Kind, Rejected, decode
+from bus.session import Bus
+from curriculum.state import ORIGIN_NEW, LevelBatch
+from curriculum.wire import level_batch_from_message, level_batch_schema
 from engine.env.config import EnvConfig
 from engine.levels.level import Level
 from engine.levels.sets import RANDOM, load_level_set
 from engine.physics.sizes import SceneSizes
 
 Array = jax.Array
+log = logging.getLogger(__name__)
+
+WAIT_LOG_EVERY_S = 10.0
 
 
 class LevelSource(Protocol):
     description: str
     """A few words for the status display, e.g. "handmade:s_easy_car_right (1 level)"."""
 
-    def next_batch(self, key: Array) -> Level:
+    reports_results: bool
+    """Whether the source wants per-level results back (a curriculum does; a fixed level set does not)."""
+
+    def next_batch(self, key: Array) -> LevelBatch:
         """The level batch (leading axis K, K fixed for the source) for the next rollout."""
 
 
+def fixed_batch(levels: Level) -> LevelBatch:
+    """A batch of levels that are all trained on."""
+    count = levels.roles.shape[0]
+    return LevelBatch(levels, jnp.ones(count, bool), jnp.full(count, ORIGIN_NEW, jnp.int32))
+
+
 class LocalLevels:
-    """The run's own level set, or `num_levels` fresh random levels per batch."""
+    """The run's own level set (a file, a folder or the hand-made set)."""
 
-    def __init__(self, env: EnvConfig, sizes: SceneSizes, num_levels: int):
-        self.random = env.levels == RANDOM
-        if self.random:
-            from engine.levels.generator import sample_random_levels  # only random runs pay for its import
+    reports_results = False
 
-            self._sample = lambda key: sample_random_levels(key, num_levels, sizes)
-            self.description = f"random ({num_levels} per rollout)"
-            self.names: list[str] = []
-            self._levels: Level | None = None
-        else:
-            self.names, self._levels = load_level_set(env.levels, sizes)
-            count = len(self.names)
-            self.description = f"{env.levels} ({count} level{'s' if count != 1 else ''})"
+    def __init__(self, env: EnvConfig, sizes: SceneSizes):
+        if env.levels == RANDOM:
+            raise ValueError("random levels come from the curriculum service (CurriculumLevels), not a local set")
+        self.names, levels = load_level_set(env.levels, sizes)
+        self._batch = fixed_batch(levels)
+        count = len(self.names)
+        self.description = f"{env.levels} ({count} level{'s' if count != 1 else ''})"
 
-    def next_batch(self, key: Array) -> Level:
-        if self._levels is not None:
-            return self._levels
-        return self._sample(key)
+    def next_batch(self, key: Array) -> LevelBatch:
+        return self._batch
+
+
+class CurriculumLevels:
+    """Level batches pulled from the curriculum service's `levels/sample` queryable, one query per rollout.
+
+    A batch that does not fit the schema the actor's rollout was compiled for is refused (counted by reason) and
+    asked for again; while no service answers, the actor waits, logging every `WAIT_LOG_EVERY_S` seconds."""
+
+    reports_results = True
+
+    def __init__(self, bus: Bus, template: LevelBatch, method: str, timeout_s: float = 5.0):
+        self.bus = bus
+        self.template = template
+        self.schema = level_batch_schema(template)
+        self.size = int(template.train.shape[0])
+        self.timeout_s = timeout_s
+        self.description = f"curriculum {method} ({self.size} per rollout)"
+        self.waiting = False
+
+    def next_batch(self, key: Array) -> LevelBatch:
+        del key  # the service draws the levels
+        key_expr = self.bus.keys.levels_sample
+        started = last_log = time.monotonic()
+        while True:
+            for payload in self.bus.get(key_expr, parameters=f"n={self.size}", timeout_s=self.timeout_s):
+                try:
+                    message = decode(payload, run=self.bus.keys.run, kinds=Kind.LEVELS)
+                    batch = level_batch_from_message(message, self.schema, self.template)
+                except Rejected as err:
+                    self.bus.rejects.record(err.reason, key_expr, err.detail)
+                    continue
+                self.waiting = False
+                return jax.tree.map(jnp.asarray, batch)
+            self.waiting = True
+            time.sleep(0.2)  # nobody answered (no service yet): a get with no queryable returns at once
+            if time.monotonic() - last_log >= WAIT_LOG_EVERY_S:
+                last_log = time.monotonic()
+                log.warning("no level batch from the curriculum service on %s for %.0f s; waiting", key_expr,
+                            last_log - started)

@@ -30,17 +30,20 @@ import jax
 import numpy as np
 
 from actors.levels import LevelSource
-from actors.rollout import RolloutCarry, rollout
-from actors.trajectory import TrajectoryBatch, level_results, make_batch
-from actors.wire import PUBLISHED_AT, level_results_arrays, tree_arrays, tree_from_arrays, weights_schema
+from actors.rollout import rollout, start_rollout
+from actors.trajectory import TrajectoryBatch, make_batch
+from actors.wire import PUBLISHED_AT, weights_schema
 from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.schema import check
 from bus.session import Bus
 from bus.status import StatusPublisher
-from engine.env.env import reset_batch
+from curriculum.results import LevelResults
+from curriculum.wire import results_arrays
 from engine.env.spec import EnvParams
+from engine.physics.pytree import tree_arrays, tree_from_arrays
 from learner.agent import Agent
 from learner.config import TrainConfig
+from learner.curriculum_inputs import batch_level_results
 from learner.progress import CycleReport
 
 log = logging.getLogger("impulse.actor")
@@ -83,13 +86,16 @@ class Actor:
         seed = (config.seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
         self.key, level_key, rollout_key = jax.random.split(jax.random.PRNGKey(seed), 3)
         first = levels.next_batch(level_key)
-        obs, env_state = reset_batch(agent.spec, env_params, first, self.num_envs)
-        self.carry = RolloutCarry(env_state, obs, rollout_key)
+        self.carry = start_rollout(agent.spec, env_params, first.levels, self.num_envs, rollout_key, first.train)
         spec, steps = agent.spec, self.num_steps
         self._rollout = jax.jit(
-            lambda params, carry, levels: rollout(agent.act, params, spec, env_params, carry, levels, steps),
+            lambda params, carry, batch: rollout(agent.act, params, spec, env_params, carry, batch.levels, steps,
+                                                 batch.train),
             donate_argnums=1,
         )
+        rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
+        self._level_results = jax.jit(
+            lambda params, batch: batch_level_results(agent, params, batch, config.ppo, rows))
         self._params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
         self._weights_schema = weights_schema(self._params_template)
 
@@ -206,11 +212,11 @@ class Actor:
         self._traj.put(frame)
         self.counts["sent"] += 1
 
-    def _publish_results(self, batch: TrajectoryBatch) -> None:
-        results = level_results(batch.steps)
-        if results.level_id.size:
-            frame = encode(Kind.LEVEL_RESULTS, level_results_arrays(results), run=self.bus.keys.run,
-                           policy_version=self.version, learner_epoch=self.epoch, seq=self.seq, sender=self.name)
+    def _publish_results(self, results: LevelResults) -> None:
+        arrays = results_arrays(results)
+        if arrays["episodes"].size:
+            frame = encode(Kind.LEVEL_RESULTS, arrays, run=self.bus.keys.run, policy_version=self.version,
+                           learner_epoch=self.epoch, seq=self.seq, sender=self.name)
             self._results.put(frame)
 
     # -- the cycle ----------------------------------------------------------------------------------------
@@ -226,7 +232,7 @@ class Actor:
             "learner_epoch": self.epoch,
             "in_flight": self.in_flight,
             "levels": self.levels.description,
-            "waiting": "weights" if self.params is None else (
+            "waiting": "weights" if self.params is None else "levels" if getattr(self.levels, "waiting", False) else (
                 "credit" if self.in_flight >= self.config.actors.credits else ""),
             "rejected": self.bus.rejects.total,
             "weights_latency_ms": _summary(self._weights_latency_ms),
@@ -249,8 +255,9 @@ class Actor:
         start = time.monotonic()
         self.key, level_key = jax.random.split(self.key)
         levels = self.levels.next_batch(level_key)
-        self.carry, steps, stats = self._rollout(self.params, self.carry, levels)
-        batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index)
+        self.carry, steps, train_mask, stats = self._rollout(self.params, self.carry, levels)
+        batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask)
+        results = self._level_results(self.params, batch) if self.levels.reports_results else None
         batch = jax.device_get(batch)
         if self._has_credit():
             self._send(batch)
@@ -258,7 +265,8 @@ class Actor:
             if self._held is not None:
                 self.counts["dropped_no_credit"] += 1
             self._held = batch
-        self._publish_results(batch)
+        if results is not None:
+            self._publish_results(results)
         self._last_cycle_s = time.monotonic() - start
         env_steps = self.num_envs * self.num_steps
         self._steps_done += env_steps

@@ -2,13 +2,21 @@
 
 This is the only place experience is generated. The fused trainer calls it inside its jitted loop; actor
 processes call it (jitted on its own) and publish what it returns. It knows nothing of networks: it takes a
-`policy(params, obs, key) -> (action, log_prob, value)` over a batch of observations, so any network fits.
+`policy(params, obs, key) -> (action, log_prob, value)` over a batch of observations, so any network fits. The
+stepping itself is the engine's one episode loop (`engine.env.episodes.episode_loop`); the rollout adds the policy
+and what training keeps of each step.
 
 Levels reach the environments through `levels` (a `Level` batch of K, shared by all environments): an episode
 that ends restarts on the next level of the batch (see `engine.env.env`). Every step records the id of the level
 it was played on (`EnvState.level`), so results are credited by level id even when the caller swaps the batch
 while episodes are running (`actors.trajectory.level_results`). The caller wraps the steps into a
-`TrajectoryBatch` with the bootstrap observation (`carry.obs` after the rollout) and its policy version.
+`TrajectoryBatch` with the bootstrap observation (`carry.obs` after the rollout), its policy version and the train
+mask.
+
+Train flags. A curriculum may hand out levels only to evaluate them (robust PLR scores new levels without training
+on them), so every environment carries the flag of the episode it is playing (`RolloutCarry.trains`). An episode
+takes its flag from the batch it starts from (`train[k]` for level k of `levels`, the level the auto-reset picks),
+and keeps it when the caller swaps the batch before it ends, just as it keeps its level.
 """
 
 from __future__ import annotations
@@ -20,7 +28,8 @@ import jax
 import jax.numpy as jnp
 
 from actors.trajectory import Trajectory
-from engine.env.env import step as env_step
+from engine.env.env import reset_batch
+from engine.env.episodes import LoopCarry, Step, episode_loop
 from engine.env.spec import EnvParams, EnvSpec
 from engine.env.state import EnvState
 from engine.levels.level import Level
@@ -35,6 +44,7 @@ class RolloutCarry(NamedTuple):
     env_state: EnvState  # [E]
     obs: Any  # [E, ...] observation of env_state
     key: Array
+    trains: Array  # [E] bool: the episode each environment is playing is trained on
 
 
 class RolloutStats(NamedTuple):
@@ -49,6 +59,28 @@ class RolloutStats(NamedTuple):
     length_sum: Array
 
 
+def _train_flags(levels: Level, train: Array | None) -> Array:
+    """[K] bool, all true when the caller gives none."""
+    num_levels = levels.roles.shape[0]
+    return jnp.ones(num_levels, bool) if train is None else jnp.asarray(train, bool)
+
+
+def start_rollout(
+    spec: EnvSpec,
+    env_params: EnvParams,
+    levels: Level,
+    num_envs: int,
+    key: Array,
+    train: Array | None = None,
+) -> RolloutCarry:
+    """`num_envs` environments started on `levels` [K] as `reset_batch` staggers them (environment i on level
+    i % K), each with the train flag of its level (`train` [K] bool; None: all trained on)."""
+    obs, env_state = reset_batch(spec, env_params, levels, num_envs)
+    flags = _train_flags(levels, train)
+    trains = flags[jnp.arange(num_envs) % flags.shape[0]]
+    return RolloutCarry(env_state, obs, key, trains)
+
+
 def rollout(
     policy: Policy,
     params: Any,
@@ -57,28 +89,36 @@ def rollout(
     carry: RolloutCarry,
     levels: Level,
     num_steps: int,
-) -> tuple[RolloutCarry, Trajectory, RolloutStats]:
-    """Run `num_steps` steps of every environment. Returns (carry, steps [T, E], whole-batch episode stats)."""
-    step_all = jax.vmap(env_step, in_axes=(None, None, 0, 0, None))
+    train: Array | None = None,
+) -> tuple[RolloutCarry, Trajectory, Array, RolloutStats]:
+    """Run `num_steps` steps of every environment, episodes that start here taking their train flag from `train`
+    [K] bool (None: all trained on). Returns (carry, steps [T, E], train mask [T, E] (the flag of the episode each
+    step belongs to), whole-batch episode stats)."""
+    flags = _train_flags(levels, train)
 
-    def one_step(carry: RolloutCarry, _):
-        env_state, obs, key = carry
-        key, act_key = jax.random.split(key)
-        action, log_prob, value = policy(params, obs, act_key)
-        level_id = env_state.level.level_id
-        next_obs, env_state, reward, done, info = step_all(spec, env_params, env_state, action, levels)
+    def act(obs: Any, state: EnvState, key: Array) -> tuple[Array, tuple[Array, Array]]:
+        action, log_prob, value = policy(params, obs, key)
+        return action, (log_prob, value)
+
+    def next_trains(step: Step) -> Array:
+        # An episode that ends here is followed by one on levels[next_level % K] (the env's auto-reset rule).
+        return jnp.where(step.done, flags[step.state.next_level % flags.shape[0]], step.extra)
+
+    def record(step: Step) -> tuple[Trajectory, Array, RolloutStats]:
+        info, done = step.info, step.done
+        log_prob, value = step.aux
         finished_return = jnp.where(done, info["returned_episode_return"], 0.0)
         transition = Trajectory(
-            obs=obs,
-            action=action,
+            obs=step.obs,
+            action=step.action,
             log_prob=log_prob,
             value=value,
-            reward=reward,
+            reward=step.reward,
             done=done,
             solved=info["solved"],
             truncated=info["timed_out"],
             episode_return=finished_return,
-            level_id=level_id,
+            level_id=step.state.level.level_id,
         )
         episode = RolloutStats(
             episodes=done.astype(jnp.int32).sum(),
@@ -89,8 +129,11 @@ def rollout(
             return_sum=finished_return.sum(),
             length_sum=jnp.where(done, info["returned_episode_length"], 0).sum(),
         )
-        return RolloutCarry(env_state, next_obs, key), (transition, episode)
+        return transition, step.extra, episode
 
-    carry, (trajectory, per_step) = jax.lax.scan(one_step, carry, None, length=num_steps)
+    start = LoopCarry(carry.env_state, carry.obs, carry.key, carry.trains)
+    end, (trajectory, train_mask, per_step) = episode_loop(
+        spec, env_params, levels, start, num_steps, act, record, next_trains
+    )
     stats = jax.tree.map(lambda x: x.sum(), per_step)
-    return carry, trajectory, stats
+    return RolloutCarry(end.state, end.obs, end.key, end.extra), trajectory, train_mask, stats

@@ -13,7 +13,8 @@ contract, field by field:
   only being evaluated);
 - `actor_id`, `seq`: who produced the batch and its number in that actor's stream (fused mode: actor 0).
 
-Per-level results (`LevelResults`) are computed from the steps on the host, keyed by level id.
+Per-level results for the curriculum are computed from the steps by `curriculum.results.level_results`, keyed by
+level id.
 """
 
 from __future__ import annotations
@@ -22,9 +23,6 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-
-from engine.levels.level import level_id_values
 
 Array = jax.Array
 
@@ -73,28 +71,4 @@ def make_batch(
         train_mask=train_mask,
         actor_id=jnp.asarray(actor_id, jnp.int32),
         seq=jnp.asarray(seq, jnp.int32),
-    )
-
-
-class LevelResults(NamedTuple):
-    """Episodes that ended during a batch, per level id (numpy, leaves [K], ids unique and sorted)."""
-
-    level_id: np.ndarray  # uint64
-    episodes: np.ndarray  # int64
-    solved: np.ndarray  # int64
-    return_sum: np.ndarray  # float64, sum of the finished episodes' returns
-
-
-def level_results(steps: Trajectory) -> LevelResults:
-    """Tally finished episodes by the id of the level they were played on (host side). An episode belongs to the
-    level in `level_id` at the step that ends it, whatever batch of levels the actor holds by then."""
-    done = np.asarray(steps.done, bool)
-    ids = level_id_values(np.asarray(steps.level_id)[done])
-    unique, index = np.unique(ids, return_inverse=True)
-    count = lambda weights: np.bincount(index, weights, minlength=unique.size)  # noqa: E731
-    return LevelResults(
-        level_id=unique,
-        episodes=count(None).astype(np.int64),
-        solved=count(np.asarray(steps.solved, bool)[done]).astype(np.int64),
-        return_sum=count(np.asarray(steps.episode_return, np.float64)[done]),
     )

@@ -1,9 +1,9 @@
 """How the actor-learner types travel on the bus: pytrees as flat named arrays, and the schemas that check them.
 
-This is the one place that knows the wire layout of a `TrajectoryBatch`, of the policy weights and of the level
-results. A pytree becomes `{name: array}` with names made from its paths (`steps/obs/polygons`,
-`params/actor/dense_0/kernel`), and is rebuilt in the order of a template of the same structure, which both ends
-derive from the same config. Receivers check every message against a schema made from that template (exact
+This is the one place that knows the wire layout of a `TrajectoryBatch` and of the policy weights. A pytree
+becomes `{name: array}` with names made from its paths (`steps/obs/polygons`, `params/actor/dense_0/kernel`; see
+`engine.physics.pytree.tree_arrays`), and is rebuilt in the order of a template of the same structure, which both
+ends derive from the same config. Receivers check every message against a schema made from that template (exact
 shapes, dtypes and finiteness) before it reaches a jitted function, so a foreign or corrupt message is refused
 at the door instead of crashing or recompiling one.
 """
@@ -15,39 +15,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from actors.trajectory import LevelResults, TrajectoryBatch
+from actors.trajectory import TrajectoryBatch
 from bus.codec import TREE_HASH_META, Kind, Message, tree_hash
 from bus.schema import ArraySpec, Schema, check
+from engine.physics.pytree import path_name, tree_from_arrays
 
 TRAJECTORY_FINITE = ("steps/obs", "steps/log_prob", "steps/value", "steps/reward", "steps/episode_return",
                      "bootstrap_obs")
 """Float arrays of a trajectory that must hold no NaN or Inf (a NaN reward would poison the update)."""
-
-
-def path_name(path: tuple[Any, ...]) -> str:
-    """`a/b/0/c` for a pytree key path (dict keys, NamedTuple and dataclass fields, sequence indices)."""
-    parts = []
-    for entry in path:
-        for attribute in ("name", "key", "idx"):
-            if hasattr(entry, attribute):
-                parts.append(str(getattr(entry, attribute)))
-                break
-        else:
-            parts.append(str(entry))
-    return "/".join(parts)
-
-
-def tree_arrays(tree: Any) -> dict[str, np.ndarray]:
-    """A pytree as {path name: host numpy array} (one device-to-host copy per leaf)."""
-    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-    host = jax.device_get([leaf for _, leaf in leaves])
-    return {path_name(path): np.asarray(value) for (path, _), value in zip(leaves, host, strict=True)}
-
-
-def tree_from_arrays(arrays: dict[str, np.ndarray], template: Any) -> Any:
-    """The pytree of `template`'s structure with the arrays of the same names (checked by a schema first)."""
-    paths, treedef = jax.tree_util.tree_flatten_with_path(template)
-    return jax.tree.unflatten(treedef, [arrays[path_name(path)] for path, _ in paths])
 
 
 def _specs(template: Any, finite: tuple[str, ...] | bool) -> dict[str, ArraySpec]:
@@ -89,21 +64,6 @@ PUBLISHED_AT = "published_at"
 
 def weights_meta(params: Any) -> dict[str, str]:
     return {TREE_HASH_META: weights_hash(params)}
-
-
-LEVEL_RESULTS_SCHEMA = Schema(
-    Kind.LEVEL_RESULTS,
-    {
-        "level_id": ArraySpec(np.dtype(np.uint64), ("K",)),
-        "episodes": ArraySpec(np.dtype(np.int64), ("K",)),
-        "solved": ArraySpec(np.dtype(np.int64), ("K",)),
-        "return_sum": ArraySpec(np.dtype(np.float64), ("K",), finite=True),
-    },
-)
-
-
-def level_results_arrays(results: LevelResults) -> dict[str, np.ndarray]:
-    return {name: np.asarray(value) for name, value in results._asdict().items()}
 
 
 def checked_tree(message: Message, schema: Schema, template: Any) -> Any:

@@ -50,7 +50,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from actors.wire import path_name
 from benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from bus.codec import Kind, encode
 from bus.session import BusConfig
@@ -58,6 +57,7 @@ from engine.env.actions import action_space
 from engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
+from engine.physics.pytree import path_name
 from engine.physics.sizes import SceneSizes, size_preset
 from learner.config import TrainConfig
 
@@ -560,12 +560,12 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     (jitted as the actor and the learner jit them). In the runs these compete with other processes for the same
     cores, so they are lower bounds for what the processes spend."""
     from actors.levels import LocalLevels
-    from actors.rollout import RolloutCarry, rollout
+    from actors.rollout import rollout, start_rollout
     from actors.trajectory import make_batch
-    from actors.wire import checked_tree, trajectory_schema, tree_arrays
+    from actors.wire import checked_tree, trajectory_schema
     from bus.codec import decode
-    from engine.env.env import reset_batch
     from engine.env.spec import env_from_config
+    from engine.physics.pytree import tree_arrays
     from learner.agent import make_agent
     from learner.service import batch_template
     from learner.update import TrainState, make_optimizer, ppo_update
@@ -573,24 +573,22 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     ppo = config.ppo
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    levels = LocalLevels(config.env, spec.sizes, ppo.num_envs)
     key = jax.random.PRNGKey(0)
-    first = levels.next_batch(key)
-    obs, env_state = reset_batch(spec, env_params, first, ppo.num_envs)
+    first = LocalLevels(config.env, spec.sizes).next_batch(key).levels
     params = agent.init(jax.random.PRNGKey(config.seed))
     roll = jax.jit(lambda p, c, lv: rollout(agent.act, p, spec, env_params, c, lv, ppo.num_steps), donate_argnums=1)
-    held = {"carry": RolloutCarry(env_state, obs, key)}
+    held = {"carry": start_rollout(spec, env_params, first, ppo.num_envs, key)}
 
     def one_rollout() -> Any:
-        held["carry"], steps, _ = roll(params, held["carry"], first)
-        held["steps"] = steps
+        held["carry"], steps, train_mask, _ = roll(params, held["carry"], first)
+        held["steps"], held["train_mask"] = steps, train_mask
         return steps
 
     start = time.perf_counter()
     jax.block_until_ready(one_rollout())
     rollout_compile_s = time.perf_counter() - start
     rollout_s = _median_s(one_rollout, repeats)
-    batch = jax.device_get(make_batch(held["steps"], held["carry"].obs, 0))
+    batch = jax.device_get(make_batch(held["steps"], held["carry"].obs, 0, train_mask=held["train_mask"]))
 
     weights = encode(Kind.WEIGHTS, tree_arrays(params), run="bench", sender="learner")  # before donation
     optimizer = make_optimizer(ppo, 1000)

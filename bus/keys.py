@@ -86,6 +86,16 @@ class Keys:
         """Pattern matching every actor's level results (the curriculum's subscription)."""
         return f"{self.root}/levels/results/*"
 
+    @property
+    def curriculum_knobs(self) -> str:
+        """Queryable of the curriculum: read or change its live knobs (`impulse curriculum get|set`)."""
+        return f"{self.root}/curriculum/knobs"
+
+    @property
+    def curriculum_inspect(self) -> str:
+        """Queryable of the curriculum: its buffer statistics and levels (`impulse curriculum inspect`)."""
+        return f"{self.root}/curriculum/inspect"
+
     def ctrl(self, role: str, ident: str) -> str:
         """Control messages (pause, resume, shutdown) addressed to one process."""
         return f"{self.root}/ctrl/{check_name(role, 'role')}/{check_name(ident, 'id')}"

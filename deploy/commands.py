@@ -12,11 +12,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from deploy import launch_cmd, levels_cmd, services_cmd
+from deploy import curriculum_cmd, launch_cmd, levels_cmd, services_cmd
 from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
 
-ISSUE_CURRICULUM = "the curriculum issue (DR, PLR, ACCEL, SFL, in fused mode and as a live service)"
 ISSUE_MULTI_HOST = "the multi-host issue (routers, TLS, several machines)"
 ISSUE_MONITORING = "the live-monitoring issue (Rerun)"
 
@@ -54,8 +53,9 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "launch",
         "run learner, curriculum and actors as local processes",
-        "Local multi-process run: one learner and actors.num_actors actors (and, once built, the curriculum "
-        "service and a Rerun viewer) as separate processes talking over Zenoh, with a live status display. A "
+        "Local multi-process run: one learner, actors.num_actors actors and, when env.levels is random, the "
+        "curriculum service (and, once built, a Rerun viewer) as separate processes talking over Zenoh, with a "
+        "live status display. A "
         "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
         "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
         config=TrainConfig,
@@ -83,8 +83,13 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "curriculum",
         "run the curriculum service alone (multi-host)",
-        "The curriculum service: keeps the level buffer, scores level results and serves level batches.",
-        pending=ISSUE_CURRICULUM,
+        "The curriculum service and its live controls. `serve` runs the service (it keeps the level buffer, "
+        "scores actors' level results, serves level batches and checkpoints itself; `impulse launch` starts it "
+        "when env.levels is random). `set KEY=VALUE ... --run RUN_DIR` changes live knobs (replay_prob, "
+        "temperature, staleness_coef, score, num_edits, sfl_ratio, ...), applied at the next sample; `get` "
+        "prints them; `inspect` prints the buffer (histograms, top levels, lineage; --json, --render DIR).",
+        run=curriculum_cmd.run,
+        arguments=curriculum_cmd.add_arguments,
     ),
     Command(
         "router",

@@ -6,9 +6,11 @@ wrong type found after a GPU job has started costs hours, and a silently ignored
 came from, what was expected, and the closest valid keys.
 
 Supported field types: int, float (an int is accepted), bool, str, `Literal[...]`, `X | None`, `tuple[...]` and
-`list[...]` of those, and nested dataclasses (TOML tables). An integral float such as `1e9` is accepted for an
-int. TOML has no null, so an optional field is set to None with the word `none` (the string "none" in a file),
-and `config_to_toml` writes None the same way; a resolved config therefore reads back to an equal instance.
+`list[...]` of those, and nested dataclasses (TOML tables). A table whose class names a `SHORTHAND` field may be
+given a plain value, meaning that field (`curriculum=sfl` is `curriculum.method=sfl`). An integral float such as
+`1e9` is accepted for an int. TOML has no null, so an optional field is set to None with the word `none` (the
+string "none" in a file), and `config_to_toml` writes None the same way; a resolved config therefore reads back to
+an equal instance.
 """
 
 from __future__ import annotations
@@ -60,6 +62,17 @@ def resolve_config(cls: type[T], toml_path: Path | None = None, overrides: Itera
         key, raw = _split_override(item)
         _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from override '{item}'", raw=raw)
     return _build(cls, tree, "", base=None)
+
+
+def apply_overrides(instance: T, overrides: Iterable[str], source: str = "override") -> T:
+    """`instance` with `key=value` overrides applied (keys relative to its type), checked exactly as
+    `resolve_config` checks them: how a live service validates a change to its settings."""
+    cls = type(instance)
+    tree: dict[str, Any] = {}
+    for item in overrides:
+        key, raw = _split_override(item)
+        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from {source} '{item}'", raw=raw)
+    return _build(cls, tree, "", base=instance)
 
 
 def load_run_config(cls: type[T], run_dir: Path | str, overrides: Iterable[str] = ()) -> T:
@@ -140,6 +153,9 @@ def _merge(
         if key not in types_:
             raise ConfigError(_unknown_key_message(root, cls, dotted, source))
         sub = _dataclass_in(types_[key])
+        shorthand = getattr(sub, "SHORTHAND", None)
+        if sub is not None and shorthand and not isinstance(value, dict):
+            value = {shorthand: value}  # `curriculum=sfl` means `curriculum.method=sfl`
         if sub is not None and isinstance(value, dict):
             node = tree.get(key)
             if not isinstance(node, dict):

@@ -1,11 +1,12 @@
 """`impulse launch`: a whole distributed run on this machine, as separate processes.
 
 The launcher itself is the bus hub (a zenoh peer listening on `bus.hub`), so the learner and each actor can die
-and come back without breaking the others' connections. It starts the learner and `actors.num_actors` actors
-(`impulse learner --run RUN_DIR`, `impulse actor --run RUN_DIR --index N`), shows their status lines, restarts a
+and come back without breaking the others' connections. It starts the learner, `actors.num_actors` actors
+(`impulse learner --run RUN_DIR`, `impulse actor --run RUN_DIR --index N`) and, for runs on random levels, the
+curriculum service (`impulse curriculum serve --run RUN_DIR --resume`), shows their status lines, restarts a
 process that dies (the learner with `--resume`, from its newest checkpoint) after a back-off, and ends when the
-learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first and then the learner, which writes a
-final checkpoint; a second Ctrl-C kills everything at once.
+learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first, then the curriculum and the learner,
+which write final checkpoints; a second Ctrl-C kills everything at once.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ log = logging.getLogger("impulse.launch")
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 LEARNER = "learner"
+CURRICULUM = "curriculum"
 POLL_S = 0.2
 ACTOR_STOP_TIMEOUT_S = 20.0
 LEARNER_STOP_TIMEOUT_S = 180.0
@@ -45,8 +47,16 @@ def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
                         help="when the output is not a terminal, log the status lines this often (default 10)")
 
 
-def _service_argv(role: str, run_dir: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "deploy.cli", role, "--run", str(run_dir), *extra]
+def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
+    command = [role] if action is None else [role, action]
+    return [sys.executable, "-m", "deploy.cli", *command, "--run", str(run_dir), *extra]
+
+
+def uses_curriculum_service(config: TrainConfig) -> bool:
+    """Runs on random levels get them from the curriculum service; fixed level sets are read by the actors."""
+    from engine.levels.sets import RANDOM
+
+    return config.env.levels == RANDOM
 
 
 def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
@@ -75,6 +85,11 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     children = [Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
                                                              *(["--resume"] if restart or resume_first else [])),
                       run_dir / "logs" / "learner.log")]
+    if uses_curriculum_service(config):
+        # Always --resume: its own checkpoints hold every buffered level (none yet on a fresh run).
+        children.append(Child(CURRICULUM, lambda restart: _service_argv("curriculum", run_dir, "--resume",
+                                                                        action="serve"),
+                              run_dir / "logs" / "curriculum.log"))
     for index in range(config.actors.num_actors):
         children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
                                                                                         str(i)),
@@ -82,8 +97,9 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
-    log.info("run %s in %s: learner and %d actors; logs in %s", config.name, run_dir, config.actors.num_actors,
-             run_dir / "logs")
+    log.info("run %s in %s: learner, %s%d actors; logs in %s", config.name, run_dir,
+             f"curriculum ({config.curriculum.method}), " if uses_curriculum_service(config) else "",
+             config.actors.num_actors, run_dir / "logs")
     with Bus(config.bus, config.name, "launcher", "main", listen=True) as bus:
         statuses_inbox = bus.inbox(bus.keys.metrics_all, 256, drop_oldest=True)
         presence = bus.watch_alive(bus.keys.alive_pattern())
@@ -118,8 +134,10 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     display.show(render(statuses, children, LEARNER))
                 time.sleep(POLL_S)
             interrupted = stop.stop
-            actor_names = [c.name for c in children if c.name != LEARNER]
+            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM)]
             supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
+            if uses_curriculum_service(config):
+                supervisor.stop([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
             if not finished:
                 log.info("stopping the learner (it writes a final checkpoint)")
                 supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)

@@ -1,4 +1,5 @@
-"""`impulse learner` and `impulse actor`: one distributed service per process, driven by the shared run loop.
+"""`impulse learner` and `impulse actor`: one distributed service per process, driven by the shared run loop
+(the curriculum service is `impulse curriculum serve`, in `deploy.curriculum_cmd`).
 
 `impulse launch` starts these as child processes on one machine (`--run RUN_DIR`, reading the config it wrote
 there); they can also be started by hand, on one machine or several (`--connect ENDPOINT`).
@@ -120,17 +121,24 @@ def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
         # Read by JAX's GPU backend when it starts, so it must be set before the first import of jax.
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{config.actors.memory_fraction:g}")
     enable_compile_cache()
-    from actors.levels import LocalLevels
+    from actors.levels import CurriculumLevels, LevelSource, LocalLevels
     from actors.process import ACTOR_ROLE, Actor, actor_name
     from bus.session import Bus
+    from curriculum.wire import level_batch_template
+    from deploy.launch_cmd import uses_curriculum_service
     from deploy.runloop import run_loop
     from engine.env.spec import env_from_config
     from learner.agent import make_agent
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    levels = LocalLevels(config.env, spec.sizes, config.ppo.num_envs)
     with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus:
+        levels: LevelSource
+        if uses_curriculum_service(config):
+            template = level_batch_template(spec.sizes, config.ppo.num_envs)
+            levels = CurriculumLevels(bus, template, config.curriculum.method)
+        else:
+            levels = LocalLevels(config.env, spec.sizes)
         actor = Actor(config, args.index, bus, agent, env_params, levels)
         log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
                  config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)

@@ -45,7 +45,18 @@ def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
             f"{status.get('dropped_no_credit', 0)} | levels {status.get('levels', '?')}{waiting}")
 
 
-def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str) -> list[str]:
+def curriculum_line(status: dict[str, Any] | None) -> str:
+    if status is None:
+        return STARTING
+    rejected = sum(status.get("rejected", {}).values())
+    return (f"{status.get('method', '?')} | buffer {_number(status.get('buffer_fill'), '{:.0%}')} full, score "
+            f"{_number(status.get('score_mean'), '{:.3f}')}, learnable {_number(status.get('learnable'), '{:.0%}')} | "
+            f"staged {status.get('staged', 0)} | served {status.get('samples', 0):,} | results "
+            f"{status.get('results', 0):,} | rejected {rejected}")
+
+
+def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
+           curriculum_name: str = "curriculum") -> list[str]:
     """The display's lines: every child with its process state, then its latest status."""
     learner = statuses.get(learner_name)
     lags = (learner or {}).get("actor_lag", {})
@@ -61,7 +72,12 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
             lines.append(f"{child.name:<{width}}  {state} (restarts {child.restarts})")
             continue
         status = statuses.get(child.name)
-        body = learner_line(status) if child.name == learner_name else actor_line(status, lags.get(child.name))
+        if child.name == learner_name:
+            body = learner_line(status)
+        elif child.name == curriculum_name:
+            body = curriculum_line(status)
+        else:
+            body = actor_line(status, lags.get(child.name))
         lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")
     return lines
 

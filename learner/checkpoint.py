@@ -67,10 +67,11 @@ class Checkpointer:
         solve_rate: float | None = None,
     ) -> None:
         """Start writing checkpoint `step` in the background (the arrays are copied off the device first).
-        `items` maps item names (`ARRAY_ITEMS`; `train` is required) to pytrees."""
+        `items` maps item names (`ARRAY_ITEMS`: `train` for trainers, `curriculum` alone for the curriculum service)
+        to pytrees."""
         unknown = set(items) - set(ARRAY_ITEMS)
-        if unknown or TRAIN not in items:
-            raise ValueError(f"checkpoint items must include {TRAIN!r} and be among {ARRAY_ITEMS}, got {sorted(items)}")
+        if unknown or not items:
+            raise ValueError(f"checkpoint items must be among {ARRAY_ITEMS}, got {sorted(items)}")
         metrics = None if solve_rate is None else {BEST_METRIC: float(solve_rate)}
         self._manager.save(
             step,
@@ -98,7 +99,7 @@ class Checkpointer:
         if step is None:
             raise CheckpointError(f"no complete checkpoint in {self.directory}")
         present = {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()}
-        if TRAIN not in present:
+        if not present & set(ARRAY_ITEMS):
             raise CheckpointError(
                 f"checkpoint {step} in {self.directory} was written by an older Impulse (one combined 'state' "
                 "item, before checkpoints were split into train/envs items); it cannot be restored: start a new run"

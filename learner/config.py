@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 from bus.session import BusConfig
+from curriculum.config import CurriculumConfig
 from engine.env.config import EnvConfig
 
 
@@ -189,6 +190,8 @@ class TrainConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    """Which levels to train on when env.levels is "random" (domain randomisation unless a method is chosen)."""
     actors: ActorConfig = field(default_factory=ActorConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     bus: BusConfig = field(default_factory=BusConfig)

@@ -14,9 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.env.env import reset_batch
-from engine.env.env import step as env_step
+from engine.env.episodes import first_episodes
 from engine.env.spec import EnvParams
+from engine.env.state import EnvState
 from engine.levels.level import Level
 from learner.agent import Agent
 
@@ -38,30 +38,15 @@ def _repeat(levels: Level, attempts: int) -> Level:
 
 @functools.partial(jax.jit, static_argnames=("agent", "attempts", "greedy"))
 def _play(agent: Agent, params: Any, env_params: EnvParams, levels: Level, key: Array, attempts: int, greedy: bool):
+    policy = agent.act_greedy if greedy else agent.act
+
+    def act(obs: Any, state: EnvState, step_key: Array) -> tuple[Array, None]:
+        return policy(params, obs, step_key)[0], None
+
     spec = agent.spec
-    batch = _repeat(levels, attempts)
-    num_envs = batch.roles.shape[0]
-    obs, state = reset_batch(spec, env_params, batch, num_envs)
-    act = agent.act_greedy if greedy else agent.act
-    step_all = jax.vmap(env_step, in_axes=(None, None, 0, 0, None))
-
-    def one_step(carry, step_key):
-        obs, state, finished, solved, failed, ret, length = carry
-        action, _, _ = act(params, obs, step_key)
-        obs, state, _, done, info = step_all(spec, env_params, state, action, batch)
-        first = done & ~finished
-        solved = solved | (first & info["solved"])
-        failed = failed | (first & info["failed"])
-        ret = jnp.where(first, info["returned_episode_return"], ret)
-        length = jnp.where(first, info["returned_episode_length"], length)
-        return (obs, state, finished | done, solved, failed, ret, length), None
-
-    false = jnp.zeros(num_envs, bool)
-    start = (obs, state, false, false, false, jnp.zeros(num_envs), jnp.zeros(num_envs, jnp.int32))
-    keys = jax.random.split(key, spec.max_timesteps)
-    (_, _, _, solved, failed, ret, length), _ = jax.lax.scan(one_step, start, keys)
+    first = first_episodes(spec, env_params, _repeat(levels, attempts), spec.max_timesteps, act, key)
     shape = (levels.roles.shape[0], attempts)
-    return solved.reshape(shape), failed.reshape(shape), ret.reshape(shape), length.reshape(shape)
+    return tuple(x.reshape(shape) for x in (first.solved, first.failed, first.episode_return, first.length))
 
 
 def evaluate(

@@ -19,23 +19,25 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from actors.rollout import RolloutCarry, rollout
+from actors.rollout import RolloutCarry, rollout, start_rollout
 from actors.trajectory import make_batch
-from engine.env.env import reset_batch
+from curriculum.algorithms import Curriculum
+from curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, CurriculumState
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import Level
 from learner.agent import Agent
 from learner.config import PPOConfig
+from learner.curriculum_inputs import batch_level_results
 from learner.update import TrainState, make_optimizer, ppo_update
 
 Array = jax.Array
-LevelSampler = Callable[[Array], Level]  # key -> a batch of levels
 
 
 class FusedCarry(NamedTuple):
     train: TrainState
     envs: RolloutCarry
     key: Array
+    curriculum: CurriculumState | None = None
 
 
 @dataclass(frozen=True)
@@ -46,8 +48,9 @@ class FusedTrainer:
     env_params: EnvParams
     ppo: PPOConfig
     num_updates: int
-    sample_levels: LevelSampler | None = None
-    """For random levels: a fresh batch per iteration. None: the fixed batch passed to `iterate`."""
+    curriculum: Curriculum | None = None
+    """For random levels: the curriculum that picks every iteration's level batch (its state rides in the
+    carry). None: the fixed batch passed to `iterate`."""
 
     @property
     def spec(self) -> EnvSpec:
@@ -58,25 +61,35 @@ class FusedTrainer:
         return make_optimizer(self.ppo, self.num_updates)
 
     def init(self, key: Array, levels: Level | None) -> FusedCarry:
-        """Fresh parameters and `ppo.num_envs` environments started on the level batch (staggered)."""
+        """Fresh parameters and `ppo.num_envs` environments started on the level batch (staggered): the fixed
+        one, or the curriculum's first."""
         init_key, level_key, env_key, key = jax.random.split(key, 4)
         params = self.agent.init(init_key)
         train = TrainState(params, self.optimizer.init(params), jnp.zeros((), jnp.int32))
-        if self.sample_levels is not None:
-            levels = self.sample_levels(level_key)
-        obs, env_state = reset_batch(self.spec, self.env_params, levels, self.ppo.num_envs)
-        return FusedCarry(train, RolloutCarry(env_state, obs, env_key), key)
+        curriculum, flags = None, None
+        if self.curriculum is not None:
+            curriculum_key, sample_key = jax.random.split(level_key)
+            curriculum, batch = self.curriculum.sample(self.curriculum.init(curriculum_key), sample_key)
+            levels, flags = batch.levels, batch.train
+        envs = start_rollout(self.spec, self.env_params, levels, self.ppo.num_envs, env_key, flags)
+        return FusedCarry(train, envs, key, curriculum)
 
     def iterate(self, carry: FusedCarry, levels: Level | None) -> tuple[FusedCarry, dict[str, Array]]:
-        """One rollout of `ppo.num_steps` steps in every environment, then one PPO update."""
+        """Pick the levels (curriculum), one rollout of `ppo.num_steps` steps in every environment, one PPO update,
+        then the curriculum learns from the levels' results."""
         key, level_key, update_key = jax.random.split(carry.key, 3)
-        if self.sample_levels is not None:
-            levels = self.sample_levels(level_key)
-        envs, trajectory, stats = rollout(
-            self.agent.act, carry.train.params, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps
+        curriculum, flags, origin_metrics = carry.curriculum, None, {}
+        if self.curriculum is not None:
+            curriculum, chosen = self.curriculum.sample(curriculum, level_key)
+            levels, flags = chosen.levels, chosen.train
+            origin_metrics = {f"levels_{name}": (chosen.origin == origin).mean() for name, origin in
+                              (("new", ORIGIN_NEW), ("replay", ORIGIN_REPLAY), ("mutated", ORIGIN_MUTATED))}
+        acting = carry.train.params
+        envs, trajectory, train_mask, stats = rollout(
+            self.agent.act, acting, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps, flags
         )
         # The parameters that acted are the ones trained, so the batch's version equals the learner's: lag 0.
-        batch = make_batch(trajectory, envs.obs, carry.train.policy_version)
+        batch = make_batch(trajectory, envs.obs, carry.train.policy_version, train_mask=train_mask)
         train, losses = ppo_update(
             carry.train,
             batch,
@@ -86,6 +99,10 @@ class FusedTrainer:
             optimizer=self.optimizer,
             config=self.ppo,
         )
+        if self.curriculum is not None:
+            rows = self.ppo.num_envs + self.curriculum.batch_size
+            results = batch_level_results(self.agent, acting, batch, self.ppo, rows)
+            curriculum = self.curriculum.update(curriculum, results)
         episodes = stats.episodes
         safe = jnp.maximum(episodes, 1)
         metrics = {
@@ -101,8 +118,9 @@ class FusedTrainer:
             "episode_return": jnp.where(episodes > 0, stats.return_sum / safe, jnp.nan),
             "episode_length": jnp.where(episodes > 0, stats.length_sum / safe, jnp.nan),
             "reward_per_step": trajectory.reward.mean(),
+            **origin_metrics,
         }
-        return FusedCarry(train, envs, key), metrics
+        return FusedCarry(train, envs, key, curriculum), metrics
 
     def jitted(self) -> tuple[Callable[..., FusedCarry], Callable[..., tuple[FusedCarry, dict[str, Any]]]]:
         """(init, iterate) compiled; `iterate` donates its carry so the environments are updated in place."""

@@ -2,7 +2,8 @@
 levels, trainer, resume, checkpoints, final evaluation. `impulse train` composes it with the loop.
 
 Run directory layout: `config.toml` (the resolved config, written by the command), `metrics.jsonl` (one line per
-update), `checkpoints/<update>/` (orbax items `train` and `envs`), `eval.json` (the final evaluation).
+update), `checkpoints/<update>/` (orbax items `train`, `envs` and, on random levels, `curriculum`), `eval.json`
+(the final evaluation).
 A run killed at any point resumes from its newest complete checkpoint with `--resume`; the iterations after it
 are recomputed exactly, so the resumed run ends with the same parameters as one that was never interrupted.
 """
@@ -19,11 +20,13 @@ from typing import Any
 import jax
 import numpy as np
 
+from curriculum.algorithms import Curriculum
+from curriculum.stats import buffer_summary
 from engine.env.spec import EnvParams, env_from_config
 from engine.levels.level import Level
 from engine.levels.sets import HANDMADE, RANDOM, load_level_set
 from learner.agent import Agent, make_agent
-from learner.checkpoint import ENVS, TRAIN, Checkpointer, CheckpointError
+from learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
 from learner.evaluate import LevelScores, evaluate
 from learner.fused import FusedCarry, FusedTrainer
@@ -35,17 +38,6 @@ log = logging.getLogger(__name__)
 
 class RunError(RuntimeError):
     """A run cannot start or resume (existing run directory, mismatched checkpoint, no levels)."""
-
-
-def _random_level_sampler(config: TrainConfig, sizes):
-    from engine.levels.generator import sample_random_level  # only random runs pay for the generator's import
-
-    num = config.ppo.num_envs
-
-    def sample(key):
-        return jax.vmap(sample_random_level, in_axes=(0, None))(jax.random.split(key, num), sizes)
-
-    return sample
 
 
 def _levels(config: TrainConfig, sizes) -> tuple[list[str], Level | None]:
@@ -97,8 +89,13 @@ def build(config: TrainConfig) -> tuple[FusedTrainer, Agent, list[str], Level | 
     names, levels = _levels(config, spec.sizes)
     steps_per_update = config.ppo.num_envs * config.ppo.num_steps
     num_updates = max(1, math.ceil(config.total_env_steps / steps_per_update))
-    sampler = _random_level_sampler(config, spec.sizes) if levels is None else None
-    trainer = FusedTrainer(agent, env_params, config.ppo, num_updates, sample_levels=sampler)
+    curriculum = None
+    if levels is None:
+        curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    elif config.curriculum.method != "dr":
+        raise RunError(f"curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum picks "
+                       f"among generated levels), not {config.env.levels!r}")
+    trainer = FusedTrainer(agent, env_params, config.ppo, num_updates, curriculum=curriculum)
     return trainer, agent, names, levels
 
 
@@ -161,7 +158,16 @@ class FusedRun:
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         self.update += 1
         metrics["steps_per_s"] = self.steps_per_update / (time.perf_counter() - start)
+        if self.carry.curriculum is not None:
+            metrics.update(self.curriculum_metrics())
         return CycleReport(env_steps=self.steps_per_update, updates=1, metrics=metrics)
+
+    def curriculum_metrics(self) -> dict[str, float]:
+        """A few buffer statistics for metrics.jsonl (prefixed `curriculum_`)."""
+        summary = buffer_summary(self.carry.curriculum, self.agent.spec.sizes, self.update)
+        keep = ("buffer_fill", "score_mean", "score_replay_weighted", "learnable", "never_solved", "always_solved",
+                "score_lag_mean", "staleness_replay_weighted", "count_inserted", "count_evicted", "staged")
+        return {f"curriculum_{k}": float(summary[k]) for k in keep if k in summary}
 
     def save(self, summary: dict[str, float]) -> None:
         counters = {"update": self.update, "env_steps": self.env_steps, **summary}
@@ -198,12 +204,16 @@ def final_evaluation(config: TrainConfig, agent: Agent, env_params: EnvParams, p
 
 
 def fused_checkpoint_items(carry: FusedCarry) -> dict[str, Any]:
-    """A fused carry as checkpoint items: `train`, and `envs` (environments and the iteration key)."""
-    return {TRAIN: carry.train, ENVS: {"rollout": carry.envs, "key": carry.key}}
+    """A fused carry as checkpoint items: `train`, `envs` (environments and the iteration key) and, on random
+    levels, `curriculum` (its whole state, knobs included)."""
+    items = {TRAIN: carry.train, ENVS: {"rollout": carry.envs, "key": carry.key}}
+    if carry.curriculum is not None:
+        items[CURRICULUM] = carry.curriculum
+    return items
 
 
 def fused_carry_from_items(items: dict[str, Any]) -> FusedCarry:
-    return FusedCarry(items[TRAIN], items[ENVS]["rollout"], items[ENVS]["key"])
+    return FusedCarry(items[TRAIN], items[ENVS]["rollout"], items[ENVS]["key"], items.get(CURRICULUM))
 
 
 def evaluate_run(

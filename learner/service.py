@@ -28,15 +28,15 @@ from typing import Any
 import jax
 import numpy as np
 
-from actors.rollout import RolloutCarry, rollout
+from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
-from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, tree_arrays, weights_meta
+from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, weights_meta
 from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.session import Bus
 from bus.status import StatusPublisher
-from engine.env.env import reset_batch
 from engine.env.spec import EnvParams
 from engine.levels.level import level_from_scene, stack_levels
+from engine.physics.pytree import tree_arrays
 from engine.physics.scene import empty_scene
 from learner.agent import Agent
 from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
@@ -63,11 +63,10 @@ def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps
     levels = stack_levels([level_from_scene(empty_scene(agent.spec.sizes))])
 
     def one_batch() -> TrajectoryBatch:
-        obs, state = reset_batch(agent.spec, env_params, levels, num_envs)
+        carry = start_rollout(agent.spec, env_params, levels, num_envs, jax.random.PRNGKey(0))
         params = agent.init(jax.random.PRNGKey(0))
-        carry = RolloutCarry(state, obs, jax.random.PRNGKey(0))
-        carry, steps, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
-        return make_batch(steps, carry.obs, 0)
+        carry, steps, train_mask, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
+        return make_batch(steps, carry.obs, 0, train_mask=train_mask)
 
     return jax.eval_shape(one_batch)
 

@@ -401,19 +401,30 @@ CHILD_ID_STREAM = 0x2D
 """`fold_in` tag that derives a mutated child's id from the mutation key."""
 
 
-def mutate_level(key: Array, level: Level, sizes: SceneSizes, config: MutationConfig = MutationConfig()) -> Level:
+def mutate_level(
+    key: Array,
+    level: Level,
+    sizes: SceneSizes,
+    config: MutationConfig = MutationConfig(),
+    num_edits: Array | None = None,
+) -> Level:
     """`config.num_edits` random edits in a row (ACCEL's mutation). Pure; jit with `sizes` and `config` static.
-    The child is a new level, with a new id drawn from `key`."""
+    The child is a new level, with a new id drawn from `key`. A traced `num_edits` (at most `config.num_edits`)
+    applies only that many of the edits, so a curriculum can change the count without recompiling."""
     child_id = random_level_id(jax.random.fold_in(key, CHILD_ID_STREAM))
     if config.num_edits == 0:
         return level.replace(level_id=child_id)
     draws = uniforms(key, (config.num_edits, 1 + EDIT_UNIFORMS))
+    wanted = config.num_edits if num_edits is None else num_edits
 
-    def one_edit(level: Level, u: Array) -> tuple[Level, Array]:
+    def one_edit(level: Level, indexed: tuple[Array, Array]) -> tuple[Level, Array]:
+        index, u = indexed
         edit, _ = choose(u[0], edit_weights(level, sizes, config))
-        return _apply(u[1:], level, sizes, edit, config), edit
+        edited = _apply(u[1:], level, sizes, edit, config)
+        keep = index < wanted
+        return jax.tree.map(lambda new, old: jnp.where(keep, new, old), edited, level), edit
 
-    level, _ = jax.lax.scan(one_edit, level, draws)
+    level, _ = jax.lax.scan(one_edit, level, (jnp.arange(config.num_edits), draws))
     return level.replace(level_id=child_id)
 
 

@@ -1,11 +1,13 @@
-"""A dataclass that is also a JAX pytree, without depending on flax (the engine imports only jax and numpy)."""
+"""Pytree helpers without flax (the engine imports only jax and numpy): a dataclass that is also a JAX pytree, and
+a pytree as flat named host arrays (how trees travel on the bus and are shown to people)."""
 
 from __future__ import annotations
 
 import dataclasses
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import jax
+import numpy as np
 
 T = TypeVar("T")
 
@@ -15,3 +17,29 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
     cls = dataclasses.dataclass(frozen=True)(cls)
     cls.replace = dataclasses.replace  # type: ignore[attr-defined]
     return jax.tree_util.register_dataclass(cls)
+
+
+def path_name(path: tuple[Any, ...]) -> str:
+    """`a/b/0/c` for a pytree key path (dict keys, NamedTuple and dataclass fields, sequence indices)."""
+    parts = []
+    for entry in path:
+        for attribute in ("name", "key", "idx"):
+            if hasattr(entry, attribute):
+                parts.append(str(getattr(entry, attribute)))
+                break
+        else:
+            parts.append(str(entry))
+    return "/".join(parts)
+
+
+def tree_arrays(tree: Any) -> dict[str, np.ndarray]:
+    """A pytree as {path name: host numpy array} (one device-to-host copy per leaf)."""
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    host = jax.device_get([leaf for _, leaf in leaves])
+    return {path_name(path): np.asarray(value) for (path, _), value in zip(leaves, host, strict=True)}
+
+
+def tree_from_arrays(arrays: dict[str, np.ndarray], template: Any) -> Any:
+    """The pytree of `template`'s structure with the arrays of the same names (checked by a schema first)."""
+    paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+    return jax.tree.unflatten(treedef, [arrays[path_name(path)] for path, _ in paths])

@@ -11,11 +11,12 @@ from launch_procs import QUICK_LAUNCH, free_port
 
 from actors.levels import LocalLevels
 from actors.process import Actor
-from actors.wire import tree_arrays, weights_meta
+from actors.wire import weights_meta
 from bus.codec import Kind, encode
 from bus.session import Bus
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
+from engine.physics.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import TrainConfig
 
@@ -45,7 +46,7 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
                            meta=weights_meta(params)))
         trajectories = learner.inbox(learner.keys.traj_all, 16)
         with Bus(config.bus, RUN, "actor", "actor-0") as bus:
-            actor = Actor(config, 0, bus, agent, env_params, LocalLevels(config.env, spec.sizes, 8))
+            actor = Actor(config, 0, bus, agent, env_params, LocalLevels(config.env, spec.sizes))
             cycle_until(actor, lambda: actor.counts["sent"] == 1, 120, "the first batch")
             assert actor.version == 5 and actor.in_flight == 1
             for _ in range(20):

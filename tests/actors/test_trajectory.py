@@ -1,5 +1,6 @@
 """The trajectory contract: every step records the id of the level it was played on, so results are credited by
-level id even when the caller swaps the level batch while episodes are running."""
+level id even when the caller swaps the level batch while episodes are running; and every step carries the train
+flag of its episode, which the episode takes from the level batch it started from."""
 
 from __future__ import annotations
 
@@ -9,10 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from actors.rollout import RolloutCarry, rollout
-from actors.trajectory import level_results, make_batch
+from actors.rollout import rollout, start_rollout
+from actors.trajectory import make_batch
+from curriculum.results import level_results, results_to_host
 from engine.env.actions import noop_action
-from engine.env.env import reset_batch
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import level_id_values
 from engine.levels.sets import load_level_set
@@ -30,9 +31,14 @@ def noop_policy(params, obs, key):
     return action, jnp.zeros(num), jnp.zeros(num)
 
 
-@functools.partial(jax.jit, static_argnums=2)
-def play(carry, levels, num_steps):
-    return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps)
+@functools.partial(jax.jit, static_argnums=3)
+def play(carry, levels, train, num_steps):
+    """One compiled rollout per (K, num_steps), shared by the tests: `train` is always an array."""
+    return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps, train)
+
+
+def all_train(levels):
+    return np.ones(levels.roles.shape[0], bool)
 
 
 def ids(levels) -> set[int]:
@@ -43,14 +49,15 @@ def test_swapping_the_level_batch_mid_episode_credits_the_level_played():
     _, first = load_level_set("handmade:s_easy_car_right,s_hop_over", SIZE_S)
     _, second = load_level_set("handmade:s_lander,s_catapult", SIZE_S)
     assert not ids(first) & ids(second)
-    obs, state = reset_batch(SPEC, PARAMS, first, NUM_ENVS)
-    carry = RolloutCarry(state, obs, jax.random.key(0))
-    carry, before, _ = play(carry, first, 5)  # 5 of 12 steps: no episode has ended yet
+    carry = start_rollout(SPEC, PARAMS, first, NUM_ENVS, jax.random.key(0))
+    carry, before, _, _ = play(carry, first, all_train(first), 5)  # 5 of 12 steps: no episode has ended yet
     assert not bool(before.done.any())
     # Swap: the running episodes belong to the first batch; the next ones come from the second.
-    carry, after, stats = play(carry, second, 2 * SPEC.max_timesteps)
-    results = level_results(after)
-    credited = dict(zip(results.level_id.tolist(), results.episodes.tolist(), strict=True))
+    carry, after, _, stats = play(carry, second, all_train(second), 2 * SPEC.max_timesteps)
+    zeros = jnp.zeros(after.reward.shape)
+    results = results_to_host(level_results(after.level_id, after.done, after.solved, after.episode_return, zeros,
+                                            zeros, 0, rows=2 * NUM_ENVS + 4))
+    credited = dict(zip(level_id_values(results["level_id"]).tolist(), results["episodes"].tolist(), strict=True))
     assert sum(credited.values()) == int(stats.episodes) == 2 * NUM_ENVS
     # The episodes that ended first (7 steps after the swap) were played on the first batch's levels.
     assert {k for k in credited if k in ids(first)} == ids(first)
@@ -64,9 +71,36 @@ def test_swapping_the_level_batch_mid_episode_credits_the_level_played():
 
 def test_a_batch_trains_on_every_step_unless_masked():
     _, levels = load_level_set("handmade:s_easy_car_right", SIZE_S)
-    obs, state = reset_batch(SPEC, PARAMS, levels, NUM_ENVS)
-    carry, steps, _ = play(RolloutCarry(state, obs, jax.random.key(1)), levels, 3)
-    batch = make_batch(steps, carry.obs, behaviour_version=7, actor_id=2, seq=9)
+    carry = start_rollout(SPEC, PARAMS, levels, NUM_ENVS, jax.random.key(1))
+    carry, steps, train_mask, _ = play(carry, levels, all_train(levels), 3)
+    batch = make_batch(steps, carry.obs, behaviour_version=7, actor_id=2, seq=9, train_mask=train_mask)
     assert batch.train_mask.shape == (3, NUM_ENVS) and bool(batch.train_mask.all())
     assert (int(batch.behaviour_version), int(batch.actor_id), int(batch.seq)) == (7, 2, 9)
     assert steps.level_id.shape == (3, NUM_ENVS, 2) and steps.level_id.dtype == jnp.uint32
+
+
+def test_every_step_carries_the_train_flag_of_the_batch_its_episode_started_from():
+    _, first = load_level_set("handmade:s_easy_car_right,s_hop_over", SIZE_S)
+    _, second = load_level_set("handmade:s_lander,s_catapult", SIZE_S)
+    first_train, second_train = np.array([True, False]), np.array([False, True])
+    flag_of = {
+        **dict(zip(level_id_values(np.asarray(first.level_id)).tolist(), first_train.tolist(), strict=True)),
+        **dict(zip(level_id_values(np.asarray(second.level_id)).tolist(), second_train.tolist(), strict=True)),
+    }
+    carry = start_rollout(SPEC, PARAMS, first, NUM_ENVS, jax.random.key(2), first_train)
+    assert np.asarray(carry.trains).tolist() == [True, False, True, False]  # environment i starts on level i % K
+    # The same shapes as the test above (one compilation): 5 steps on the first batch, then the second batch while
+    # the first batch's episodes are still running, long enough for every environment to start two more.
+    carry, before, before_mask, _ = play(carry, first, first_train, 5)
+    carry, after, after_mask, _ = play(carry, second, second_train, 2 * SPEC.max_timesteps)
+    for steps, mask in ((before, before_mask), (after, after_mask)):
+        played = level_id_values(np.asarray(steps.level_id))
+        expected = np.vectorize(flag_of.__getitem__)(played)
+        np.testing.assert_array_equal(np.asarray(mask), expected)
+    # Both flags occur, on both batches' levels, including episodes carried over from the first batch.
+    played = level_id_values(np.asarray(after.level_id))
+    mask = np.asarray(after_mask)
+    assert set(played[:SPEC.max_timesteps - 5].ravel().tolist()) == ids(first)
+    assert set(played[-1].ravel().tolist()) <= ids(second)
+    assert mask.any() and not mask.all()
+    assert not mask[:SPEC.max_timesteps - 5].all() and mask[:SPEC.max_timesteps - 5].any()

@@ -9,19 +9,13 @@ import jax
 import numpy as np
 import pytest
 
-from actors.trajectory import level_results
-from actors.wire import (
-    LEVEL_RESULTS_SCHEMA,
-    checked_tree,
-    level_results_arrays,
-    trajectory_schema,
-    tree_arrays,
-    weights_meta,
-    weights_schema,
-)
+from actors.wire import checked_tree, trajectory_schema, weights_meta, weights_schema
 from bus.codec import Kind, Rejected, decode, encode
 from bus.schema import check
+from curriculum.results import level_results
+from curriculum.wire import LEVEL_RESULTS_SCHEMA, results_arrays
 from engine.env.spec import EnvParams, EnvSpec
+from engine.physics.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import NetworkConfig
 from learner.service import batch_template
@@ -52,8 +46,10 @@ def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
                             template)
     for sent, got in zip(jax.tree.leaves(batch), jax.tree.leaves(received), strict=True):
         np.testing.assert_array_equal(sent, got)
-    results = level_results(batch.steps)
-    message = decode(bytes(encode(Kind.LEVEL_RESULTS, level_results_arrays(results), run=RUN)), run=RUN)
+    steps = batch.steps
+    results = level_results(steps.level_id, steps.done, steps.solved, steps.episode_return, steps.value,
+                            steps.reward, 0, rows=steps.done.size)
+    message = decode(bytes(encode(Kind.LEVEL_RESULTS, results_arrays(results), run=RUN)), run=RUN)
     check(message, LEVEL_RESULTS_SCHEMA)
     assert int(message.arrays["episodes"].sum()) == int(np.asarray(batch.steps.done).sum())
 

@@ -19,6 +19,8 @@ def test_keys_sit_under_run_and_major_version() -> None:
     assert keys.weights_latest == f"{root}/weights/latest"
     assert keys.levels_sample == f"{root}/levels/sample"
     assert keys.levels_results("a3") == f"{root}/levels/results/a3"
+    assert keys.curriculum_knobs == f"{root}/curriculum/knobs"
+    assert keys.curriculum_inspect == f"{root}/curriculum/inspect"
     assert keys.levels_results_all == f"{root}/levels/results/*"
     assert keys.ctrl("actor", "a3") == f"{root}/ctrl/actor/a3"
     assert keys.ctrl_all == f"{root}/ctrl/all"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -36,6 +37,21 @@ def start_launch(run_dir: Path, port: int, *overrides: str) -> tuple[subprocess.
     with log_path.open("wb") as out:
         process = subprocess.Popen(command, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
     return process, log_path
+
+
+def stop_launch(launch: subprocess.Popen, run_dir: Path, roles: tuple[str, ...] = ("learner", "actor", "curriculum"),
+                grace_s: float = 120.0) -> None:
+    """Clean up after a launch test, whatever happened: SIGTERM the launcher (killing it after `grace_s`), then
+    SIGKILL any service process of the run still alive."""
+    if launch.poll() is None:
+        launch.send_signal(signal.SIGTERM)
+        try:
+            launch.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            launch.kill()
+    for role in roles:
+        for pid in service_pids(run_dir, role):
+            os.kill(pid, signal.SIGKILL)
 
 
 def wait_for(condition: Callable[[], Any], timeout_s: float, what: str, process: subprocess.Popen | None = None,

@@ -46,12 +46,16 @@ def test_print_config_shows_overrides(tmp_path: Path) -> None:
 
 
 def test_unbuilt_command_says_which_issue(capsys: pytest.CaptureFixture[str]) -> None:
-    for name, issue in (("curriculum", "curriculum issue"), ("router", "multi-host issue"),
-                        ("view", "live-monitoring issue")):
+    for name, issue in (("router", "multi-host issue"), ("view", "live-monitoring issue")):
         assert main([name]) == 2
         err = capsys.readouterr().err.strip()
         assert "not built yet" in err and issue in err
         assert "\n" not in err
+
+
+def test_curriculum_knob_commands_need_a_run_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["curriculum", "get", "--run", str(tmp_path)]) == 2
+    assert "no config.toml" in capsys.readouterr().err
 
 
 def test_eval_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

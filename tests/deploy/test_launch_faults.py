@@ -22,15 +22,16 @@ from launch_procs import (
     metrics,
     service_pids,
     start_launch,
+    stop_launch,
     tail,
     wait_for,
 )
 
-from actors.wire import tree_arrays
 from bus.codec import Kind, encode
 from bus.keys import SCHEMA_MAJOR
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
+from engine.physics.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
@@ -152,15 +153,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         assert launch.wait(timeout=600) == 0, tail(log)
     finally:
         watcher.close()
-        if launch.poll() is None:
-            launch.send_signal(signal.SIGTERM)
-            try:
-                launch.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                launch.kill()
-        for role in ("learner", "actor"):
-            for pid in service_pids(run_dir, role):
-                os.kill(pid, signal.SIGKILL)
+        stop_launch(launch, run_dir)
 
     scores = json.loads((run_dir / "eval.json").read_text())
     assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores

@@ -28,8 +28,10 @@ def test_a_train_only_checkpoint_has_no_envs_to_resume_from(tmp_path):
         checkpoints.save(1, {"train": TRAIN}, {"update": 1}, "")
         with pytest.raises(CheckpointError, match="no envs item"):
             checkpoints.restore({"train": TRAIN, "envs": ENVS})
-        with pytest.raises(ValueError, match="must include 'train'"):
-            checkpoints.save(2, {"envs": ENVS}, {}, "")
+        with pytest.raises(ValueError, match="must be among"):
+            checkpoints.save(2, {"state": ENVS}, {}, "")
+        with pytest.raises(ValueError, match="must be among"):
+            checkpoints.save(2, {}, {}, "")
 
 
 def test_old_single_state_checkpoints_are_refused_with_a_reason(tmp_path):

@@ -2,7 +2,7 @@
 controllers that solve the levels within an episode where doing nothing does not.
 
 The controller runs compile once per size: every (level, controller) pair of a size is played in one vmapped
-batch (`scripted.play_batch`).
+batch (`engine.env.scripted.play_batch`).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import jax
 import numpy as np
 import pytest
 
+from engine.env.scripted import play_batch
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels import handmade
 from engine.levels.handmade import scripted
@@ -87,7 +88,7 @@ def _play_size(size: str):
     levels = stack_levels([handmade.build(n) for n in names] * 2)
     controllers = tuple(scripted.SOLUTIONS[n] for n in names) + (scripted.noop,)
     which = np.array(list(range(len(names))) + [len(names)] * len(names), np.int32)
-    out = scripted.play_batch(EnvSpec(sizes=sizes), EnvParams(), levels, controllers, which, MAX_STEPS)
+    out = play_batch(EnvSpec(sizes=sizes), EnvParams(), levels, controllers, which, MAX_STEPS)
     out = jax.tree.map(np.asarray, out)
     k = len(names)
     return names, jax.tree.map(lambda x: x[:k], out), jax.tree.map(lambda x: x[k:], out)

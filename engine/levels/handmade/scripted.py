@@ -1,27 +1,22 @@
-"""Scripted controllers for the hand-made levels, and a runner that plays controllers through the environment.
+"""Scripted controllers for the hand-made levels (`engine.env.scripted` plays them through the environment).
 
 They prove that a level can be solved within an episode (and show how), and give tests a fixed point: a level
 whose controller stops solving it has changed behaviour. A controller is a pure function
-`(sim: SimState, t: int32 agent step) -> multi-discrete action [6] int32` (motor dims 0..3: 0 off, 1 -> +1,
-2 -> -1; thruster dims 4, 5: 0 off, 1 on), so it runs inside `jax.lax.scan` and vmaps over levels. Feedback
+`(sim: SimState, t: int32 agent step of the episode) -> multi-discrete action [6] int32` (motor dims 0..3: 0 off,
+1 -> +1, 2 -> -1; thruster dims 4, 5: 0 off, 1 on), so it runs inside `jax.lax.scan` and vmaps over levels. Feedback
 controllers read bodies by index, so they expect the level built in its own size. `SOLUTIONS` maps level names
 to their controller.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.env.env import reset, step
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import Level
 from engine.physics.state import SimState
 
 Array = jax.Array
@@ -82,61 +77,6 @@ def sequence(*phases: tuple[int, dict]) -> Controller:
         return chosen
 
     return controller
-
-
-class Outcome(NamedTuple):
-    """How the first episode ended: `steps` = agent steps taken (the step that ended it included), or the number
-    of steps played if it did not end; `solved` / `failed` as in the environment's info."""
-
-    solved: Array
-    failed: Array
-    steps: Array
-
-
-def _play(spec: EnvSpec, params: EnvParams, level: Level, controller: Controller, num_steps: int) -> Outcome:
-    _, state = reset(spec, params, level)
-    levels = jax.tree.map(lambda x: x[None], level)
-
-    def body(carry, t):
-        state, ended, solved, failed, steps = carry
-        _, new_state, _, done, info = step(spec, params, state, controller(state.sim, t), levels)
-        live = ~ended
-        solved = solved | (live & info["solved"])
-        failed = failed | (live & info["failed"])
-        steps = jnp.where(live, t + 1, steps)
-        return (new_state, ended | done, solved, failed, steps), None
-
-    false = jnp.zeros((), bool)
-    carry = (state, false, false, false, jnp.zeros((), jnp.int32))
-    (_, _, solved, failed, steps), _ = jax.lax.scan(body, carry, jnp.arange(num_steps, dtype=jnp.int32))
-    return Outcome(solved, failed, steps)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 3, 4))
-def play(spec: EnvSpec, params: EnvParams, level: Level, controller: Controller, num_steps: int = 256) -> Outcome:
-    """Play `controller` on one `level` for up to `num_steps` agent steps."""
-    return _play(spec, params, level, controller, num_steps)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 3, 5))
-def play_batch(
-    spec: EnvSpec,
-    params: EnvParams,
-    levels: Level,
-    controllers: tuple[Controller, ...],
-    which: Array,
-    num_steps: int = 256,
-) -> Outcome:
-    """Play a batch of levels [B] at once, level i with `controllers[which[i]]` (one compilation for any mix of
-    levels and controllers of one size)."""
-
-    def one(level: Level, index: Array) -> Outcome:
-        def controller(sim: SimState, t: Array) -> Array:
-            return jax.lax.switch(index, controllers, sim, t)
-
-        return _play(spec, params, level, controller, num_steps)
-
-    return jax.vmap(one)(levels, which)
 
 
 def _cartpole_push(sim: SimState, cart: int, pole: int, target_x: float) -> tuple[Array, Array]:

@@ -1,21 +1,23 @@
 """Kinetix's soft filter against trivial random levels: levels that doing nothing already solves.
 
-`ratio` x n candidates are sampled; each plays the all-zero action for `num_steps` env steps (replaying the level
-when an episode ends); a candidate whose first finished episode was solved gets weight `trivial_weight`, the rest
-weight 1; n levels are then drawn without replacement in proportion to the weights. Soft, as in Kinetix: when
-too few non-trivial levels exist, trivial ones fill the batch rather than failing.
+`ratio` x n candidates are sampled; each plays the all-zero action for `num_steps` env steps (all candidates side
+by side in the engine's episode loop); a candidate whose first episode ended solved within them gets weight
+`trivial_weight`, the rest weight 1; n levels are then drawn without replacement in proportion to the weights.
+Soft, as in Kinetix: when too few non-trivial levels exist, trivial ones fill the batch rather than failing.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
 from engine.env.actions import noop_action
-from engine.env.env import reset, step
+from engine.env.episodes import Act, first_episodes
 from engine.env.spec import EnvParams, EnvSpec
+from engine.env.state import EnvState
 from engine.levels.generator import GeneratorConfig, sample_random_level
 from engine.levels.level import Level
 
@@ -32,21 +34,21 @@ class NoopFilterConfig:
     """Sampling weight of a level the no-op policy solves (1 for the others)."""
 
 
-def noop_solves(spec: EnvSpec, params: EnvParams, level: Level, num_steps: int) -> Array:
-    """Whether the first episode of the all-zero policy on `level` (within `num_steps` env steps) is solved."""
-    replay = jax.tree.map(lambda x: x[None], level)
-    _, state = reset(spec, params, level, next_level=0)
+def _noop(spec: EnvSpec) -> Act:
+    """An `act` for the episode loop that drives nothing in any environment."""
     action = noop_action(spec)
 
-    def one_step(carry, _):
-        state, finished, solved = carry
-        _, state, _, done, info = step(spec, params, state, action, replay)
-        solved = solved | (done & ~finished & info["solved"])
-        return (state, finished | done, solved), None
+    def act(obs: Any, state: EnvState, key: Array | None) -> tuple[Array, None]:
+        num_envs = state.timestep.shape[0]
+        return jnp.broadcast_to(action, (num_envs, *action.shape)), None
 
-    false = jnp.zeros((), bool)
-    (_, _, solved), _ = jax.lax.scan(one_step, (state, false, false), None, length=num_steps)
-    return solved
+    return act
+
+
+def noop_solves(spec: EnvSpec, params: EnvParams, level: Level, num_steps: int) -> Array:
+    """Whether the first episode of the all-zero policy on `level` (within `num_steps` env steps) is solved."""
+    one = jax.tree.map(lambda x: x[None], level)
+    return first_episodes(spec, params, one, num_steps, _noop(spec)).solved[0]
 
 
 def sample_filtered_levels(
@@ -64,7 +66,7 @@ def sample_filtered_levels(
     candidates = jax.vmap(lambda k: sample_random_level(k, spec.sizes, generator))(
         jax.random.split(sample_key, config.ratio * num_levels)
     )
-    trivial = jax.vmap(lambda lv: noop_solves(spec, params, lv, config.num_steps))(candidates)
+    trivial = first_episodes(spec, params, candidates, config.num_steps, _noop(spec)).solved
     weights = jnp.where(trivial, config.trivial_weight, 1.0)
     chosen = jax.random.choice(
         choice_key, trivial.shape[0], (num_levels,), replace=False, p=weights / weights.sum()

@@ -7,8 +7,8 @@ import functools
 import jax
 import numpy as np
 
+from curriculum.noop_filter import noop_solves, sample_filtered_levels
 from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.noop_filter import noop_solves, sample_filtered_levels
 from engine.physics.sizes import SIZE_S
 
 SPEC = EnvSpec(sizes=SIZE_S)

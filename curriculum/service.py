@@ -1,0 +1,290 @@
+"""The curriculum service: the authority on levels in a distributed run.
+
+It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of the run only over the bus:
+
+- `levels/sample` (queryable): an actor asks for its next batch of B levels and gets a LEVELS frame (the levels,
+  whether each is trained on, where each came from);
+- `levels/results/*` (subscription): actors' per-level results, checked (`curriculum.wire`), then applied with
+  the jitted `update`; malformed or impossible results are refused, counted by reason and never crash it;
+- `curriculum/knobs` (queryable): read the live knobs, or change them (`{"set": ["replay_prob=0.8", ...]}`),
+  validated by the run's config system (a function the caller passes in) and applied at the next sample;
+- `curriculum/inspect` (queryable): buffer statistics, the top levels and, on request, their scenes;
+- `metrics/curriculum/0`: a status line with buffer statistics for `impulse launch`'s display.
+
+Its whole state, knobs included, is checkpointed with orbax as the `curriculum` item (through a checkpointer the
+caller passes in), so a restarted service resumes with every buffered and staged level. Work happens in the
+caller's thread in `poll`; nothing is done in zenoh callbacks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import jax
+import numpy as np
+
+from bus.codec import Kind, Rejected, decode, encode
+from bus.session import Bus
+from bus.status import StatusPublisher
+from curriculum.algorithms import Curriculum
+from curriculum.config import LIVE_KNOBS, CurriculumConfig
+from curriculum.results import empty_results
+from curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
+from curriculum.stats import buffer_summary, buffer_table, histogram
+from curriculum.wire import ResultsError, control_reply, level_batch_arrays, results_from_message
+from engine.physics.pytree import tree_arrays
+
+log = logging.getLogger(__name__)
+
+CURRICULUM_ROLE = "curriculum"
+CURRICULUM_ID = "0"
+RESULTS_PER_POLL = 64
+"""Result messages applied per poll at most, so a flood of results never starves sample queries."""
+
+KnobResolver = Callable[[CurriculumConfig, list[str]], CurriculumConfig]
+"""Applies `key=value` assignments to a config, raising ValueError with the config system's message."""
+
+
+class CheckpointStore(Protocol):
+    """What the service needs of a checkpointer (`learner.checkpoint.Checkpointer` fits)."""
+
+    def save(self, step: int, items: dict[str, Any], counters: dict[str, Any], config_toml: str) -> None: ...
+
+    def restore(self, templates: dict[str, Any], step: int | None = None) -> tuple[dict, dict, str]: ...
+
+    def latest_step(self) -> int | None: ...
+
+
+class CurriculumService:
+    """One curriculum process (see the module docstring). `poll` does whatever is waiting and returns a few
+    metrics when it did something; `save` checkpoints; `close` undeclares its bus entities."""
+
+    def __init__(
+        self,
+        curriculum: Curriculum,
+        bus: Bus,
+        checkpoints: CheckpointStore,
+        config_toml: str,
+        resolve_knobs: KnobResolver,
+        *,
+        item: str = "curriculum",
+        seed: int = 0,
+        resume: bool = False,
+        status_every_s: float = 1.0,
+        queue: int = 256,
+    ):
+        self.curriculum = curriculum
+        self.bus = bus
+        self.checkpoints = checkpoints
+        self.config_toml = config_toml
+        self.resolve_knobs = resolve_knobs
+        self.item = item
+        self.rows = 2 * curriculum.batch_size  # one actor window touches at most E + K = 2B levels
+        self._key = jax.random.PRNGKey(seed)
+        self._init = jax.jit(curriculum.init)
+        self._sample = jax.jit(curriculum.sample)
+        self._update = jax.jit(curriculum.update)
+        self.state: CurriculumState = self._init(jax.random.fold_in(self._key, 0))
+        self.samples = 0
+        self.result_messages = 0
+        self.knob_changes = 0
+        self.policy_version = 0
+        self._saved_step: int | None = None
+        if resume and checkpoints.latest_step() is not None:
+            self._restore()
+        keys = bus.keys
+        self._results = bus.inbox(keys.levels_results_all, queue)
+        self._sample_queries = bus.queryable(keys.levels_sample, queue)
+        self._knob_queries = bus.queryable(keys.curriculum_knobs, 16)
+        self._inspect_queries = bus.queryable(keys.curriculum_inspect, 16)
+        self._status = StatusPublisher(bus, status_every_s)
+        self._compile()
+
+    # -- lifecycle -------------------------------------------------------------------------------------------------
+
+    def _compile(self) -> None:
+        """Compile sample and update before answering anyone, so the first actor does not wait for XLA."""
+        start = time.perf_counter()
+        state, _ = self._sample(self.state, self._key)
+        self._update(state, empty_results(self.rows))
+        log.info("curriculum %s compiled in %.1f s", self.curriculum.method, time.perf_counter() - start)
+
+    def _restore(self) -> None:
+        template = jax.eval_shape(self.curriculum.init, self._key)
+        items, counters, _ = self.checkpoints.restore({self.item: template})
+        self.state = items[self.item]
+        self.samples = int(counters.get("samples", 0))
+        self.result_messages = int(counters.get("result_messages", 0))
+        self.policy_version = int(counters.get("policy_version", 0))
+        self._saved_step = self.checkpoints.latest_step()
+        log.info("curriculum resumed from checkpoint %s: %d levels buffered, %d staged, %d samples served",
+                 self._saved_step, int(np.asarray(self.state.buffer.filled).sum()),
+                 int(np.asarray(self.state.staging.staged).sum()), self.samples)
+
+    @property
+    def step(self) -> int:
+        """Checkpoint step: everything the service has done (monotonic across restarts)."""
+        return self.samples + self.result_messages + self.knob_changes
+
+    def save(self) -> None:
+        if self.step == self._saved_step:
+            return
+        counters = {"samples": self.samples, "result_messages": self.result_messages,
+                    "policy_version": self.policy_version, "knob_changes": self.knob_changes}
+        self.checkpoints.save(self.step, {self.item: self.state}, counters, self.config_toml)
+        self._saved_step = self.step
+
+    @property
+    def config(self) -> CurriculumConfig:
+        """The config with the live knob values."""
+        return config_with_knobs(self.curriculum.config, self.state.knobs)
+
+    # -- one poll ----------------------------------------------------------------------------------------------------
+
+    def poll(self) -> dict[str, float] | None:
+        """Apply waiting results, answer waiting queries; metrics of what was done, or None if nothing was."""
+        applied = self._apply_results()
+        served = 0
+        for query in self._sample_queries.poll():
+            served += self._answer_sample(query)
+        for query in self._knob_queries.poll():
+            self._answer_knobs(query)
+        for query in self._inspect_queries.poll():
+            self._answer_inspect(query)
+        if self._status.due():
+            self._status.publish(self.status())
+        if not applied and not served:
+            return None
+        return {"result_messages": float(applied), "samples_served": float(served)}
+
+    def _apply_results(self) -> int:
+        applied = 0
+        for received in self._results.poll(RESULTS_PER_POLL):
+            try:
+                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.LEVEL_RESULTS)
+                chunks = results_from_message(message, self.rows)
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, received.key, err.detail)
+                continue
+            except ResultsError as err:
+                self.bus.rejects.record("schema", received.key, str(err))
+                continue
+            for chunk in chunks:
+                self.state = self._update(self.state, chunk)
+            self.policy_version = max(self.policy_version, message.policy_version)
+            self.result_messages += 1
+            applied += 1
+        return applied
+
+    def _answer_sample(self, query) -> int:
+        wanted = query.parameters.get("n")
+        if wanted is not None and wanted != str(self.curriculum.batch_size):
+            query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
+            return 0
+        key = jax.random.fold_in(self._key, self.samples + 1)
+        self.state, batch = self._sample(self.state, key)
+        self.samples += 1
+        query.reply(encode(Kind.LEVELS, level_batch_arrays(batch), run=self.bus.keys.run, seq=self.samples,
+                           sender=f"{self.bus.role}/{self.bus.ident}"))
+        return 1
+
+    # -- control -------------------------------------------------------------------------------------------------------
+
+    def live_knobs(self) -> dict[str, Any]:
+        config = self.config
+        return {name: getattr(config, name) for name in LIVE_KNOBS}
+
+    def set_knobs(self, assignments: list[str]) -> dict[str, list[Any]]:
+        """Apply `key=value` assignments (keys relative to the curriculum section); returns {name: [old, new]}
+        for what changed. Raises ValueError with a message for a person, and changes nothing then."""
+        if not isinstance(assignments, list) or not all(isinstance(a, str) for a in assignments):
+            raise ValueError('"set" must be a list of "key=value" strings')
+        current = self.config
+        updated = self.resolve_knobs(current, assignments)
+        changed = {f.name: [getattr(current, f.name), getattr(updated, f.name)] for f in dataclasses.fields(current)
+                   if getattr(current, f.name) != getattr(updated, f.name)}
+        fixed = sorted(name for name in changed if name not in LIVE_KNOBS)
+        if fixed:
+            raise ValueError(f"curriculum.{fixed[0]} is fixed for the life of a run; the live knobs are "
+                             f"{', '.join(LIVE_KNOBS)}")
+        if changed:
+            self.state = self.state._replace(knobs=knobs_from_config(updated))
+            self.knob_changes += 1
+            for name, (old, new) in changed.items():
+                log.info("curriculum knob %s: %s -> %s (from the next sample on)", name, old, new)
+        return changed
+
+    def _answer_knobs(self, query) -> None:
+        try:
+            request = control_reply(query.payload or b"{}")
+            changed = self.set_knobs(request["set"]) if "set" in request else {}
+            reply = {"ok": True, "changed": changed, "knobs": self.live_knobs(), "method": self.curriculum.method}
+        except ValueError as err:
+            reply = {"ok": False, "error": str(err), "knobs": self.live_knobs()}
+            log.warning("refused a knob change: %s", err)
+        query.reply(_json(reply))
+
+    def inspect(self, top: int = 10) -> dict[str, Any]:
+        """What `impulse curriculum inspect` shows: statistics, histograms, the top levels by score and lineage."""
+        sizes = self.curriculum.spec.sizes
+        table = buffer_table(self.state, sizes)
+        order = np.argsort(-table["score"], kind="stable")
+        rows = [{name: _plain(column[i]) for name, column in table.items()} for i in order]
+        mutated = [row for row in rows if row["generation"] > 0]
+        return {
+            "method": self.curriculum.method,
+            "knobs": self.live_knobs(),
+            "policy_version": self.policy_version,
+            "summary": buffer_summary(self.state, sizes, self.policy_version),
+            "histograms": {
+                "score": histogram(table["score"]),
+                "solve_rate": histogram(table["solve_rate"], np.linspace(0.0, 1.0, 11)),
+                "age": histogram(table["age"]),
+                "replays": histogram(table["replays"]),
+            },
+            "top": rows[:top],
+            "lineage": [{"level_id": r["level_id"], "parent_id": r["parent_id"], "generation": r["generation"]}
+                        for r in mutated[:top]],
+        }
+
+    def _answer_inspect(self, query) -> None:
+        try:
+            request = control_reply(query.payload or b"{}")
+            top = int(request.get("top", 10))
+            report = self.inspect(top)
+            arrays = {}
+            if request.get("levels"):
+                table = buffer_table(self.state, self.curriculum.spec.sizes)
+                slots = table["slot"][np.argsort(-table["score"], kind="stable")[:top]]
+                arrays = tree_arrays(jax.tree.map(lambda x: x[slots], self.state.buffer.levels))
+            query.reply(encode(Kind.CONTROL, arrays, run=self.bus.keys.run, meta={"report": report}))
+        except (ValueError, TypeError) as err:
+            query.reply(encode(Kind.CONTROL, {}, run=self.bus.keys.run, meta={"error": str(err)}))
+
+    def status(self) -> dict[str, Any]:
+        summary = buffer_summary(self.state, self.curriculum.spec.sizes, self.policy_version)
+        keep = ("buffer_fill", "score_mean", "learnable", "staged", "score_lag_mean", "count_inserted",
+                "count_evicted")
+        return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "method": self.curriculum.method,
+                "samples": self.samples, "results": self.result_messages,
+                "rejected": self.bus.rejects.counts(), **{k: summary[k] for k in keep if k in summary}}
+
+    def close(self) -> None:
+        """Nothing to release beyond the bus entities, which the bus session undeclares when it closes."""
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _json(value: dict[str, Any]) -> bytes:
+    return json.dumps(value, default=_plain).encode("utf-8")

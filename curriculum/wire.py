@@ -1,0 +1,104 @@
+"""How the curriculum's messages travel on the bus: level results (actors to the curriculum), level batches (the
+curriculum's answer to an actor's `levels/sample` query) and the JSON of the control queries (`knobs`, `inspect`).
+
+Results and level batches are frames of named arrays (`bus.codec`), checked against the schemas here before they
+reach a jitted function, so a malformed or foreign message is refused with a reason instead of crashing the
+service or making it recompile. Control queries carry small JSON objects, since people type them.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import jax
+import numpy as np
+
+from bus.codec import Kind, Message
+from bus.schema import ArraySpec, Schema, check
+from curriculum.results import LevelResults, results_from_host, results_to_host
+from curriculum.state import LevelBatch
+from engine.levels.generator import sample_random_level
+from engine.levels.level import LEVEL_ID_WORDS
+from engine.physics.pytree import tree_arrays, tree_from_arrays
+from engine.physics.sizes import SceneSizes
+
+_PER_LEVEL = ("K",)
+
+LEVEL_RESULTS_SCHEMA = Schema(
+    Kind.LEVEL_RESULTS,
+    {
+        "level_id": ArraySpec(np.dtype(np.uint32), ("K", LEVEL_ID_WORDS)),
+        "episodes": ArraySpec(np.dtype(np.int32), _PER_LEVEL),
+        "solved": ArraySpec(np.dtype(np.int32), _PER_LEVEL),
+        "return_sum": ArraySpec(np.dtype(np.float32), _PER_LEVEL, finite=True),
+        "return_max": ArraySpec(np.dtype(np.float32), _PER_LEVEL, finite=True),
+        "value_sum": ArraySpec(np.dtype(np.float32), _PER_LEVEL, finite=True),
+        "pvl_sum": ArraySpec(np.dtype(np.float32), _PER_LEVEL, finite=True),
+        "l1_sum": ArraySpec(np.dtype(np.float32), _PER_LEVEL, finite=True),
+        "policy_version": ArraySpec(np.dtype(np.int32), _PER_LEVEL),
+    },
+)
+
+
+def results_arrays(results: LevelResults) -> dict[str, np.ndarray]:
+    """The valid rows of `results` as the arrays of a LEVEL_RESULTS frame."""
+    return results_to_host(results)
+
+
+class ResultsError(ValueError):
+    """Level results that are well-formed arrays but make no sense (negative counts, more solved than played)."""
+
+
+def results_from_message(message: Message, rows: int) -> list[LevelResults]:
+    """The results a frame carries, in chunks of `rows` rows; raises `bus.codec.Rejected` for a frame that does
+    not fit the schema and `ResultsError` for impossible counts."""
+    check(message, LEVEL_RESULTS_SCHEMA)
+    arrays = {name: np.asarray(message.arrays[name]) for name in LEVEL_RESULTS_SCHEMA.arrays}
+    episodes, solved = arrays["episodes"], arrays["solved"]
+    if (episodes < 0).any() or (solved < 0).any() or (solved > episodes).any():
+        raise ResultsError("episode counts must satisfy 0 <= solved <= episodes")
+    if (arrays["level_id"] == 0).all(axis=-1).any():
+        raise ResultsError("level id 0 (unassigned) in results")
+    count = episodes.shape[0]
+    return [results_from_host({name: a[start:start + rows] for name, a in arrays.items()}, rows)
+            for start in range(0, count, rows)]
+
+
+def level_batch_template(sizes: SceneSizes, batch_size: int) -> LevelBatch:
+    """The shapes and dtypes of a batch of `batch_size` levels of `sizes` (nothing is computed)."""
+    levels = jax.eval_shape(jax.vmap(lambda k: sample_random_level(k, sizes)),
+                            jax.random.split(jax.random.PRNGKey(0), batch_size))
+    return LevelBatch(levels, jax.ShapeDtypeStruct((batch_size,), np.dtype(bool)),
+                      jax.ShapeDtypeStruct((batch_size,), np.dtype(np.int32)))
+
+
+def level_batch_schema(template: LevelBatch) -> Schema:
+    """Exactly the batch an actor's rollout was compiled for (B levels of its size), with finite scenes."""
+    example = jax.tree.map(lambda leaf: np.zeros(leaf.shape, leaf.dtype), template)
+    return Schema.from_example(Kind.LEVELS, tree_arrays(example), finite=True)
+
+
+def level_batch_arrays(batch: LevelBatch) -> dict[str, np.ndarray]:
+    return tree_arrays(batch)
+
+
+def level_batch_from_message(message: Message, schema: Schema, template: LevelBatch) -> LevelBatch:
+    """The batch a LEVELS frame carries, after the schema check (raises `bus.codec.Rejected` if it fails)."""
+    check(message, schema)
+    return tree_from_arrays(message.arrays, template)
+
+
+def control_request(**fields: Any) -> bytes:
+    return json.dumps(fields).encode("utf-8")
+
+
+def control_reply(payload: bytes) -> dict[str, Any]:
+    """A control query's or reply's JSON object; ValueError with the reason if it is not one."""
+    try:
+        value = json.loads(payload.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"not a JSON control message: {err}") from err
+    if not isinstance(value, dict):
+        raise ValueError(f"a control message is a JSON object, got {type(value).__name__}")
+    return value

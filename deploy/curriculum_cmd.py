@@ -1,0 +1,245 @@
+"""`impulse curriculum serve|set|get|inspect`: run the curriculum service, and talk to a live one.
+
+`serve` runs the service process (`impulse launch` starts it with `--run RUN_DIR` when the run trains on random
+levels). `set`, `get` and `inspect` find a running service through the run directory's config (run name and bus
+hub) and query it over the bus; they print what it answered and exit 1 if no service answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from deploy.config import ConfigError, apply_overrides, config_to_toml, load_run_config, resolve_config
+from learner.config import TrainConfig
+
+log = logging.getLogger("impulse.curriculum")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+ANSWER_TIMEOUT_S = 10.0
+CURRICULUM_SECTION = "curriculum."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="curriculum_action", metavar="ACTION", required=True)
+    serve = actions.add_parser("serve", help="run the curriculum service", allow_abbrev=False)
+    serve.add_argument("--run", type=Path, metavar="RUN_DIR", help="use the config saved in RUN_DIR")
+    serve.add_argument("--config", type=Path, metavar="FILE.toml", help="TOML config (without --run)")
+    serve.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint to connect to instead of bus.hub")
+    serve.add_argument("--resume", action="store_true", help="continue from the service's newest checkpoint")
+    serve.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+
+    set_ = actions.add_parser("set", help="change live knobs: KEY=VALUE ... (e.g. replay_prob=0.8)",
+                              allow_abbrev=False)
+    set_.add_argument("assignments", nargs="+", metavar="KEY=VALUE",
+                      help="curriculum knobs, with or without the 'curriculum.' prefix")
+    get = actions.add_parser("get", help="print the live knobs", allow_abbrev=False)
+    inspect = actions.add_parser("inspect", help="print the level buffer", allow_abbrev=False)
+    inspect.add_argument("--top", type=int, default=10, metavar="K", help="levels to list (default 10)")
+    inspect.add_argument("--json", action="store_true", help="print the whole report as JSON")
+    inspect.add_argument("--render", type=Path, metavar="DIR", help="draw the top K levels as PNG files in DIR")
+    for p in (set_, get, inspect):
+        p.add_argument("--run", type=Path, metavar="RUN_DIR", required=True, help="the run's directory")
+        p.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint instead of the run's bus.hub")
+
+
+def run(args: argparse.Namespace, _config: object) -> int:
+    if args.curriculum_action == "serve":
+        return serve(args)
+    try:
+        config = load_run_config(TrainConfig, args.run)
+    except ConfigError as err:
+        print(f"impulse curriculum: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.connect:
+        config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, connect=(args.connect,)))
+    if args.curriculum_action == "inspect":
+        return inspect(args, config)
+    request: dict[str, Any] = {}
+    if args.curriculum_action == "set":
+        request["set"] = [a[len(CURRICULUM_SECTION):] if a.startswith(CURRICULUM_SECTION) else a
+                          for a in args.assignments]
+    reply = _ask_knobs(config, request)
+    if reply is None:
+        return EXIT_FAILED
+    if not reply.get("ok"):
+        print(f"impulse curriculum {args.curriculum_action}: refused: {reply.get('error')}", file=sys.stderr)
+        return EXIT_USAGE
+    for name, (old, new) in reply.get("changed", {}).items():
+        print(f"{name}: {old} -> {new}")
+    if args.curriculum_action == "set" and not reply.get("changed"):
+        print("nothing changed")
+    if args.curriculum_action == "get":
+        print(f"method = {reply.get('method')}")
+        for name, value in reply["knobs"].items():
+            print(f"{name} = {json.dumps(value)}")
+    return 0
+
+
+def _client(config: TrainConfig):
+    from bus.session import Bus
+
+    return Bus(config.bus, config.name, "cli", f"cli-{os.getpid()}")
+
+
+def _no_answer(config: TrainConfig, key: str) -> None:
+    print(f"impulse curriculum: no curriculum service answered on {key} within {ANSWER_TIMEOUT_S:.0f} s (is run "
+          f"{config.name!r} running with env.levels=random, on hub {config.bus.connect or config.bus.hub}?)",
+          file=sys.stderr)
+
+
+def _ask_knobs(config: TrainConfig, request: dict[str, Any]) -> dict[str, Any] | None:
+    from curriculum.wire import control_reply, control_request
+
+    with _client(config) as bus:
+        replies = bus.get(bus.keys.curriculum_knobs, payload=control_request(**request), timeout_s=ANSWER_TIMEOUT_S)
+        if not replies:
+            _no_answer(config, bus.keys.curriculum_knobs)
+            return None
+        return control_reply(replies[0])
+
+
+def inspect(args: argparse.Namespace, config: TrainConfig) -> int:
+    from bus.codec import Rejected, decode
+    from curriculum.wire import control_request
+
+    with _client(config) as bus:
+        replies = bus.get(bus.keys.curriculum_inspect, payload=control_request(top=args.top, levels=bool(args.render)),
+                          timeout_s=ANSWER_TIMEOUT_S)
+        if not replies:
+            _no_answer(config, bus.keys.curriculum_inspect)
+            return EXIT_FAILED
+        try:
+            message = decode(replies[0], run=config.name)
+        except Rejected as err:
+            print(f"impulse curriculum inspect: unreadable answer: {err}", file=sys.stderr)
+            return EXIT_FAILED
+        if "error" in message.meta:
+            print(f"impulse curriculum inspect: refused: {message.meta['error']}", file=sys.stderr)
+            return EXIT_USAGE
+        report = message.meta["report"]
+        if args.render:
+            _render(config, message.arrays, report, args.render)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(format_report(report))
+    return 0
+
+
+def _render(config: TrainConfig, arrays: dict, report: dict, out: Path) -> None:
+    import jax
+    import numpy as np
+
+    from engine.env.spec import env_from_config
+    from engine.levels.generator import sample_random_level
+    from engine.levels.render import render_level, save_png
+    from engine.physics.pytree import tree_from_arrays
+
+    spec, _ = env_from_config(config.env)
+    template = sample_random_level(jax.random.PRNGKey(0), spec.sizes)
+    out.mkdir(parents=True, exist_ok=True)
+    for i, row in enumerate(report["top"]):
+        level = tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template)
+        path = out / f"{i:02d}-{row['level_id']:016x}.png"
+        save_png(render_level(level), path)
+        print(f"wrote {path}")
+
+
+def _bar(count: int, most: int, width: int = 30) -> str:
+    return "#" * (round(width * count / most) if most else 0)
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The inspect report for a terminal: summary, histograms, top levels, lineage."""
+    s = report["summary"]
+    lines = [f"curriculum {report['method']}: {s.get('buffer_fill', 0):.0%} of {s['buffer_size']} slots filled, "
+             f"{s.get('staged', 0)} candidates staged, policy version {report['policy_version']}"]
+    for key in ("score_mean", "score_replay_weighted", "staleness_replay_weighted", "score_lag_mean", "learnable",
+                "never_solved", "always_solved", "generation_mean", "shapes_mean", "joints_mean", "thrusters_mean"):
+        if s.get(key) is not None and key in s:
+            lines.append(f"  {key:<26} {s[key]:.3f}")
+    lines.append("  turnover: " + ", ".join(f"{k[6:]} {v}" for k, v in s.items() if k.startswith("count_")))
+    for name, hist in report["histograms"].items():
+        if not hist["counts"]:
+            continue
+        lines.append(f"{name} histogram:")
+        most = max(hist["counts"])
+        for lo, hi, count in zip(hist["edges"][:-1], hist["edges"][1:], hist["counts"], strict=True):
+            lines.append(f"  {lo:>9.3g} .. {hi:<9.3g} {count:>5} {_bar(count, most)}")
+    lines.append("top levels:")
+    lines.append(f"  {'level id':<18} {'score':>8} {'solved':>7} {'eps':>6} {'age':>6} {'replays':>7} {'gen':>4}")
+    for row in report["top"]:
+        solved = "-" if row["solve_rate"] is None else f"{row['solve_rate']:.0%}"
+        lines.append(f"  {row['level_id']:016x}   {row['score']:>8.4f} {solved:>7} {row['episodes']:>6.1f} "
+                     f"{row['age']:>6} {row['replays']:>7} {row['generation']:>4}")
+    if report["lineage"]:
+        lines.append("lineage of mutated levels (child <- parent, generation):")
+        for row in report["lineage"]:
+            lines.append(f"  {row['level_id']:016x} <- {row['parent_id']:016x}  gen {row['generation']}")
+    return "\n".join(lines)
+
+
+def serve(args: argparse.Namespace) -> int:
+    try:
+        if args.run is not None:
+            config = load_run_config(TrainConfig, args.run, args.overrides)
+            run_dir = args.run
+        else:
+            config = resolve_config(TrainConfig, args.config, args.overrides)
+            run_dir = config.output_dir()
+    except ConfigError as err:
+        print(f"impulse curriculum serve: config error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.connect:
+        config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, connect=(args.connect,)))
+    from deploy.train_cmd import enable_compile_cache
+
+    enable_compile_cache()
+    from bus.session import Bus
+    from curriculum.algorithms import Curriculum
+    from curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
+    from deploy.runloop import StopFlag
+    from engine.env.spec import env_from_config
+    from learner.checkpoint import CURRICULUM, Checkpointer
+
+    spec, env_params = env_from_config(config.env)
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    checkpoint_dir = run_dir / "curriculum" / config.checkpoint.directory
+    checkpoint_config = dataclasses.replace(config.checkpoint, keep_best=False)
+
+    def resolve_knobs(current, assignments):
+        try:
+            return apply_overrides(current, assignments, source="live knob change")
+        except ConfigError as err:
+            raise ValueError(str(err)) from None
+
+    with Checkpointer(checkpoint_dir, checkpoint_config) as checkpoints, \
+            Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus:
+        service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
+                                    item=CURRICULUM, seed=config.seed, resume=args.resume,
+                                    status_every_s=config.actors.status_every_s)
+        log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
+                 config.curriculum.buffer_size, curriculum.batch_size)
+        save_every = max(config.checkpoint.every_updates, 1)
+        last_saved = service.result_messages
+        with StopFlag() as stop:
+            while not stop.stop:
+                if service.poll() is None:
+                    time.sleep(0.002)
+                if service.result_messages - last_saved >= save_every:
+                    service.save()
+                    last_saved = service.result_messages
+        service.save()
+        service.close()
+    log.info("curriculum stopped: %d samples served, %d result messages applied", service.samples,
+             service.result_messages)
+    return 0

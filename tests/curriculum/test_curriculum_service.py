@@ -1,0 +1,142 @@
+"""The curriculum service over a real bus (zenoh on loopback; the test plays the actors and a person at the
+command line): level batches on request, results applied, live knobs validated and applied at the next sample,
+malformed input refused while it keeps serving, and a restart from its checkpoint losing no buffered level."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from launch_procs import free_port
+
+from bus.codec import Kind, decode, encode
+from bus.session import Bus, BusConfig
+from curriculum.algorithms import Curriculum
+from curriculum.config import CurriculumConfig
+from curriculum.service import CurriculumService
+from curriculum.state import ORIGIN_NEW
+from curriculum.wire import (
+    control_reply,
+    control_request,
+    level_batch_from_message,
+    level_batch_schema,
+    level_batch_template,
+)
+from deploy.config import ConfigError, apply_overrides
+from engine.env.spec import EnvParams, EnvSpec
+from engine.levels.level import level_id_values, level_id_words
+from learner.checkpoint import CURRICULUM, Checkpointer
+
+RUN = "curriculum-test"
+BATCH = 8
+SPEC = EnvSpec()
+
+
+def resolve_knobs(current, assignments):
+    try:
+        return apply_overrides(current, assignments, source="live knob change")
+    except ConfigError as err:
+        raise ValueError(str(err)) from None
+
+
+def start_service(bus: Bus, directory, resume: bool) -> tuple[CurriculumService, Checkpointer]:
+    config = CurriculumConfig(method="plr", buffer_size=16, noop_filter=False, replay_prob=0.0)
+    checkpoints = Checkpointer(directory)
+    service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "", resolve_knobs,
+                                item=CURRICULUM, resume=resume)
+    return service, checkpoints
+
+
+def serve_until(service: CurriculumService, asked, timeout_s: float = 30.0):
+    """Run `asked()` (a blocking bus query) in a thread while the service polls in this one."""
+    import threading
+
+    box: dict = {}
+    thread = threading.Thread(target=lambda: box.update(answer=asked()))
+    thread.start()
+    deadline = time.monotonic() + timeout_s
+    while thread.is_alive():
+        assert time.monotonic() < deadline, "the service did not answer"
+        service.poll()
+        time.sleep(0.002)
+    thread.join()
+    return box["answer"]
+
+
+@pytest.fixture(scope="module")
+def hub():
+    port = free_port()
+    config = BusConfig(hub=f"tcp/127.0.0.1:{port}")
+    with Bus(config, RUN, "hub", "0", listen=True) as hub_bus:
+        yield hub_bus
+
+
+def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
+    template = level_batch_template(SPEC.sizes, BATCH)
+    schema = level_batch_schema(template)
+    with Bus(hub.config, RUN, "curriculum", "0") as bus, Bus(hub.config, RUN, "actor", "actor-0") as actor:
+        service, checkpoints = start_service(bus, tmp_path / "ckpt", resume=False)
+        results = actor.publisher(actor.keys.levels_results("actor-0"))
+        assert actor.wait_matching(results, 10)
+
+        def sample():
+            [payload] = actor.get(actor.keys.levels_sample, parameters=f"n={BATCH}", timeout_s=20)
+            return level_batch_from_message(decode(payload, run=RUN, kinds=Kind.LEVELS), schema, template)
+
+        def knobs(**request):
+            [payload] = actor.get(actor.keys.curriculum_knobs, payload=control_request(**request), timeout_s=20)
+            return control_reply(payload)
+
+        first = serve_until(service, sample)
+        assert (np.asarray(first.origin) == ORIGIN_NEW).all() and np.asarray(first.train).all()
+        ids = level_id_values(np.asarray(first.levels.level_id))
+
+        # Results for the batch: every level gets two episodes, one solved, so each is scored and inserted.
+        arrays = {"level_id": np.stack([level_id_words(int(i)) for i in ids]),
+                  "episodes": np.full(BATCH, 2, np.int32), "solved": np.ones(BATCH, np.int32),
+                  "return_sum": np.ones(BATCH, np.float32), "return_max": np.ones(BATCH, np.float32),
+                  "value_sum": np.zeros(BATCH, np.float32), "pvl_sum": np.zeros(BATCH, np.float32),
+                  "l1_sum": np.zeros(BATCH, np.float32), "policy_version": np.full(BATCH, 3, np.int32)}
+        results.put(encode(Kind.LEVEL_RESULTS, arrays, run=RUN, policy_version=3, sender="actor-0"))
+        # Malformed: garbage bytes, and well-formed arrays with more solved than played episodes.
+        results.put(b"not a frame")
+        results.put(encode(Kind.LEVEL_RESULTS, {**arrays, "solved": np.full(BATCH, 5, np.int32)}, run=RUN))
+        deadline = time.monotonic() + 20
+        while service.result_messages < 1 or sum(bus.rejects.counts().values()) < 2:
+            assert time.monotonic() < deadline, (service.result_messages, bus.rejects.counts())
+            service.poll()
+            time.sleep(0.01)
+        assert sorted(bus.rejects.counts()) == ["schema", "truncated"]
+        buffered = set(level_id_values(np.asarray(service.state.buffer.levels.level_id))[
+            np.asarray(service.state.buffer.filled)])
+        assert buffered == set(ids)
+
+        # A live knob takes effect at the next sample: robust PLR marks new levels as evaluated only.
+        reply = serve_until(service, lambda: knobs(set=["robust=true", "replay_prob=0"]))
+        assert reply["ok"] and reply["changed"] == {"robust": [False, True]} and reply["knobs"]["robust"] is True
+        after = serve_until(service, sample)
+        assert not np.asarray(after.train).any()
+
+        # Bad values and fixed keys are refused with the config system's messages; nothing changes.
+        for assignment, message in (("replay_prob=2", "replay_prob must be in [0, 1]"),
+                                    ("temperature=warm", "expects float"),
+                                    ("replay_prb=0.1", "did you mean 'replay_prob'"),
+                                    ("buffer_size=8", "fixed for the life of a run")):
+            reply = serve_until(service, lambda a=assignment: knobs(set=[a]))
+            assert not reply["ok"] and message in reply["error"], reply
+        assert serve_until(service, knobs)["knobs"]["replay_prob"] == 0.0
+
+        staged = set(level_id_values(np.asarray(service.state.staging.levels.level_id))[
+            np.asarray(service.state.staging.staged)])
+        service.save()
+        checkpoints.close()
+
+        restarted, checkpoints = start_service(bus, tmp_path / "ckpt", resume=True)
+        state = restarted.state
+        assert set(level_id_values(np.asarray(state.buffer.levels.level_id))[np.asarray(state.buffer.filled)]) \
+            == buffered
+        assert set(level_id_values(np.asarray(state.staging.levels.level_id))[np.asarray(state.staging.staged)]) \
+            == staged
+        assert restarted.live_knobs()["robust"] is True and restarted.samples == service.samples
+        checkpoints.close()

@@ -1,0 +1,93 @@
+"""The import rules between rooms (DESIGN section 1), checked by reading the source: no module is imported.
+
+The rules keep the lower rooms usable alone (the engine without the learner, the curriculum's pure functions
+without the processes) and the dependency graph without cycles. Imports inside functions count too.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+OURS = {"engine", "actors", "learner", "curriculum", "bus", "monitor", "deploy", "benchmarks"}
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def our_imports(path: Path, root: Path = REPO) -> set[str]:
+    """The modules of ours that `path` imports; for `from a import b` both `a` and `a.b` (b may be a module)."""
+    found: set[str] = set()
+    package = _module_name(path, root).split(".")
+    if path.name != "__init__.py":
+        package = package[:-1]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package[: len(package) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            found.add(base)
+            found.update(f"{base}.{alias.name}" for alias in node.names)
+    return {name for name in found if name.split(".")[0] in OURS}
+
+
+def _within(name: str, *prefixes: str) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _files(*patterns: str) -> list[Path]:
+    files = sorted({f for pattern in patterns for f in REPO.glob(pattern)})
+    assert files, patterns
+    return files
+
+
+def _violations(files: list[Path], allowed) -> dict[str, list[str]]:
+    bad = {}
+    for path in files:
+        wrong = sorted(name for name in our_imports(path) if not allowed(name))
+        if wrong:
+            bad[str(path.relative_to(REPO))] = wrong
+    return bad
+
+
+RULES = {
+    "engine imports only engine": (("engine/**/*.py",), lambda n: _within(n, "engine")),
+    "engine/levels does not import engine/env": (("engine/levels/**/*.py",), lambda n: not _within(n, "engine.env")),
+    "the rollout and the trajectory type import only engine (and each other)": (
+        ("actors/rollout.py", "actors/trajectory.py"),
+        lambda n: _within(n, "engine", "actors.rollout", "actors.trajectory"),
+    ),
+    "curriculum imports only engine and bus": (
+        ("curriculum/**/*.py",),
+        lambda n: _within(n, "engine", "bus", "curriculum"),
+    ),
+    "bus imports only bus": (("bus/**/*.py",), lambda n: _within(n, "bus")),
+    "nothing but deploy, benchmarks and tests imports deploy": (
+        tuple(f"{room}/**/*.py" for room in sorted(OURS - {"deploy", "benchmarks"})),
+        lambda n: not _within(n, "deploy"),
+    ),
+}
+
+
+@pytest.mark.parametrize("rule", list(RULES))
+def test_room_imports(rule):
+    patterns, allowed = RULES[rule]
+    assert _violations(_files(*patterns), allowed) == {}
+
+
+def test_the_checker_sees_submodules_relative_and_nested_imports(tmp_path):
+    sample = tmp_path / "engine" / "levels" / "sample.py"
+    sample.parent.mkdir(parents=True)
+    sample.write_text("from engine import env\nfrom ..physics import step\nimport json\n\n"
+                      "def f():\n    from deploy.cli import main\n")
+    assert our_imports(sample, tmp_path) == {
+        "engine", "engine.env", "engine.physics", "engine.physics.step", "deploy.cli", "deploy.cli.main"
+    }
