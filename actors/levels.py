@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 import jax
@@ -36,8 +37,12 @@ class LevelSource(Protocol):
     reports_results: bool
     """Whether the source wants per-level results back (a curriculum does; a fixed level set does not)."""
 
-    def next_batch(self, key: Array) -> LevelBatch:
-        """The level batch (leading axis K, K fixed for the source) for the next rollout."""
+    waiting: bool
+    """Whether the last `next_batch` is still waiting for levels (shown on the status line)."""
+
+    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
+        """The level batch (leading axis K, K fixed for the source) for the next rollout; `while_waiting` is
+        called now and then if the levels are slow to come (the actor keeps its status line fresh with it)."""
 
 
 def fixed_batch(levels: Level) -> LevelBatch:
@@ -50,6 +55,7 @@ class LocalLevels:
     """The run's own level set (a file, a folder or the hand-made set)."""
 
     reports_results = False
+    waiting = False
 
     def __init__(self, env: EnvConfig, sizes: SceneSizes):
         if env.levels == RANDOM:
@@ -59,7 +65,7 @@ class LocalLevels:
         count = len(self.names)
         self.description = f"{env.levels} ({count} level{'s' if count != 1 else ''})"
 
-    def next_batch(self, key: Array) -> LevelBatch:
+    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
         return self._batch
 
 
@@ -80,7 +86,7 @@ class CurriculumLevels:
         self.description = f"curriculum {method} ({self.size} per rollout)"
         self.waiting = False
 
-    def next_batch(self, key: Array) -> LevelBatch:
+    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
         del key  # the service draws the levels
         key_expr = self.bus.keys.levels_sample
         started = last_log = time.monotonic()
@@ -95,6 +101,8 @@ class CurriculumLevels:
                 self.waiting = False
                 return jax.tree.map(jnp.asarray, batch)
             self.waiting = True
+            if while_waiting is not None:
+                while_waiting()
             time.sleep(0.2)  # nobody answered (no service yet): a get with no queryable returns at once
             if time.monotonic() - last_log >= WAIT_LOG_EVERY_S:
                 last_log = time.monotonic()

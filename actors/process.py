@@ -232,16 +232,19 @@ class Actor:
             "learner_epoch": self.epoch,
             "in_flight": self.in_flight,
             "levels": self.levels.description,
-            "waiting": "weights" if self.params is None else "levels" if getattr(self.levels, "waiting", False) else (
+            "waiting": "weights" if self.params is None else "levels" if self.levels.waiting else (
                 "credit" if self.in_flight >= self.config.actors.credits else ""),
             "rejected": self.bus.rejects.total,
             "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,
         }
 
-    def cycle(self) -> CycleReport | None:
+    def _publish_status_if_due(self) -> None:
         if self._status.due():
             self._status.publish(self.status())
+
+    def cycle(self) -> CycleReport | None:
+        self._publish_status_if_due()
         self._receive_weights()
         self._receive_acks()
         if self.params is None:
@@ -254,7 +257,7 @@ class Actor:
             return None
         start = time.monotonic()
         self.key, level_key = jax.random.split(self.key)
-        levels = self.levels.next_batch(level_key)
+        levels = self.levels.next_batch(level_key, self._publish_status_if_due)
         self.carry, steps, train_mask, stats = self._rollout(self.params, self.carry, levels)
         batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask)
         results = self._level_results(self.params, batch) if self.levels.reports_results else None

@@ -84,9 +84,10 @@ class CurriculumConfig:
     """ACCEL: edits per mutated child (Kinetix paper: 3; its repository: 5)."""
     sfl_ratio: float = 0.5
     """SFL: fraction of every batch drawn (uniformly) from the buffer; the rest are fresh candidates."""
-    candidate_episodes: int = 1
+    candidate_episodes: int | None = None
     """Finished episodes a new candidate needs before it is scored and offered to the buffer; a candidate that has
-    fewer is handed out again in later batches. SFL estimates a solve rate, so it wants several (e.g. 4)."""
+    fewer is handed out again in later batches. None: 4 for SFL (a solve rate needs several episodes), 1 for PLR
+    and ACCEL (Kinetix scores a level from the episodes of one rollout)."""
     score_memory: float = 0.9
     """Solve counts of buffered levels decay by this factor at every new result (1 keeps all history, 0 only
     the newest window); their learnability follows the current policy rather than its history."""
@@ -106,6 +107,13 @@ class CurriculumConfig:
             raise ValueError("; ".join(problems))
 
 
+def candidate_episodes(config: CurriculumConfig) -> int:
+    """The episodes a candidate needs, with the method's default filled in."""
+    if config.candidate_episodes is not None:
+        return config.candidate_episodes
+    return 4 if config.method == "sfl" else 1
+
+
 def knob_problems(config: CurriculumConfig) -> list[str]:
     """What is wrong with the live knobs' values, one sentence each (empty when they are fine)."""
     problems = []
@@ -117,6 +125,6 @@ def knob_problems(config: CurriculumConfig) -> list[str]:
         problems.append(f"curriculum.temperature must be > 0, got {config.temperature}")
     if not 0 <= config.num_edits <= config.max_edits:
         problems.append(f"curriculum.num_edits must be in [0, max_edits={config.max_edits}], got {config.num_edits}")
-    if config.candidate_episodes < 1:
+    if config.candidate_episodes is not None and config.candidate_episodes < 1:
         problems.append(f"curriculum.candidate_episodes must be >= 1, got {config.candidate_episodes}")
     return problems

@@ -29,6 +29,7 @@ import jax
 import numpy as np
 
 from bus.codec import Kind, Rejected, decode, encode
+from bus.inbox import IncomingQuery
 from bus.session import Bus
 from bus.status import StatusPublisher
 from curriculum.algorithms import Curriculum
@@ -62,7 +63,7 @@ class CheckpointStore(Protocol):
 
 class CurriculumService:
     """One curriculum process (see the module docstring). `poll` does whatever is waiting and returns a few
-    metrics when it did something; `save` checkpoints; `close` undeclares its bus entities."""
+    metrics when it did something; `save` checkpoints. Its bus entities live as long as the bus session."""
 
     def __init__(
         self,
@@ -181,7 +182,7 @@ class CurriculumService:
             applied += 1
         return applied
 
-    def _answer_sample(self, query) -> int:
+    def _answer_sample(self, query: IncomingQuery) -> int:
         wanted = query.parameters.get("n")
         if wanted is not None and wanted != str(self.curriculum.batch_size):
             query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
@@ -219,7 +220,7 @@ class CurriculumService:
                 log.info("curriculum knob %s: %s -> %s (from the next sample on)", name, old, new)
         return changed
 
-    def _answer_knobs(self, query) -> None:
+    def _answer_knobs(self, query: IncomingQuery) -> None:
         try:
             request = control_reply(query.payload or b"{}")
             changed = self.set_knobs(request["set"]) if "set" in request else {}
@@ -252,7 +253,7 @@ class CurriculumService:
                         for r in mutated[:top]],
         }
 
-    def _answer_inspect(self, query) -> None:
+    def _answer_inspect(self, query: IncomingQuery) -> None:
         try:
             request = control_reply(query.payload or b"{}")
             top = int(request.get("top", 10))
@@ -273,9 +274,6 @@ class CurriculumService:
         return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "method": self.curriculum.method,
                 "samples": self.samples, "results": self.result_messages,
                 "rejected": self.bus.rejects.counts(), **{k: summary[k] for k in keep if k in summary}}
-
-    def close(self) -> None:
-        """Nothing to release beyond the bus entities, which the bus session undeclares when it closes."""
 
 
 def _plain(value: Any) -> Any:

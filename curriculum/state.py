@@ -13,12 +13,13 @@ was last picked or inserted, so its staleness is `clock - last_sampled`.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig
+from curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig, candidate_episodes
 from engine.levels.level import LEVEL_ID_WORDS, Level
 
 Array = jax.Array
@@ -56,15 +57,13 @@ def knobs_from_config(config: CurriculumConfig) -> Knobs:
         robust=jnp.asarray(config.robust, bool),
         num_edits=i32(config.num_edits),
         sfl_ratio=f32(config.sfl_ratio),
-        candidate_episodes=i32(config.candidate_episodes),
+        candidate_episodes=i32(candidate_episodes(config)),
         score_memory=f32(config.score_memory),
     )
 
 
 def config_with_knobs(config: CurriculumConfig, knobs: Knobs) -> CurriculumConfig:
     """`config` with its live knobs replaced by the values in `knobs` (host side): what a live service runs."""
-    import dataclasses
-
     host = jax.device_get(knobs)
     return dataclasses.replace(
         config,

@@ -239,7 +239,6 @@ def serve(args: argparse.Namespace) -> int:
                     service.save()
                     last_saved = service.result_messages
         service.save()
-        service.close()
     log.info("curriculum stopped: %d samples served, %d result messages applied", service.samples,
              service.result_messages)
     return 0
