@@ -104,12 +104,12 @@ class CurriculumService:
         self._knob_queries = bus.queryable(keys.curriculum_knobs, 16)
         self._inspect_queries = bus.queryable(keys.curriculum_inspect, 16)
         self._status = StatusPublisher(bus, status_every_s)
-        self._compile()
 
     # -- lifecycle -------------------------------------------------------------------------------------------------
 
-    def _compile(self) -> None:
-        """Compile sample and update before answering anyone, so the first actor does not wait for XLA."""
+    def warm_up(self) -> None:
+        """Compile sample and update before serving, so the first actor's query does not wait for XLA (a query
+        times out after a few seconds)."""
         start = time.perf_counter()
         state, _ = self._sample(self.state, self._key)
         self._update(state, empty_results(self.rows))
@@ -268,12 +268,13 @@ class CurriculumService:
             query.reply(encode(Kind.CONTROL, {}, run=self.bus.keys.run, meta={"error": str(err)}))
 
     def status(self) -> dict[str, Any]:
+        """The status line: counts and the buffer statistics (`curriculum.stats.buffer_summary`), which is how the
+        service publishes them for monitoring."""
         summary = buffer_summary(self.state, self.curriculum.spec.sizes, self.policy_version)
-        keep = ("buffer_fill", "score_mean", "learnable", "staged", "score_lag_mean", "count_inserted",
-                "count_evicted")
         return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "method": self.curriculum.method,
-                "samples": self.samples, "results": self.result_messages,
-                "rejected": self.bus.rejects.counts(), **{k: summary[k] for k in keep if k in summary}}
+                "samples": self.samples, "results": self.result_messages, "policy_version": self.policy_version,
+                "knob_changes": self.knob_changes, "rejected": self.bus.rejects.counts(),
+                **{k: _plain(v) for k, v in summary.items()}}
 
 
 def _plain(value: Any) -> Any:

@@ -227,6 +227,7 @@ def serve(args: argparse.Namespace) -> int:
         service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
                                     item=CURRICULUM, seed=config.seed, resume=args.resume,
                                     status_every_s=config.actors.status_every_s)
+        service.warm_up()
         log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
                  config.curriculum.buffer_size, curriculum.batch_size)
         save_every = max(config.checkpoint.every_updates, 1)

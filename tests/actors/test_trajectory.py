@@ -37,6 +37,19 @@ def play(carry, levels, train, num_steps):
     return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps, train)
 
 
+CHUNK = 5  # every rollout in these tests is CHUNK steps of K = 2 levels: one compilation for the whole module
+
+
+def play_for(carry, levels, train, num_steps):
+    """`num_steps` (a multiple of CHUNK) steps as consecutive compiled rollouts, concatenated along time."""
+    parts = []
+    for _ in range(num_steps // CHUNK):
+        carry, steps, mask, stats = play(carry, levels, train, CHUNK)
+        parts.append((steps, mask, stats))
+    steps, mask, stats = jax.tree.map(lambda *xs: jnp.concatenate([jnp.atleast_1d(x) for x in xs]), *parts)
+    return carry, steps, mask, jax.tree.map(jnp.sum, stats)
+
+
 def all_train(levels):
     return np.ones(levels.roles.shape[0], bool)
 
@@ -50,10 +63,11 @@ def test_swapping_the_level_batch_mid_episode_credits_the_level_played():
     _, second = load_level_set("handmade:s_lander,s_catapult", SIZE_S)
     assert not ids(first) & ids(second)
     carry = start_rollout(SPEC, PARAMS, first, NUM_ENVS, jax.random.key(0))
-    carry, before, _, _ = play(carry, first, all_train(first), 5)  # 5 of 12 steps: no episode has ended yet
+    carry, before, _, _ = play(carry, first, all_train(first), CHUNK)  # 5 of 12 steps: no episode has ended yet
     assert not bool(before.done.any())
-    # Swap: the running episodes belong to the first batch; the next ones come from the second.
-    carry, after, _, stats = play(carry, second, all_train(second), 2 * SPEC.max_timesteps)
+    # Swap: the running episodes belong to the first batch; the next ones come from the second (25 steps: each
+    # environment ends the carried-over episode and one more).
+    carry, after, _, stats = play_for(carry, second, all_train(second), 5 * CHUNK)
     zeros = jnp.zeros(after.reward.shape)
     results = results_to_host(level_results(after.level_id, after.done, after.solved, after.episode_return, zeros,
                                             zeros, 0, rows=2 * NUM_ENVS + 4))
@@ -65,18 +79,18 @@ def test_swapping_the_level_batch_mid_episode_credits_the_level_played():
     assert sum(v for k, v in credited.items() if k in ids(second)) == NUM_ENVS
     assert set(credited) <= ids(first) | ids(second)
     # The step that ends an episode records the level that episode started on, step after step.
-    ended_first = level_id_values(np.asarray(after.level_id)[SPEC.max_timesteps - 5 - 1])
+    ended_first = level_id_values(np.asarray(after.level_id)[SPEC.max_timesteps - CHUNK - 1])
     assert set(ended_first.tolist()) == ids(first)
 
 
 def test_a_batch_trains_on_every_step_unless_masked():
-    _, levels = load_level_set("handmade:s_easy_car_right", SIZE_S)
+    _, levels = load_level_set("handmade:s_easy_car_right,s_hop_over", SIZE_S)
     carry = start_rollout(SPEC, PARAMS, levels, NUM_ENVS, jax.random.key(1))
-    carry, steps, train_mask, _ = play(carry, levels, all_train(levels), 3)
+    carry, steps, train_mask, _ = play(carry, levels, all_train(levels), CHUNK)
     batch = make_batch(steps, carry.obs, behaviour_version=7, actor_id=2, seq=9, train_mask=train_mask)
-    assert batch.train_mask.shape == (3, NUM_ENVS) and bool(batch.train_mask.all())
+    assert batch.train_mask.shape == (CHUNK, NUM_ENVS) and bool(batch.train_mask.all())
     assert (int(batch.behaviour_version), int(batch.actor_id), int(batch.seq)) == (7, 2, 9)
-    assert steps.level_id.shape == (3, NUM_ENVS, 2) and steps.level_id.dtype == jnp.uint32
+    assert steps.level_id.shape == (CHUNK, NUM_ENVS, 2) and steps.level_id.dtype == jnp.uint32
 
 
 def test_every_step_carries_the_train_flag_of_the_batch_its_episode_started_from():
@@ -91,8 +105,8 @@ def test_every_step_carries_the_train_flag_of_the_batch_its_episode_started_from
     assert np.asarray(carry.trains).tolist() == [True, False, True, False]  # environment i starts on level i % K
     # The same shapes as the test above (one compilation): 5 steps on the first batch, then the second batch while
     # the first batch's episodes are still running, long enough for every environment to start two more.
-    carry, before, before_mask, _ = play(carry, first, first_train, 5)
-    carry, after, after_mask, _ = play(carry, second, second_train, 2 * SPEC.max_timesteps)
+    carry, before, before_mask, _ = play(carry, first, first_train, CHUNK)
+    carry, after, after_mask, _ = play_for(carry, second, second_train, 5 * CHUNK)
     for steps, mask in ((before, before_mask), (after, after_mask)):
         played = level_id_values(np.asarray(steps.level_id))
         expected = np.vectorize(flag_of.__getitem__)(played)
@@ -100,7 +114,7 @@ def test_every_step_carries_the_train_flag_of_the_batch_its_episode_started_from
     # Both flags occur, on both batches' levels, including episodes carried over from the first batch.
     played = level_id_values(np.asarray(after.level_id))
     mask = np.asarray(after_mask)
-    assert set(played[:SPEC.max_timesteps - 5].ravel().tolist()) == ids(first)
+    assert set(played[:SPEC.max_timesteps - CHUNK].ravel().tolist()) == ids(first)
     assert set(played[-1].ravel().tolist()) <= ids(second)
     assert mask.any() and not mask.all()
-    assert not mask[:SPEC.max_timesteps - 5].all() and mask[:SPEC.max_timesteps - 5].any()
+    assert not mask[:SPEC.max_timesteps - CHUNK].all() and mask[:SPEC.max_timesteps - CHUNK].any()

@@ -1,25 +1,41 @@
-"""A deliberately slow learner: actors (configured to drop their oldest batch) keep rolling out without flooding
-anything; drops are counted and every process's resident memory stays flat. Then Ctrl-C stops the run in order
-and the learner's final checkpoint holds its last update."""
+"""`impulse launch curriculum=sfl` on random levels with a deliberately slow learner (one launch, shared by three
+checks to keep the suite short; real processes, real zenoh on loopback):
+
+1. back pressure: actors (configured to drop their oldest batch) keep rolling out without flooding anything;
+   drops are counted and every process's resident memory, the curriculum service's included, stays flat;
+2. the curriculum: the launcher started it, actors train on the levels it serves and report results back, and a
+   person retunes it while it runs with `impulse curriculum set` (a bad value refused, a good one taking effect
+   at the next sample), reads it back with `get` and looks at its buffer with `inspect`;
+3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
+   service checkpoints its buffer."""
 
 from __future__ import annotations
 
-import os
+import json
 import signal
+import subprocess
+import sys
 import time
 
+import numpy as np
 from launch_procs import (
+    REPO,
     StatusWatcher,
     free_port,
     last_update,
     rss_mib,
     service_pids,
     start_launch,
+    stop_launch,
     tail,
     wait_for,
 )
 
+from bus.codec import Kind, decode
+from curriculum.state import ORIGIN_REPLAY
+from curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
 from deploy.config import resolve_config
+from engine.env.spec import EnvSpec
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 
@@ -28,48 +44,91 @@ SAMPLE_S = 2.0
 TREND_LIMIT_MIB = 48.0
 """The learner's resident memory swings by about 80 MiB within each update (one batch in flight, update
 temporaries), so flatness is judged on peaks: the later half's peak may not exceed the earlier half's by more."""
+ENVS = 64  # configs/quick-launch.toml's batch
 
 
-def test_slow_learner_back_pressure_keeps_memory_flat_and_ctrl_c_checkpoints(tmp_path):
+def curriculum_cli(run_dir, *words: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "deploy.cli", "curriculum", *words, "--run", str(run_dir)],
+                          capture_output=True, text=True, timeout=120, cwd=REPO)
+
+
+def check_memory_stays_flat(run_dir, watcher: StatusWatcher) -> None:
+    pids = {"learner": service_pids(run_dir, "learner")[0], "curriculum": service_pids(run_dir, "curriculum")[0],
+            **{f"actor-{i}": service_pids(run_dir, "actor", i)[0] for i in (0, 1)}}
+    drops_before = sum(watcher.poll().get(f"actor-{i}", {}).get("dropped_no_credit", 0) for i in (0, 1))
+    samples: dict[str, list[float]] = {name: [] for name in pids}
+    for _ in range(int(WATCH_S / SAMPLE_S)):
+        for name, pid in pids.items():
+            samples[name].append(rss_mib(pid))
+        time.sleep(SAMPLE_S)
+    statuses = watcher.poll()
+    half = len(samples["learner"]) // 2
+    before = {name: max(values[:half]) for name, values in samples.items()}
+    after = {name: max(values[half:]) for name, values in samples.items()}
+    for name in pids:
+        assert after[name] - before[name] < TREND_LIMIT_MIB, (name, samples[name])
+    drops = sum(statuses[f"actor-{i}"]["dropped_no_credit"] for i in (0, 1))
+    assert drops - drops_before >= 3, f"actors should have replaced held-back batches: {statuses}"
+    assert all(statuses[f"actor-{i}"]["in_flight"] <= 1 for i in (0, 1)), statuses
+    assert statuses["learner"]["queue"] <= 2, statuses["learner"]
+    print(f"peak RSS MiB, first half {before}, second half {after}; batches dropped by actors {drops}")
+
+
+def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
+    got = curriculum_cli(run_dir, "get")
+    assert got.returncode == 0 and "method = sfl" in got.stdout and "sfl_ratio = 0.5" in got.stdout, got
+
+    refused = curriculum_cli(run_dir, "set", "sfl_ratio=7")
+    assert refused.returncode == 2 and "sfl_ratio must be in [0, 1]" in refused.stderr, refused
+
+    changed = curriculum_cli(run_dir, "set", "curriculum.sfl_ratio=1.0", "min_fill=0")
+    assert changed.returncode == 0 and "sfl_ratio: 0.5 -> 1.0" in changed.stdout, changed
+    service_log = run_dir / "logs" / "curriculum.log"
+    wait_for(lambda: "curriculum knob sfl_ratio: 0.5 -> 1.0" in service_log.read_text(), 10,
+             "the service to log the change")
+
+    # The next batch an actor asks for comes wholly from the buffer.
+    template = level_batch_template(EnvSpec().sizes, ENVS)
+    [payload] = watcher.bus.get(watcher.bus.keys.levels_sample, parameters=f"n={ENVS}", timeout_s=30)
+    batch = level_batch_from_message(decode(payload, run=run_dir.name, kinds=Kind.LEVELS),
+                                     level_batch_schema(template), template)
+    assert (np.asarray(batch.origin) == ORIGIN_REPLAY).all()
+
+    inspected = curriculum_cli(run_dir, "inspect", "--json", "--top", "3", "--render", str(tmp_path / "top"))
+    assert inspected.returncode == 0, inspected.stderr
+    report = json.loads(inspected.stdout[inspected.stdout.index("{"):])
+    assert report["method"] == "sfl" and report["knobs"]["sfl_ratio"] == 1.0
+    assert 0 < len(report["top"]) <= 3 and report["summary"]["buffer_fill"] > 0
+    assert len(list((tmp_path / "top").glob("*.png"))) == len(report["top"])
+
+
+def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_path):
     run_dir = tmp_path / "slow"
     port = free_port()
     launch, log = start_launch(run_dir, port, "learner.slow_down_s=1.5", "actors.when_no_credit=drop_oldest",
-                               "actors.credits=1", "total_env_steps=40960000", "checkpoint.every_updates=1000")
+                               "actors.credits=1", "total_env_steps=40960000", "checkpoint.every_updates=1000",
+                               "env.levels=random", "curriculum=sfl", "curriculum.buffer_size=32",
+                               "curriculum.candidate_episodes=1", "curriculum.noop_filter=false")
     watcher = StatusWatcher(run_dir.name, port)
     try:
         wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
-        pids = {"learner": service_pids(run_dir, "learner")[0],
-                **{f"actor-{i}": service_pids(run_dir, "actor", i)[0] for i in (0, 1)}}
-        drops_before = sum(watcher.poll().get(f"actor-{i}", {}).get("dropped_no_credit", 0) for i in (0, 1))
-        samples: dict[str, list[float]] = {name: [] for name in pids}
-        for _ in range(int(WATCH_S / SAMPLE_S)):
-            for name, pid in pids.items():
-                samples[name].append(rss_mib(pid))
-            time.sleep(SAMPLE_S)
-        statuses = watcher.poll()
-        half = len(samples["learner"]) // 2
-        before = {name: max(values[:half]) for name, values in samples.items()}
-        after = {name: max(values[half:]) for name, values in samples.items()}
-        for name in pids:
-            assert after[name] - before[name] < TREND_LIMIT_MIB, (name, samples[name])
-        drops = sum(statuses[f"actor-{i}"]["dropped_no_credit"] for i in (0, 1))
-        assert drops - drops_before >= 3, f"actors should have replaced held-back batches: {statuses}"
-        assert all(statuses[f"actor-{i}"]["in_flight"] <= 1 for i in (0, 1)), statuses
-        assert statuses["learner"]["queue"] <= 2, statuses["learner"]
-        print(f"peak RSS MiB, first half {before}, second half {after}; batches dropped by actors {drops}")
+        check_memory_stays_flat(run_dir, watcher)
 
-        # Ctrl-C: actors stop first, then the learner checkpoints its last update and exits.
+        curriculum = lambda: watcher.poll().get("curriculum", {})  # noqa: E731
+        wait_for(lambda: curriculum().get("results", 0) >= 2 and curriculum().get("buffer_fill", 0) > 0, 120,
+                 "the curriculum to receive results and keep a level", launch, log)
+        check_live_curriculum(run_dir, watcher, tmp_path)
+
+        # Ctrl-C: actors stop first, then the curriculum and the learner checkpoint and exit.
         launch.send_signal(signal.SIGINT)
         assert launch.wait(timeout=240) == 0, tail(log)
     finally:
         watcher.close()
-        if launch.poll() is None:
-            launch.kill()
-        for role in ("learner", "actor"):
-            for pid in service_pids(run_dir, role):
-                os.kill(pid, signal.SIGKILL)
+        stop_launch(launch, run_dir)
     config = resolve_config(TrainConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == last_update(run_dir), "the final checkpoint holds the last update"
-    assert not service_pids(run_dir, "learner") and not service_pids(run_dir, "actor")
+    assert not any(service_pids(run_dir, role) for role in ("learner", "actor", "curriculum"))
     assert "stopping the learner" in log.read_text()
+    assert "curriculum stopped" in (run_dir / "logs" / "curriculum.log").read_text()
+    assert any((run_dir / "curriculum" / "checkpoints").iterdir()), "the service checkpointed its buffer"

@@ -1,8 +1,10 @@
-"""A run killed with SIGKILL mid-training resumes from its newest checkpoint and ends with exactly the parameters
-of a run that was never interrupted (real `impulse train` processes, real orbax checkpoints)."""
+"""`impulse train curriculum=sfl` on random levels, killed with SIGKILL mid-training, resumes from its newest
+checkpoint and ends with exactly the parameters, environments and curriculum buffer of a run that was never
+interrupted (real `impulse train` processes, real orbax checkpoints with the `curriculum` item)."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -21,10 +23,12 @@ from learner.run import build, fused_checkpoint_items
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"
 UPDATES = 8
-# The README's quick config (its compiled training step is shared with the learning test through the cache),
-# stopped after 8 updates, checkpointing every 2, without the final evaluation.
+# The README's quick learner on random levels with a small SFL curriculum, stopped after 8 updates,
+# checkpointing every 2, without the final evaluation.
 SETTINGS = ["--config", str(QUICK), f"total_env_steps={UPDATES * 64 * 64}", "checkpoint.every_updates=2",
-            "checkpoint.keep_last=2", "eval.attempts=0"]
+            "checkpoint.keep_last=2", "eval.attempts=0", "env.levels=random", "curriculum=sfl",
+            "curriculum.buffer_size=32", "curriculum.candidate_episodes=2", "curriculum.min_fill=0",
+            "curriculum.noop_filter=false"]
 
 
 def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
@@ -44,7 +48,7 @@ def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
 def _final_params(run_dir: Path):
     config = resolve_config(TrainConfig, run_dir / "config.toml")
     trainer, _, _, levels = build(config)
-    template = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), levels)
+    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), levels)
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
         items, counters, _ = checkpoints.restore(fused_checkpoint_items(template))
@@ -76,8 +80,16 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
     assert "resumed from checkpoint" in resumed_out
 
     a, b = _final_params(tmp_path / "straight"), _final_params(killed_dir)
+    assert set(a) == {"train", "envs", "curriculum"}
     for left, right in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(left), np.asarray(right))
+    records = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["curriculum_count_inserted"] > 0 and max(r["levels_replay"] for r in records) > 0, (
+        "the SFL buffer filled and was replayed from")
+    curriculum = a["curriculum"]
+    filled = np.asarray(curriculum.buffer.filled)
+    solved = np.asarray(curriculum.buffer.solved)[filled]
+    assert (solved > 0).all(), "SFL keeps no level its policy never solved"
     # Every update appears in the resumed run's metrics, the recomputed ones after the kill included.
     lines = (killed_dir / "metrics.jsonl").read_text().splitlines()
     assert len(lines) >= UPDATES
