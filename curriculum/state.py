@@ -126,7 +126,7 @@ class Counters(NamedTuple):
     evicted: Array  # buffered levels pushed out by a better candidate
     rejected: Array  # scored candidates that did not beat the level they would have replaced
     dropped_candidates: Array  # staged candidates overwritten before they were scored
-    unknown_results: Array  # results for ids neither buffered nor staged (e.g. evicted meanwhile)
+    unknown_results: Array  # results for ids neither buffered nor staged (already scored and turned away, evicted)
     results: Array  # result rows applied
     new_batches: Array
     replay_batches: Array

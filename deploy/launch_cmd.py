@@ -73,6 +73,10 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
             print(f"impulse launch: {run_dir} already holds checkpoints: resume it with --resume {run_dir}, or "
                   "choose another name", file=sys.stderr)
             return EXIT_FAILED
+    if config.curriculum.method != "dr" and not uses_curriculum_service(config):
+        print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
+              f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
+        return EXIT_USAGE
     expected_lag = config.actors.num_actors * config.actors.credits
     if expected_lag > config.ppo.max_policy_lag:
         log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "

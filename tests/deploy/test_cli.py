@@ -58,6 +58,11 @@ def test_curriculum_knob_commands_need_a_run_directory(tmp_path: Path, capsys: p
     assert "no config.toml" in capsys.readouterr().err
 
 
+def test_a_curriculum_on_a_fixed_level_set_is_a_usage_error(tmp_path: Path, capsys) -> None:
+    assert main(["launch", f"run_dir={tmp_path / 'run'}", "curriculum=plr", "env.levels=handmade"]) == 2
+    assert "curriculum.method=plr needs env.levels=random" in capsys.readouterr().err
+
+
 def test_eval_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--checkpoint", str(tmp_path)]) == 2
     assert "no config.toml" in capsys.readouterr().err
