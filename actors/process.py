@@ -8,7 +8,10 @@ One cycle (driven by the shared run loop):
    batch is counted as dropped), so memory stays flat however slow the learner is;
 3. run the jitted rollout of `ppo.num_steps` steps in `ppo.num_envs` environments on the next level batch;
 4. publish the batch (its behaviour version and the learner epoch of the weights that acted ride in the frame
-   header) and the per-level results, and report steps/s and counts on the status line.
+   header) and the per-level results, and report steps/s and counts on the status line;
+5. with a monitor, offer the watched environments' frames to it (`monitor.stream`): the rollout recorded them on
+   the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
+   than slowing the actor.
 
 Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
 `credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
@@ -45,6 +48,8 @@ from learner.agent import Agent
 from learner.config import TrainConfig
 from learner.curriculum_inputs import batch_level_results
 from learner.progress import CycleReport
+from monitor.rollouts import RolloutStream
+from monitor.stream import Monitor
 
 log = logging.getLogger("impulse.actor")
 
@@ -73,8 +78,9 @@ class Actor:
     """One actor process's state and its run-loop `cycle`."""
 
     def __init__(self, config: TrainConfig, index: int, bus: Bus, agent: Agent, env_params: EnvParams,
-                 levels: LevelSource):
+                 levels: LevelSource, monitor: Monitor | None = None):
         self.config = config
+        self.monitor = monitor
         self.index = index
         self.name = actor_name(index)
         self.bus = bus
@@ -88,9 +94,10 @@ class Actor:
         first = levels.next_batch(level_key)
         self.carry = start_rollout(agent.spec, env_params, first.levels, self.num_envs, rollout_key, first.train)
         spec, steps = agent.spec, self.num_steps
+        self.watch = min(config.monitor.watch_envs, self.num_envs) if monitor is not None else 0
         self._rollout = jax.jit(
             lambda params, carry, batch: rollout(agent.act, params, spec, env_params, carry, batch.levels, steps,
-                                                 batch.train),
+                                                 batch.train, self.watch),
             donate_argnums=1,
         )
         rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
@@ -117,6 +124,7 @@ class Actor:
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
                        "weights_by_query": 0}
         self._steps_done = 0
+        self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps) if self.watch else None
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
         self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
@@ -237,6 +245,7 @@ class Actor:
             "rejected": self.bus.rejects.total,
             "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,
+            **({"monitor": self.monitor.status()} if self.monitor is not None else {}),
         }
 
     def _publish_status_if_due(self) -> None:
@@ -255,10 +264,10 @@ class Actor:
         drop_oldest = self.config.actors.when_no_credit == "drop_oldest"
         if not self._has_credit() and not drop_oldest:
             return None
-        start = time.monotonic()
+        start, started_at = time.monotonic(), time.time()
         self.key, level_key = jax.random.split(self.key)
         levels = self.levels.next_batch(level_key, self._publish_status_if_due)
-        self.carry, steps, train_mask, stats = self._rollout(self.params, self.carry, levels)
+        self.carry, steps, train_mask, stats, watched = self._rollout(self.params, self.carry, levels)
         batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask)
         results = self._level_results(self.params, batch) if self.levels.reports_results else None
         batch = jax.device_get(batch)
@@ -271,6 +280,9 @@ class Actor:
         if results is not None:
             self._publish_results(results)
         self._last_cycle_s = time.monotonic() - start
+        if self._stream is not None and watched is not None:
+            self._stream.after_rollout(batch.steps, watched.state, watched.actuation, self.version, started_at,
+                                       self._last_cycle_s)
         env_steps = self.num_envs * self.num_steps
         self._steps_done += env_steps
         stats = {k: float(v) for k, v in jax.device_get(stats._asdict()).items()}

@@ -17,6 +17,11 @@ Train flags. A curriculum may hand out levels only to evaluate them (robust PLR 
 on them), so every environment carries the flag of the episode it is playing (`RolloutCarry.trains`). An episode
 takes its flag from the batch it starts from (`train[k]` for level k of `levels`, the level the auto-reset picks),
 and keeps it when the caller swaps the batch before it ends, just as it keeps its level.
+
+Watching. A live view (`monitor`) needs more than training does: where every body of a few environments is at
+every step and what the action drove. `watch=W` records that for the first W environments (`Watched`, [T, W]); it
+costs a slice per step and stays on the device until someone copies it. With the default `watch=0` nothing is
+recorded and the compiled rollout is the training one.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from actors.trajectory import Trajectory
+from engine.env.actions import actuation
 from engine.env.env import reset_batch
 from engine.env.episodes import LoopCarry, Step, episode_loop
 from engine.env.spec import EnvParams, EnvSpec
@@ -57,6 +63,21 @@ class RolloutStats(NamedTuple):
     nan: Array
     return_sum: Array
     length_sum: Array
+
+
+class Watched(NamedTuple):
+    """The watched environments at each step: [T, W] leading axes."""
+
+    state: EnvState  # before the step (the scene the action was chosen in)
+    actuation: Array  # [T, W, J + T_thrusters] what the action drove: motor commands, then thrust
+
+
+class RolloutResult(NamedTuple):
+    carry: RolloutCarry
+    steps: Trajectory  # [T, E]
+    train_mask: Array  # [T, E] the train flag of the episode each step belongs to
+    stats: RolloutStats
+    watched: Watched | None  # None unless `watch` > 0
 
 
 def _train_flags(levels: Level, train: Array | None) -> Array:
@@ -90,10 +111,10 @@ def rollout(
     levels: Level,
     num_steps: int,
     train: Array | None = None,
-) -> tuple[RolloutCarry, Trajectory, Array, RolloutStats]:
+    watch: int = 0,
+) -> RolloutResult:
     """Run `num_steps` steps of every environment, episodes that start here taking their train flag from `train`
-    [K] bool (None: all trained on). Returns (carry, steps [T, E], train mask [T, E] (the flag of the episode each
-    step belongs to), whole-batch episode stats)."""
+    [K] bool (None: all trained on); record the first `watch` environments for a live view."""
     flags = _train_flags(levels, train)
 
     def act(obs: Any, state: EnvState, key: Array) -> tuple[Array, tuple[Array, Array]]:
@@ -104,7 +125,13 @@ def rollout(
         # An episode that ends here is followed by one on levels[next_level % K] (the env's auto-reset rule).
         return jnp.where(step.done, flags[step.state.next_level % flags.shape[0]], step.extra)
 
-    def record(step: Step) -> tuple[Trajectory, Array, RolloutStats]:
+    def watched(step: Step) -> Watched | None:
+        if watch <= 0:
+            return None
+        state = jax.tree.map(lambda x: x[:watch], step.state)
+        return Watched(state, jax.vmap(lambda a, level: actuation(spec, a, level))(step.action[:watch], state.level))
+
+    def record(step: Step) -> tuple[Trajectory, Array, RolloutStats, Watched | None]:
         info, done = step.info, step.done
         log_prob, value = step.aux
         finished_return = jnp.where(done, info["returned_episode_return"], 0.0)
@@ -129,11 +156,11 @@ def rollout(
             return_sum=finished_return.sum(),
             length_sum=jnp.where(done, info["returned_episode_length"], 0).sum(),
         )
-        return transition, step.extra, episode
+        return transition, step.extra, episode, watched(step)
 
     start = LoopCarry(carry.env_state, carry.obs, carry.key, carry.trains)
-    end, (trajectory, train_mask, per_step) = episode_loop(
+    end, (trajectory, train_mask, per_step, trace) = episode_loop(
         spec, env_params, levels, start, num_steps, act, record, next_trains
     )
     stats = jax.tree.map(lambda x: x.sum(), per_step)
-    return RolloutCarry(end.state, end.obs, end.key, end.extra), trajectory, train_mask, stats
+    return RolloutResult(RolloutCarry(end.state, end.obs, end.key, end.extra), trajectory, train_mask, stats, trace)

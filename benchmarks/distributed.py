@@ -580,7 +580,7 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     held = {"carry": start_rollout(spec, env_params, first, ppo.num_envs, key)}
 
     def one_rollout() -> Any:
-        held["carry"], steps, train_mask, _ = roll(params, held["carry"], first)
+        held["carry"], steps, train_mask, _, _ = roll(params, held["carry"], first)
         held["steps"], held["train_mask"] = steps, train_mask
         return steps
 

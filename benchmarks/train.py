@@ -59,7 +59,7 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
     roll = jax.jit(lambda c: rollout(agent.act, c.train.params, spec, trainer.env_params, c.envs, levels,
                                      ppo.num_steps))
     _, rollout_s = time_jitted(lambda: roll(state["carry"]), repeats)
-    envs, trajectory, train_mask, _ = roll(state["carry"])
+    envs, trajectory, train_mask, _, _ = roll(state["carry"])
     batch = make_batch(trajectory, envs.obs, state["carry"].train.policy_version, train_mask=train_mask)
     update = jax.jit(lambda c, b, k: ppo_update(c.train, b, k, apply_fn=agent.apply,
                                                  distribution=agent.distribution, optimizer=trainer.optimizer,

@@ -38,6 +38,7 @@ from curriculum.results import empty_results
 from curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
 from curriculum.stats import buffer_summary, buffer_table, histogram
 from curriculum.wire import ResultsError, control_reply, level_batch_arrays, results_from_message
+from engine.levels.level import Level
 from engine.physics.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
@@ -253,16 +254,18 @@ class CurriculumService:
                         for r in mutated[:top]],
         }
 
+    def top_levels(self, top: int) -> Level:
+        """The `top` buffered levels by score, best first (as `inspect` ranks them), as one batch on the host."""
+        table = buffer_table(self.state, self.curriculum.spec.sizes)
+        slots = table["slot"][np.argsort(-table["score"], kind="stable")[:top]]
+        return jax.device_get(jax.tree.map(lambda x: x[slots], self.state.buffer.levels))
+
     def _answer_inspect(self, query: IncomingQuery) -> None:
         try:
             request = control_reply(query.payload or b"{}")
             top = int(request.get("top", 10))
             report = self.inspect(top)
-            arrays = {}
-            if request.get("levels"):
-                table = buffer_table(self.state, self.curriculum.spec.sizes)
-                slots = table["slot"][np.argsort(-table["score"], kind="stable")[:top]]
-                arrays = tree_arrays(jax.tree.map(lambda x: x[slots], self.state.buffer.levels))
+            arrays = tree_arrays(self.top_levels(top)) if request.get("levels") else {}
             query.reply(encode(Kind.CONTROL, arrays, run=self.bus.keys.run, meta={"report": report}))
         except (ValueError, TypeError) as err:
             query.reply(encode(Kind.CONTROL, {}, run=self.bus.keys.run, meta={"error": str(err)}))

@@ -12,12 +12,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from deploy import curriculum_cmd, launch_cmd, levels_cmd, services_cmd
+from deploy import curriculum_cmd, launch_cmd, levels_cmd, services_cmd, view_cmd
 from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
 
 ISSUE_MULTI_HOST = "the multi-host issue (routers, TLS, several machines)"
-ISSUE_MONITORING = "the live-monitoring issue (Rerun)"
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
 
@@ -54,7 +53,7 @@ COMMANDS: tuple[Command, ...] = (
         "launch",
         "run learner, curriculum and actors as local processes",
         "Local multi-process run: one learner, actors.num_actors actors and, when env.levels is random, the "
-        "curriculum service (and, once built, a Rerun viewer) as separate processes talking over Zenoh, with a "
+        "curriculum service (and, with --view, the Rerun viewer) as separate processes talking over Zenoh, with a "
         "live status display. A "
         "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
         "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
@@ -118,7 +117,12 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "view",
         "open the Rerun viewer on a run",
-        "Open the Rerun viewer with Impulse's blueprint on a live or recorded run.",
-        pending=ISSUE_MONITORING,
+        "The Rerun viewer for a run, live: starts the server the run's processes stream to (monitor.url) and "
+        "the native viewer when there is a display, else the web viewer, whose address it prints. --record "
+        "FILE.rrd also writes everything streamed to a file (open it later with `rerun FILE.rrd`). `impulse "
+        "launch --view` starts it for you.",
+        config=TrainConfig,
+        run=view_cmd.run_view,
+        arguments=view_cmd.add_view_arguments,
     ),
 )

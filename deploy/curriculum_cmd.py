@@ -14,6 +14,7 @@ import logging
 import os
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -141,8 +142,8 @@ def _render(config: TrainConfig, arrays: dict, report: dict, out: Path) -> None:
 
     from engine.env.spec import env_from_config
     from engine.levels.generator import sample_random_level
-    from engine.levels.render import render_level, save_png
     from engine.physics.pytree import tree_from_arrays
+    from monitor.png import render_level, save_png
 
     spec, _ = env_from_config(config.env)
     template = sample_random_level(jax.random.PRNGKey(0), spec.sizes)
@@ -207,6 +208,7 @@ def serve(args: argparse.Namespace) -> int:
     from bus.session import Bus
     from curriculum.algorithms import Curriculum
     from curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
+    from deploy.monitoring import CurriculumLogger, open_monitor
     from deploy.runloop import StopFlag
     from engine.env.spec import env_from_config
     from learner.checkpoint import CURRICULUM, Checkpointer
@@ -223,19 +225,23 @@ def serve(args: argparse.Namespace) -> int:
             raise ValueError(str(err)) from None
 
     with Checkpointer(checkpoint_dir, checkpoint_config) as checkpoints, \
-            Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus:
+            Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
         service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
                                     item=CURRICULUM, seed=config.seed, resume=args.resume,
                                     status_every_s=config.actors.status_every_s)
         service.warm_up()
         log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
                  config.curriculum.buffer_size, curriculum.batch_size)
+        watcher = CurriculumLogger(monitor, service, config) if monitor is not None else None
         save_every = max(config.checkpoint.every_updates, 1)
         last_saved = service.result_messages
         with StopFlag() as stop:
             while not stop.stop:
                 if service.poll() is None:
                     time.sleep(0.002)
+                if watcher is not None:
+                    watcher.poll()
                 if service.result_messages - last_saved >= save_every:
                     service.save()
                     last_saved = service.result_messages

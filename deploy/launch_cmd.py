@@ -7,6 +7,10 @@ curriculum service (`impulse curriculum serve --run RUN_DIR --resume`), shows th
 process that dies (the learner with `--resume`, from its newest checkpoint) after a back-off, and ends when the
 learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first, then the curriculum and the learner,
 which write final checkpoints; a second Ctrl-C kills everything at once.
+
+`--view` turns monitoring on for every process (`monitor.enabled`) and starts `impulse view RUN_DIR` first, so
+the run streams its rollouts, curves and curriculum to a Rerun viewer from the start (`--record FILE.rrd` also
+writes them to a file); the viewer is stopped last.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from deploy.config import ConfigError, load_run_config, write_resolved_config
 from deploy.runloop import StopFlag
 from deploy.status_display import StatusDisplay, render
 from deploy.supervisor import Child, Supervisor, describe_exit
+from deploy.view_cmd import viewer_config
 from learner.config import TrainConfig
 
 log = logging.getLogger("impulse.launch")
@@ -35,6 +40,7 @@ EXIT_FAILED = 1
 EXIT_USAGE = 2
 LEARNER = "learner"
 CURRICULUM = "curriculum"
+VIEWER = "viewer"
 POLL_S = 0.2
 ACTOR_STOP_TIMEOUT_S = 20.0
 LEARNER_STOP_TIMEOUT_S = 180.0
@@ -45,6 +51,11 @@ def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
                         help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there")
     parser.add_argument("--status-every", type=float, default=10.0, metavar="SECONDS",
                         help="when the output is not a terminal, log the status lines this often (default 10)")
+    parser.add_argument("--view", action="store_true",
+                        help="stream to a Rerun viewer: starts `impulse view` (native with a display, else the web "
+                        "viewer, whose address is logged) and turns monitoring on in every process")
+    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
+                        help="with --view: also write everything streamed to FILE.rrd")
 
 
 def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
@@ -82,13 +93,24 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
         log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "
                     "ppo.max_policy_lag=%d: a learner-bound run will drop batches as stale", config.actors.num_actors,
                     config.actors.credits, expected_lag, config.ppo.max_policy_lag)
+    if args.record is not None and not args.view:
+        print("impulse launch: --record needs --view (it records what the processes stream to the viewer)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    if args.view:
+        config = viewer_config(config)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_resolved_config(config, run_dir)
 
     resume_first = args.resume is not None
-    children = [Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
+    children = []
+    if args.view:
+        record = ["--record", str(args.record)] if args.record is not None else []
+        children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "deploy.cli", "view", str(run_dir),
+                                                       *record], run_dir / "logs" / "viewer.log"))
+    children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
                                                              *(["--resume"] if restart or resume_first else [])),
-                      run_dir / "logs" / "learner.log")]
+                      run_dir / "logs" / "learner.log"))
     if uses_curriculum_service(config):
         # Always --resume: its own checkpoints hold every buffered level (none yet on a fresh run).
         children.append(Child(CURRICULUM, lambda restart: _service_argv("curriculum", run_dir, "--resume",
@@ -110,6 +132,12 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
         statuses: dict[str, dict] = {}
         for child in children:
             supervisor.start(child.name)
+        if args.view:
+            from monitor.viewer import has_display, web_viewer_address
+
+            where = "the native viewer" if has_display() else web_viewer_address(config.monitor.url,
+                                                                                  config.monitor.web_port)
+            log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
         with StopFlag() as stop:
             while not stop.stop:
@@ -138,13 +166,15 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     display.show(render(statuses, children, LEARNER))
                 time.sleep(POLL_S)
             interrupted = stop.stop
-            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM)]
+            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
             supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
             if uses_curriculum_service(config):
                 supervisor.stop([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
             if not finished:
                 log.info("stopping the learner (it writes a final checkpoint)")
                 supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
+            if args.view:
+                supervisor.stop([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
             display.forget()
             display.show(render(statuses, children, LEARNER))
     scores = run_dir / "eval.json"

@@ -139,7 +139,7 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from engine.levels.render import render_level, save_png
+    from monitor.png import render_level, save_png
 
     if not args.scale > 0:
         print(f"impulse levels render: --scale must be positive, got {args.scale}", file=sys.stderr)

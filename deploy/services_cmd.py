@@ -12,9 +12,13 @@ import dataclasses
 import logging
 import os
 import sys
+from collections.abc import Callable
+from contextlib import nullcontext
 from pathlib import Path
+from typing import Any
 
 from deploy.config import ConfigError, config_to_toml, load_run_config, write_resolved_config
+from deploy.monitoring import MetricsLogger, open_monitor
 from deploy.train_cmd import enable_compile_cache
 from learner.config import TrainConfig
 
@@ -82,7 +86,8 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
         write_resolved_config(config, run_dir)
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    with Bus(config.bus, config.name, LEARNER_ROLE, LEARNER_ID, listen=args.hub) as bus:
+    with Bus(config.bus, config.name, LEARNER_ROLE, LEARNER_ID, listen=args.hub) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
         try:
             service = LearnerService(config, run_dir, config_to_toml(config), bus, agent, env_params,
                                      resume=args.resume)
@@ -100,7 +105,7 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
                 env_steps_done=service.env_steps,
                 updates_done=service.update,
                 window_size=config.checkpoint.every_updates,
-                on_cycle=lambda record, window: service.note_window(window),
+                on_cycle=_learner_on_cycle(service, monitor),
             )
         finally:
             service.close()
@@ -110,6 +115,17 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
         final_evaluation(config, agent, env_params, params, run_dir)
         log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
     return 0
+
+
+def _learner_on_cycle(service: Any, monitor: Any) -> Callable[[dict[str, Any], dict[str, float]], None]:
+    """The learner notes the window for its status line; with a monitor, the metrics go to Rerun too."""
+
+    def note(record: dict[str, Any], window: dict[str, float]) -> None:
+        service.note_window(window)
+
+    if monitor is None:
+        return note
+    return MetricsLogger(monitor, "learner", service.status, step_timeline="update", then=note)
 
 
 def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
@@ -132,16 +148,18 @@ def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus:
+    with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
         levels: LevelSource
         if uses_curriculum_service(config):
             template = level_batch_template(spec.sizes, config.ppo.num_envs)
             levels = CurriculumLevels(bus, template, config.curriculum.method)
         else:
             levels = LocalLevels(config.env, spec.sizes)
-        actor = Actor(config, args.index, bus, agent, env_params, levels)
+        actor = Actor(config, args.index, bus, agent, env_params, levels, monitor)
         log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
                  config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)
         share = config.total_env_steps // max(config.actors.num_actors, 1)
-        run_loop(actor, metrics_path=None, checkpoint_every=0, total_env_steps=share)
+        on_cycle = MetricsLogger(monitor, actor.name, actor.status) if monitor is not None else None
+        run_loop(actor, metrics_path=None, checkpoint_every=0, total_env_steps=share, on_cycle=on_cycle)
     return 0

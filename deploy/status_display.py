@@ -42,7 +42,18 @@ def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
     waiting = f" | waiting for {status['waiting']}" if status.get("waiting") else ""
     return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']} | lag "
             f"{'-' if lag is None else lag} | in flight {status.get('in_flight', 0)} | dropped "
-            f"{status.get('dropped_no_credit', 0)} | levels {status.get('levels', '?')}{waiting}")
+            f"{status.get('dropped_no_credit', 0)} | levels {status.get('levels', '?')}{waiting}"
+            f"{streaming_part(status.get('monitor'))}")
+
+
+def streaming_part(monitor: dict[str, Any] | None) -> str:
+    """What an actor streams to Rerun, for its status line ("" when monitoring is off)."""
+    if not monitor:
+        return ""
+    if not monitor.get("viewer"):
+        return " | stream: no viewer"
+    return (f" | stream: {monitor.get('frames_logged', 0):,} frames, {monitor.get('rollouts_dropped', 0)} rollouts "
+            "dropped")
 
 
 def curriculum_line(status: dict[str, Any] | None) -> str:
@@ -56,7 +67,7 @@ def curriculum_line(status: dict[str, Any] | None) -> str:
 
 
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
-           curriculum_name: str = "curriculum") -> list[str]:
+           curriculum_name: str = "curriculum", viewer_name: str = "viewer") -> list[str]:
     """The display's lines: every child with its process state, then its latest status."""
     learner = statuses.get(learner_name)
     lags = (learner or {}).get("actor_lag", {})
@@ -76,6 +87,8 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
             body = learner_line(status)
         elif child.name == curriculum_name:
             body = curriculum_line(status)
+        elif child.name == viewer_name:
+            body = f"Rerun viewer (its address is logged above and in {child.log_path})"
         else:
             body = actor_line(status, lags.get(child.name))
         lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")

@@ -25,9 +25,9 @@ STABLE_AFTER_S = 60.0
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
-    """In the child before exec (Linux): receive SIGTERM when the launcher dies, even by SIGKILL, so no service
-    outlives its launcher. Elsewhere a no-op."""
+def die_with_parent() -> None:
+    """In a child before exec (Linux): receive SIGTERM when the parent dies, even by SIGKILL, so no service (nor a
+    viewer `impulse view` started) outlives the process that started it. Elsewhere a no-op."""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     except (OSError, AttributeError):
@@ -60,7 +60,7 @@ class Child:
             # A session of its own: a Ctrl-C at the terminal reaches the launcher only, which stops the children
             # in order.
             self.process = subprocess.Popen(self.argv(restart), stdout=out, stderr=subprocess.STDOUT, env=env,
-                                            start_new_session=True, preexec_fn=_die_with_parent)
+                                            start_new_session=True, preexec_fn=die_with_parent)
         self.started_at = time.monotonic()
         self.restart_at = None
         if restart:

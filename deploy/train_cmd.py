@@ -6,9 +6,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from deploy.config import ConfigError, config_to_toml, load_run_config, resolve_config, write_resolved_config
 from learner.config import TrainConfig
@@ -129,6 +133,10 @@ def run_train(args: argparse.Namespace, config: TrainConfig) -> int:
     return 0
 
 
+EVAL_SECONDS_PER_STEP = 1 / 30
+"""Evaluation episodes are recorded as if played at 30 agent steps per second of `wall` time."""
+
+
 def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
                         help="a run directory (its newest checkpoint) or one checkpoint's directory")
@@ -138,6 +146,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (same seed, same numbers)")
     parser.add_argument("--greedy", action="store_true", help="take the most likely action instead of sampling")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores as JSON here")
+    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
+                        help="also play one episode per level and write it to a Rerun recording (open it with "
+                        "`rerun FILE.rrd`), drawn as live rollouts are")
 
 
 def _run_dir_of(path: Path) -> Path:
@@ -161,11 +172,40 @@ def run_eval(args: argparse.Namespace, config: TrainConfig) -> int:
     step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
     try:
         table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
-                             seed=args.seed, greedy=args.greedy)
+                             seed=args.seed, greedy=args.greedy,
+                             recorder=_recorder(config.name, args.record) if args.record is not None else None)
     except RunError as err:
         print(f"impulse eval: {err}", file=sys.stderr)
         return EXIT_FAILED
     print(format_scores(table))
+    if args.record is not None:
+        print(f"recorded one episode per level in {args.record} (open it with `rerun {args.record}`)")
     if args.json is not None:
         args.json.write_text(json.dumps(table, indent=2))
     return 0
+
+
+def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
+    """Writes evaluation episodes to an .rrd file, under rollouts/eval/<level name>."""
+
+    def record(names: list[str], episodes: Any, policy_version: int) -> None:
+        import numpy as np
+
+        from monitor.blueprint import episodes_blueprint
+        from monitor.rollouts import RolloutFrames, log_rollout
+        from monitor.stream import open_recording
+
+        entity_names = tuple(re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem or name) for name in names)
+        steps, first = episodes.steps, episodes.first
+        frames = RolloutFrames(
+            source="eval", states=episodes.watched.state, actuation=episodes.watched.actuation,
+            reward=np.asarray(steps.reward), done=np.asarray(steps.done), solved=np.asarray(steps.solved),
+            truncated=np.asarray(steps.truncated), episode_return=np.asarray(steps.episode_return),
+            policy_version=policy_version, first_step=0, episodes_before=np.zeros(len(names), np.int64),
+            started_at=time.time(), seconds=first.shape[0] * EVAL_SECONDS_PER_STEP, names=entity_names, keep=first)
+        recording = open_recording(run, path=path, blueprint=episodes_blueprint("eval", entity_names))
+        log_rollout(recording, frames)
+        recording.flush()
+        recording.disconnect()
+
+    return record

@@ -176,6 +176,43 @@ class LearnerConfig:
 
 
 @dataclass(frozen=True)
+class MonitorConfig:
+    """Live monitoring in Rerun (docs/monitoring.md): what the processes of a distributed run stream to the
+    viewer that `impulse view` hosts. `impulse launch --view` turns it on and starts the viewer."""
+
+    enabled: bool = False
+    """Stream rollouts, curves and the curriculum to the Rerun server at `url`; off, no Rerun code runs."""
+    url: str = "rerun+http://127.0.0.1:9876/proxy"
+    """The Rerun gRPC server the processes log to (`impulse view` hosts it on this port)."""
+    watch_envs: int = 1
+    """Environments each actor streams (its first ones); 0 streams curves only."""
+    frames_per_s: float = 30.0
+    """Most frames per second an actor streams; it streams whole rollouts, skipping rollouts to keep to this."""
+    queue_rollouts: int = 2
+    """Rollouts waiting for the logging thread; one more is dropped (and counted), never waited for."""
+    curriculum_every_s: float = 10.0
+    """How often the curriculum service logs its histograms, statistics and gallery of top levels."""
+    gallery: int = 6
+    """Top levels by score drawn in the curriculum gallery."""
+    server_memory_limit: str = "1GiB"
+    """What the viewer's server keeps for late viewers; the oldest data goes first (`rerun --server-memory-limit`)."""
+    viewer_memory_limit: str = "2GiB"
+    """The native viewer's store; it forgets the oldest data beyond this (`rerun --memory-limit`)."""
+    web_port: int = 9090
+    """Port of the web viewer `impulse view` serves on a machine without a display."""
+
+    def __post_init__(self) -> None:
+        if not (self.url.startswith("rerun") and self.url.endswith("/proxy")):
+            raise ValueError(f"monitor.url must look like rerun+http://HOST:PORT/proxy, got {self.url!r}")
+        if self.watch_envs < 0 or self.frames_per_s <= 0 or self.queue_rollouts < 1:
+            raise ValueError(f"monitor.watch_envs must be >= 0, monitor.frames_per_s > 0 and monitor.queue_rollouts "
+                             f">= 1, got {self.watch_envs}, {self.frames_per_s}, {self.queue_rollouts}")
+        if self.curriculum_every_s <= 0 or self.gallery < 0 or not 0 < self.web_port < 65536:
+            raise ValueError(f"monitor.curriculum_every_s must be > 0, monitor.gallery >= 0 and monitor.web_port a "
+                             f"port, got {self.curriculum_every_s}, {self.gallery}, {self.web_port}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """One training run: the config `impulse train` resolves and writes as config.toml in its run directory."""
 
@@ -195,6 +232,7 @@ class TrainConfig:
     actors: ActorConfig = field(default_factory=ActorConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     bus: BusConfig = field(default_factory=BusConfig)
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
 
     def output_dir(self) -> Path:
         """The run directory with the run name filled in."""

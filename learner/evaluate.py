@@ -3,6 +3,9 @@ hand-made levels (solve rate = fraction of attempts whose episode ended with gre
 
 All K x attempts episodes run side by side in one jitted scan of `max_timesteps` steps; an environment's first
 episode is the one counted, whatever it does after its auto-reset.
+
+`record_episodes` plays one more episode per level through the rollout with every environment watched, so that
+`impulse eval --record` can draw them (`monitor.rollouts`) with the same code that draws live rollouts.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from actors.rollout import Watched, rollout, start_rollout
+from actors.trajectory import Trajectory
 from engine.env.episodes import first_episodes
 from engine.env.spec import EnvParams
 from engine.env.state import EnvState
@@ -67,3 +72,25 @@ def evaluate(
         mean_length=length.mean(axis=1),
         failed_rate=failed.mean(axis=1),
     )
+
+
+class RecordedEpisodes(NamedTuple):
+    """One episode per level, [T, K]: T = the longest episode allowed, K levels (environment k plays level k)."""
+
+    watched: Watched
+    steps: Trajectory
+    first: np.ndarray  # [T, K] bool: the step belongs to the level's first episode (the one recorded)
+
+
+def record_episodes(agent: Agent, params: Any, env_params: EnvParams, levels: Level, key: Array,
+                    greedy: bool = False) -> RecordedEpisodes:
+    """Play each of `levels` [K] once from its start, recording every step for drawing."""
+    spec = agent.spec
+    policy = agent.act_greedy if greedy else agent.act
+    num_levels = levels.roles.shape[0]
+    carry = start_rollout(spec, env_params, levels, num_levels, key)
+    played = jax.jit(lambda c: rollout(policy, params, spec, env_params, c, levels, spec.max_timesteps,
+                                       watch=num_levels))(carry)
+    done = np.asarray(played.steps.done)
+    ended_before = np.cumsum(done, axis=0) - done
+    return RecordedEpisodes(played.watched, jax.device_get(played.steps), ended_before == 0)

@@ -85,7 +85,7 @@ class FusedTrainer:
             origin_metrics = {f"levels_{name}": (chosen.origin == origin).mean() for name, origin in
                               (("new", ORIGIN_NEW), ("replay", ORIGIN_REPLAY), ("mutated", ORIGIN_MUTATED))}
         acting = carry.train.params
-        envs, trajectory, train_mask, stats = rollout(
+        envs, trajectory, train_mask, stats, _ = rollout(
             self.agent.act, acting, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps, flags
         )
         # The parameters that acted are the ones trained, so the batch's version equals the learner's: lag 0.

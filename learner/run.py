@@ -14,6 +14,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ from engine.levels.sets import HANDMADE, RANDOM, load_level_set
 from learner.agent import Agent, make_agent
 from learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
-from learner.evaluate import LevelScores, evaluate
+from learner.evaluate import LevelScores, RecordedEpisodes, evaluate, record_episodes
 from learner.fused import FusedCarry, FusedTrainer
 from learner.networks import describe_parameters
 from learner.progress import CycleReport
@@ -224,8 +225,11 @@ def evaluate_run(
     attempts: int | None = None,
     seed: int = 0,
     greedy: bool = False,
+    recorder: Callable[[list[str], RecordedEpisodes, int], None] | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Scores per level of a run's checkpoint (newest unless `step`), on `levels` (default: as after training)."""
+    """Scores per level of a run's checkpoint (newest unless `step`), on `levels` (default: as after training).
+    `recorder(names, episodes, policy_version)`, if given, receives one more episode per level, recorded for
+    drawing (`learner.evaluate.record_episodes`)."""
     trainer, agent, names, train_levels = build(config)
     sizes = agent.spec.sizes
     if levels:
@@ -240,9 +244,14 @@ def evaluate_run(
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         try:
-            items, _, _ = checkpoints.restore({TRAIN: template}, step)
+            items, counters, _ = checkpoints.restore({TRAIN: template}, step)
         except CheckpointError as err:
             raise RunError(str(err)) from err
-    scores = evaluate(agent, items[TRAIN].params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
+    params = items[TRAIN].params
+    scores = evaluate(agent, params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
                       attempts=attempts or config.eval.attempts, greedy=greedy)
+    if recorder is not None:
+        episodes = record_episodes(agent, params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed + 1),
+                                   greedy)
+        recorder(list(eval_names), episodes, int(counters.get("policy_version", counters.get("update", 0))))
     return _scores_table(eval_names, scores)

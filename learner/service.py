@@ -65,7 +65,7 @@ def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps
     def one_batch() -> TrajectoryBatch:
         carry = start_rollout(agent.spec, env_params, levels, num_envs, jax.random.PRNGKey(0))
         params = agent.init(jax.random.PRNGKey(0))
-        carry, steps, train_mask, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
+        carry, steps, train_mask, _, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
         return make_batch(steps, carry.obs, 0, train_mask=train_mask)
 
     return jax.eval_shape(one_batch)

@@ -7,6 +7,7 @@ without the processes) and the dependency graph without cycles. Imports inside f
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -70,11 +71,33 @@ RULES = {
         lambda n: _within(n, "engine", "bus", "curriculum"),
     ),
     "bus imports only bus": (("bus/**/*.py",), lambda n: _within(n, "bus")),
+    "monitor imports only engine, bus and monitor": (
+        ("monitor/**/*.py",),
+        lambda n: _within(n, "engine", "bus", "monitor"),
+    ),
     "nothing but deploy, benchmarks and tests imports deploy": (
         tuple(f"{room}/**/*.py" for room in sorted(OURS - {"deploy", "benchmarks"})),
         lambda n: not _within(n, "deploy"),
     ),
 }
+
+
+def third_party_imports(path: Path) -> set[str]:
+    """Top-level names of what `path` imports from outside the standard library and our rooms."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.split(".")[0])
+    return {name for name in found if name not in sys.stdlib_module_names and name not in OURS}
+
+
+def test_engine_needs_only_jax_and_numpy():
+    """Drawing libraries (Pillow, Rerun) belong to monitor: the engine computes geometry, never pictures."""
+    extra = {str(f.relative_to(REPO)): sorted(third_party_imports(f) - {"jax", "numpy"})
+             for f in _files("engine/**/*.py")}
+    assert {name: found for name, found in extra.items() if found} == {}
 
 
 @pytest.mark.parametrize("rule", list(RULES))

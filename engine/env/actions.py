@@ -95,6 +95,11 @@ def engine_actions(u: Array, level: Level) -> Array:
     return jnp.concatenate([motor, thrust])
 
 
+def actuation(spec: EnvSpec, action: Array, level: Level) -> Array:
+    """What one agent action drives in `level`: the per-slot engine actions [J + T] (one environment)."""
+    return engine_actions(unified_action(spec, action), level)
+
+
 def noop_action(spec: EnvSpec) -> Array:
     """The action that drives nothing (all zeros; 8 for discrete)."""
     space = action_space(spec)

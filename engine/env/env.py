@@ -33,7 +33,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from engine.env.actions import engine_actions, unified_action
+from engine.env.actions import actuation
 from engine.env.observations import observe
 from engine.env.reward import dense_reward, goal_distance, pair_roles, sparse_reward
 from engine.env.spec import EnvParams, EnvSpec
@@ -112,7 +112,7 @@ def step(
     """One agent step with auto-reset from `levels` (see the module docstring). `key` is accepted for API
     symmetry with stochastic environments and unused: the dynamics are deterministic."""
     del key
-    actions = engine_actions(unified_action(spec, action), state.level)
+    actions = actuation(spec, action, state.level)
     sim, sparse, distance = _simulate(spec, params, state.sim, state.level, actions)
 
     timestep = state.timestep + 1

@@ -34,7 +34,7 @@ def noop_policy(params, obs, key):
 @functools.partial(jax.jit, static_argnums=3)
 def play(carry, levels, train, num_steps):
     """One compiled rollout per (K, num_steps), shared by the tests: `train` is always an array."""
-    return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps, train)
+    return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps, train)[:4]
 
 
 CHUNK = 5  # every rollout in these tests is CHUNK steps of K = 2 levels: one compilation for the whole module

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 import tomllib
@@ -46,11 +47,26 @@ def test_print_config_shows_overrides(tmp_path: Path) -> None:
 
 
 def test_unbuilt_command_says_which_issue(capsys: pytest.CaptureFixture[str]) -> None:
-    for name, issue in (("router", "multi-host issue"), ("view", "live-monitoring issue")):
+    for name, issue in (("router", "multi-host issue"),):
         assert main([name]) == 2
         err = capsys.readouterr().err.strip()
         assert "not built yet" in err and issue in err
         assert "\n" not in err
+
+
+def test_view_needs_a_run_directory_and_a_free_port(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["view", str(tmp_path)]) == 2
+    assert "no config.toml" in capsys.readouterr().err
+    (tmp_path / "config.toml").write_text("[monitor]\nurl = 'http://localhost:1/'\n")
+    assert main(["view", str(tmp_path)]) == 2
+    assert "monitor.url must look like rerun+http://HOST:PORT/proxy" in capsys.readouterr().err
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        (tmp_path / "config.toml").write_text(f"[monitor]\nurl = 'rerun+http://127.0.0.1:{port}/proxy'\n")
+        assert main(["view", str(tmp_path)]) == 1
+        assert "something already listens" in capsys.readouterr().err
 
 
 def test_curriculum_knob_commands_need_a_run_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

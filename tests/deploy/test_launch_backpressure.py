@@ -7,7 +7,10 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    person retunes it while it runs with `impulse curriculum set` (a bad value refused, a good one taking effect
    at the next sample), reads it back with `get` and looks at its buffer with `inspect`;
 3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
-   service checkpoints its buffer."""
+   service checkpoints its buffer;
+4. `--view --record`: every process streams to one Rerun recording (the run's name as its id) through the viewer
+   the launcher started, and the .rrd file holds the actors' rollouts, the learner's curves and the curriculum's
+   histograms, gallery and knob change. The memory check above runs with the streaming on."""
 
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from launch_procs import (
     tail,
     wait_for,
 )
+from rerun.chunk import RrdReader
 
 from bus.codec import Kind, decode
 from curriculum.state import ORIGIN_REPLAY
@@ -102,13 +106,36 @@ def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
     assert len(list((tmp_path / "top").glob("*.png"))) == len(report["top"])
 
 
+def check_recording(path, run: str) -> None:
+    """The .rrd the viewer wrote: one recording of the run, with what every process streamed."""
+    reader = RrdReader(path)
+    assert [(s.application_id, s.recording_id) for s in reader.recordings()] == [("impulse", run)]
+    rows: dict[str, int] = {}
+    knob_lines: list[str] = []
+    for chunk in reader.stream().collect().stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        if chunk.entity_path == "/curriculum/knob_changes":
+            knob_lines += [line for row in chunk.to_record_batch().column("TextLog:text").to_pylist() for line in row]
+    for actor in ("actor-0", "actor-1"):
+        assert rows.get(f"/rollouts/{actor}/env-0/scene/polygons", 0) >= 32, (actor, sorted(rows))
+        assert rows.get(f"/metrics/{actor}/steps_per_s", 0) >= 2
+    assert rows.get("/metrics/learner/total_loss", 0) >= 3 and rows.get("/metrics/learner/window/solve_rate", 0)
+    assert rows.get("/curriculum/histograms/score", 0) >= 1 and rows.get("/curriculum/stats/buffer_fill", 0) >= 1
+    assert rows.get("/curriculum/top/0/scene/polygons", 0) >= 1
+    assert "sfl_ratio: 0.5 -> 1.0" in knob_lines, knob_lines
+
+
 def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_path):
     run_dir = tmp_path / "slow"
     port = free_port()
+    recording = tmp_path / "run.rrd"
     launch, log = start_launch(run_dir, port, "learner.slow_down_s=1.5", "actors.when_no_credit=drop_oldest",
                                "actors.credits=1", "total_env_steps=40960000", "checkpoint.every_updates=1000",
                                "env.levels=random", "curriculum=sfl", "curriculum.buffer_size=32",
-                               "curriculum.candidate_episodes=1", "curriculum.noop_filter=false")
+                               "curriculum.candidate_episodes=1", "curriculum.noop_filter=false",
+                               "--view", "--record", str(recording), "monitor.curriculum_every_s=2",
+                               f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy",
+                               f"monitor.web_port={free_port()}")
     watcher = StatusWatcher(run_dir.name, port)
     try:
         wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
@@ -124,7 +151,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
         assert launch.wait(timeout=240) == 0, tail(log)
     finally:
         watcher.close()
-        stop_launch(launch, run_dir)
+        stop_launch(launch, run_dir, ("learner", "actor", "curriculum", "view"))
     config = resolve_config(TrainConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == last_update(run_dir), "the final checkpoint holds the last update"
@@ -132,3 +159,5 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     assert "stopping the learner" in log.read_text()
     assert "curriculum stopped" in (run_dir / "logs" / "curriculum.log").read_text()
     assert any((run_dir / "curriculum" / "checkpoints").iterdir()), "the service checkpointed its buffer"
+    assert "Rerun viewer: http://127.0.0.1:" in log.read_text()
+    check_recording(recording, run_dir.name)

@@ -1,7 +1,8 @@
 """A real distributed run (`impulse launch`: learner + 2 actor processes over Zenoh on loopback, CPU) that learns
 our easy car while it is attacked: malformed and foreign messages on every key, an actor killed with SIGKILL,
 then the learner killed with SIGKILL. It must keep training, restart what died, lose nothing beyond one
-checkpoint interval, and still reach an 80% solve rate."""
+checkpoint interval, and still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer
+running: they count what they could not stream and neither stall nor keep it."""
 
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from launch_procs import (
     tail,
     wait_for,
 )
+from rerun.chunk import RrdReader
 
 from bus.codec import Kind, encode
 from bus.keys import SCHEMA_MAJOR
@@ -92,8 +94,10 @@ def inject_malformed(watcher: StatusWatcher) -> None:
 def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     run_dir = tmp_path / "faults"
     port = free_port()
+    # Monitoring on with no viewer running: the processes must neither stall nor keep what they cannot send.
     launch, log = start_launch(run_dir, port, f"total_env_steps={UPDATES * STEPS_PER_UPDATE}",
-                               f"checkpoint.every_updates={EVERY}")
+                               f"checkpoint.every_updates={EVERY}", "monitor.enabled=true",
+                               f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy")
     watcher = StatusWatcher(run_dir.name, port)
     learner_log, actor0_log = run_dir / "logs" / "learner.log", run_dir / "logs" / "actor-0.log"
     try:
@@ -109,6 +113,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
             return expected <= set(status.get("rejected", {})) and status.get("dropped_old_epoch", 0) >= 1
 
         wait_for(learner_rejected, 30, f"the learner to count rejects {expected}", launch, log)
+        streams = {i: watcher.poll()[f"actor-{i}"]["monitor"] for i in (0, 1)}
+        assert all(not s["viewer"] and s["frames_logged"] == 0 and s["no_viewer"] >= 1 for s in streams.values()), (
+            streams)
         wait_for(lambda: all(watcher.poll().get(f"actor-{i}", {}).get("rejected", 0) >= 1 for i in (0, 1)), 30,
                  "both actors to count the foreign weights (and actor-1 the garbage credit)", launch, log)
         after_injection = last_update(run_dir)
@@ -160,7 +167,27 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     config = resolve_config(TrainConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
-    # `impulse eval` reads the learner's train-only checkpoint.
+    # `impulse eval` reads the learner's train-only checkpoint; --record draws one episode per level to an .rrd.
+    recorded = tmp_path / "eval.rrd"
     evaluated = subprocess.run([sys.executable, "-m", "deploy.cli", "eval", "--checkpoint", str(run_dir),
-                                "--attempts", "4"], capture_output=True, text=True, timeout=300)
+                                "--attempts", "4", "--record", str(recorded)], capture_output=True, text=True,
+                               timeout=300)
     assert evaluated.returncode == 0 and "s_easy_car_right" in evaluated.stdout, evaluated.stderr
+    check_eval_recording(recorded, scores)
+
+
+def check_eval_recording(path, scores: dict) -> None:
+    """One episode per evaluated level, each drawn frame by frame and ended by one outcome line."""
+    rows: dict[str, int] = {}
+    outcomes: dict[str, list[str]] = {}
+    for chunk in RrdReader(path).stream().collect().stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        if chunk.entity_path.endswith("/episodes"):
+            lines = [t for row in chunk.to_record_batch().column("TextLog:text").to_pylist() for t in row]
+            outcomes.setdefault(chunk.entity_path, []).extend(lines)
+    for level in scores:
+        entity = f"/rollouts/eval/{level}"
+        assert rows.get(f"{entity}/scene/polygons", 0) >= 2, (level, sorted(rows))
+        assert rows[f"{entity}/scene/polygons"] == rows[f"{entity}/reward"]
+        [outcome] = outcomes.get(f"{entity}/episodes", [None])
+        assert outcome is not None and outcome.startswith("episode 0 "), (level, outcome)

@@ -1,0 +1,81 @@
+"""The viewer side of `impulse view`: which Rerun processes to start so a run's processes have a server to stream
+to and a person has something to look at.
+
+- With a display (DISPLAY or WAYLAND_DISPLAY set): the native viewer, which hosts the gRPC server itself on the
+  port of `monitor.url`, with its memory limit (it forgets the oldest data beyond it).
+- Without one (a headless or remote machine): `rerun --serve-web`, the gRPC server plus the web viewer over
+  HTTP; `web_viewer_address` is the address to open (through an SSH tunnel of both ports when remote).
+- `--record FILE` adds a headless recorder: a Rerun process connected to the server that appends everything it
+  receives to an .rrd file (the whole run, for `rerun FILE` later).
+
+The server keeps at most its memory limit for late viewers, dropping the oldest first; the native and web viewers
+keep theirs. That is the retention of a live run: the last `server_memory_limit` of data, and the .rrd file when
+recording. Both bind to 127.0.0.1 unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import quote
+
+from monitor.stream import server_address
+
+
+def rerun_binary() -> str:
+    """The `rerun` command installed with rerun-sdk (beside this Python, else on PATH)."""
+    beside = Path(sys.executable).parent / "rerun"
+    if beside.is_file():
+        return str(beside)
+    found = shutil.which("rerun")
+    if found is None:
+        raise FileNotFoundError("the `rerun` command (from the rerun-sdk package) is not installed")
+    return found
+
+
+def has_display() -> bool:
+    """Whether a native window can open here."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+@dataclass(frozen=True)
+class ViewerPlan:
+    """The processes `impulse view` starts and what it tells the user."""
+
+    commands: tuple[tuple[str, ...], ...]
+    native: bool
+    address: str
+    """What to open: the web viewer's address, or the gRPC url the native viewer serves."""
+
+
+def web_viewer_address(url: str, web_port: int, host: str | None = None) -> str:
+    """The web viewer's address with the run's gRPC url filled in (the form the Rerun web viewer reads)."""
+    grpc_host, _ = server_address(url)
+    shown = host or grpc_host
+    return f"http://{shown}:{web_port}/?url={quote(url.replace(grpc_host, shown, 1), safe='')}"
+
+
+def viewer_plan(url: str, *, web: bool | None = None, web_port: int = 9090, bind: str = "127.0.0.1",
+                server_memory_limit: str = "1GiB", viewer_memory_limit: str = "2GiB",
+                record: Path | None = None) -> ViewerPlan:
+    """The Rerun commands for a run streaming to `url`: native viewer or web viewer (`web`=None: web exactly when
+    there is no display), plus a recorder when `record` is given."""
+    _, port = server_address(url)
+    rerun = rerun_binary()
+    native = not web if web is not None else has_display()
+    if native:
+        serve = (rerun, "--port", str(port), "--bind", bind, "--memory-limit", viewer_memory_limit,
+                 "--server-memory-limit", server_memory_limit, "--hide-welcome-screen")
+        address = url
+    else:
+        serve = (rerun, "--serve-web", "--port", str(port), "--web-viewer-port", str(web_port), "--bind", bind,
+                 "--server-memory-limit", server_memory_limit)
+        address = web_viewer_address(url, web_port)
+    commands = [serve]
+    if record is not None:
+        # --port 0: the recorder's own listener (every rerun process has one) takes a free port, not the run's.
+        commands.append((rerun, url, "--save", str(record), "--port", "0", "--bind", "127.0.0.1"))
+    return ViewerPlan(tuple(commands), native, address)

@@ -1,0 +1,183 @@
+"""Rollouts in Rerun: a known short rollout logged to an .rrd file and read back with Rerun's own reader (entities,
+component types, timelines, row counts, colours by role, the geometry the PNG renderer draws), and the background
+logger's promise: under load it drops rollouts instead of blocking, and with no viewer it logs nothing."""
+
+from __future__ import annotations
+
+import functools
+import socket
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pyarrow as pa
+import pytest
+from monitor_scenes import small_level
+from rerun.chunk import RrdReader
+
+from actors.rollout import rollout, start_rollout
+from engine.env.spec import EnvParams, EnvSpec
+from engine.levels.level import stack_levels
+from engine.levels.scene import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
+from engine.physics.sizes import SIZE_S
+from monitor.draw import SCENE_PARTS
+from monitor.png import render_scene, world_to_pixel
+from monitor.rollouts import RolloutFrames, log_rollout
+from monitor.stream import Monitor, open_recording
+
+SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=4)  # an episode ends within the rollout
+STEPS = 6
+ENVS = 2
+DRIVE = np.array([0, 1, 0, 0, 1, 0], np.int32)  # motor binding 1 forward, thruster binding 0 on
+ENTITY = "/rollouts/actor-7/env-0"
+
+
+def drive_policy(params, obs, key):
+    num = jax.tree.leaves(obs)[0].shape[0]
+    return jnp.broadcast_to(jnp.asarray(DRIVE), (num, DRIVE.size)), jnp.zeros(num), jnp.zeros(num)
+
+
+@functools.cache
+def played():
+    """Six steps of two environments on the small level, driving its motor and thruster, the first one watched."""
+    levels = stack_levels([small_level()])
+    carry = start_rollout(SPEC, EnvParams(), levels, ENVS, jax.random.key(0))
+    result = jax.jit(lambda c: rollout(drive_policy, None, SPEC, EnvParams(), c, levels, STEPS, watch=1))(carry)
+    return jax.device_get(result)
+
+
+def frames() -> RolloutFrames:
+    steps, watched = played().steps, played().watched
+    return RolloutFrames(
+        source="actor-7", states=watched.state, actuation=watched.actuation, reward=steps.reward[:, :1],
+        done=steps.done[:, :1], solved=steps.solved[:, :1], truncated=steps.truncated[:, :1],
+        episode_return=steps.episode_return[:, :1], policy_version=3, first_step=100,
+        episodes_before=np.array([5]), started_at=1.7e9, seconds=0.5)
+
+
+def read_back(path) -> dict[str, list]:
+    """Entity path -> its chunks, from the file as Rerun reads it."""
+    reader = RrdReader(path)
+    [store] = reader.recordings()
+    assert (store.application_id, store.recording_id) == ("impulse", "run-a")
+    chunks: dict[str, list] = {}
+    for chunk in reader.stream().collect().stream():
+        chunks.setdefault(chunk.entity_path, []).append(chunk)
+    return chunks
+
+
+def column(chunks: list, name: str) -> list:
+    """All values of one column over an entity's chunks, rows in log order of each chunk."""
+    values = []
+    for chunk in chunks:
+        batch = chunk.to_record_batch()
+        matching = [n for n in batch.schema.names if n == name or n.endswith(f":{name}")]
+        assert matching, (name, batch.schema.names)
+        values += batch.column(matching[0]).to_pylist()
+    return values
+
+
+def packed(rgb) -> int:
+    r, g, b = rgb
+    return (r << 24) | (g << 16) | (b << 8) | 0xFF
+
+
+def test_a_rollout_recorded_to_rrd_reads_back(tmp_path) -> None:
+    path = tmp_path / "rollout.rrd"
+    recording = open_recording("run-a", path=path)
+    assert log_rollout(recording, frames()) == STEPS
+    recording.flush()
+    recording.disconnect()
+    chunks = read_back(path)
+
+    for part in SCENE_PARTS:
+        assert sum(c.num_rows for c in chunks[f"{ENTITY}/scene/{part}"]) == STEPS, part
+    assert sum(c.num_rows for c in chunks[f"{ENTITY}/reward"]) == STEPS
+    for entity in (f"{ENTITY}/scene/polygons", f"{ENTITY}/reward"):
+        for chunk in chunks[entity]:
+            assert {"env_step", "episode", "episode_step", "wall"} <= set(chunk.timeline_names)
+    assert column(chunks[f"{ENTITY}/reward"], "env_step") == list(range(100, 100 + STEPS))
+    # The episode ends at the time limit (4 steps): episode 5 for steps 0..3, then episode 6 from its start.
+    assert column(chunks[f"{ENTITY}/reward"], "episode_step") == [0, 1, 2, 3, 0, 1]
+    assert column(chunks[f"{ENTITY}/reward"], "episode") == [5, 5, 5, 5, 6, 6]
+    [[ended]] = column(chunks[f"{ENTITY}/episodes"], "TextLog:text")
+    assert ended.startswith("episode 5 timed out") and "policy version 3" in ended
+    assert len(column(chunks[f"{ENTITY}/info"], "TextDocument:text")) == 2  # logged when the episode changes
+
+    schema_types = {c.to_record_batch().schema.field(n).metadata.get(b"rerun:component_type", b"").decode()
+                    for cs in chunks.values() for c in cs for n in c.to_record_batch().schema.names}
+    assert {"rerun.components.LineStrip2D", "rerun.components.Position2D", "rerun.components.Radius",
+            "rerun.components.Color", "rerun.components.Vector2D", "rerun.components.Scalar",
+            "rerun.components.Text"} <= schema_types
+
+    # Colours by role: the green box and the fixed arena polygons; the red ball and the fixed (darker) blue one.
+    polygon_colours = column(chunks[f"{ENTITY}/scene/polygons"], "LineStrips2D:colors")[0]
+    assert polygon_colours.count(packed(ROLE_COLOURS[1])) == 1
+    assert polygon_colours.count(packed(FIXED_NEUTRAL)) == 4 and len(polygon_colours) == 5
+    circle_colours = column(chunks[f"{ENTITY}/scene/circles"], "Points2D:colors")[0]
+    assert sorted(circle_colours) == sorted([packed(ROLE_COLOURS[3]), packed(tuple(c // 2 for c in ROLE_COLOURS[2]))])
+    # Motors and thrusters: the driven joint is labelled with its command, the firing thruster has a flame.
+    assert column(chunks[f"{ENTITY}/scene/joints"], "Points2D:labels")[0] == ["+1"]
+    assert all(len(v) == 1 for v in column(chunks[f"{ENTITY}/scene/flames"], "Arrows2D:vectors"))
+
+
+def test_the_png_renderer_draws_the_same_geometry(tmp_path) -> None:
+    """The outlines Rerun got, back in world coordinates, enclose pixels of their own colour in the PNG."""
+    path = tmp_path / "scene.rrd"
+    recording = open_recording("run-a", path=path)
+    log_rollout(recording, frames())
+    recording.flush()
+    recording.disconnect()
+    chunks = read_back(path)
+    strips = column(chunks[f"{ENTITY}/scene/polygons"], "LineStrips2D:strips")[-1]
+    colours = column(chunks[f"{ENTITY}/scene/polygons"], "LineStrips2D:colors")[-1]
+    last = jax.tree.map(lambda x: x[-1, 0], played().watched.state)
+    image = render_scene(scene_drawing(last.level, last.sim))
+    for strip, colour in zip(strips, colours, strict=True):
+        world = np.asarray(strip)[:-1] * [1, -1] + [0, 5]  # the view's y is down
+        centre = world.mean(axis=0)
+        if not (0 < centre[0] < 5 and 0 < centre[1] < 5):
+            continue  # arena walls outside the picture
+        rgb = ((colour >> 24) & 255, (colour >> 16) & 255, (colour >> 8) & 255)
+        assert tuple(image[world_to_pixel(*centre)]) == rgb
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_logger_drops_rollouts_under_load_and_never_blocks(tmp_path) -> None:
+    slow = frames()
+
+    def slow_job(recording) -> int:
+        time.sleep(0.2)  # a viewer far slower than the actor
+        return log_rollout(recording, slow)
+
+    with Monitor("run-a", path=tmp_path / "load.rrd", frame_queue=1, frames_per_s=1e6) as monitor:
+        start = time.perf_counter()
+        offered = [monitor.offer_frames(slow_job) for _ in range(20)]
+        offering_s = time.perf_counter() - start
+        assert offering_s < 0.1, "offering frames must not wait for the logger"
+        assert offered.count(False) >= 17 and monitor.counts["rollouts_dropped"] == offered.count(False)
+    assert monitor.counts["rollouts_logged"] == offered.count(True)
+    assert monitor.counts["frames_logged"] == STEPS * offered.count(True)
+    assert monitor.counts["no_viewer"] == 0
+
+
+def test_with_no_viewer_nothing_is_logged_or_kept() -> None:
+    url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    with Monitor("run-a", url=url, probe_every_s=0.05) as monitor:
+        time.sleep(0.3)  # a few probes
+        assert not monitor.viewer_up and not monitor.wants_frames(STEPS)
+        assert all(monitor.log(lambda recording: 0) for _ in range(5))
+        time.sleep(0.2)
+        assert monitor.counts["no_viewer"] == 5 and monitor.counts["records_logged"] == 0
+
+
+def test_a_bad_url_is_refused_at_once() -> None:
+    with pytest.raises(ValueError, match="not a Rerun gRPC url"):
+        Monitor("run-a", url="http://127.0.0.1:9876/")
+    assert pa is not None
