@@ -57,7 +57,7 @@ class MetricsLogger:
         self.monitor.log(lambda rec: log_process_metrics(rec, self.process, values, step=step))
         if time.monotonic() - self._status_at >= STATUS_EVERY_S:
             self._status_at = time.monotonic()
-            status = self.status()
+            status = {"status": self.status()}  # apart from the cycle's metrics: some names are in both
             self.monitor.log(lambda rec: log_process_metrics(rec, self.process, status))
 
 

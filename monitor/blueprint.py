@@ -14,11 +14,12 @@ from monitor.rollouts import env_entity
 
 ARENA_BOUNDS = rrb.VisualBounds2D(x_range=[0.0, ARENA_METRES], y_range=[0.0, ARENA_METRES])
 LEARNER_CURVES = {
-    "losses": ("total_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"),
+    "loss": ("total_loss", "value_loss"),
+    "policy": ("policy_loss", "entropy", "approx_kl", "clip_fraction"),
     "episodes": ("window/solve_rate", "window/episode_return"),
-    "throughput": ("consumed_steps_per_s", "updates_per_s"),
-    "lag and drops": ("policy_lag", "queue", "dropped_stale", "dropped_overflow", "dropped_old_epoch", "lost"),
+    "lag and queue": ("policy_lag", "queue"),
 }
+DROPS = ("dropped_stale", "dropped_overflow", "dropped_old_epoch", "lost")
 CURRICULUM_CURVES = {
     "buffer scores": ("score_q10", "score_q50", "score_q90", "score_replay_weighted"),
     "buffer solve rates": ("solve_rate_mean", "learnable", "never_solved", "always_solved"),
@@ -52,11 +53,15 @@ def default_blueprint(actors: Sequence[str], watched: int = 1, gallery: int = 6,
         rrb.Grid(*scenes, name="live rollouts") if scenes else rrb.TextDocumentView(name="no rollouts streamed"),
         rrb.TimeSeriesView(name="rewards", origin="rollouts"),
         rrb.TextLogView(name="episodes", origin="rollouts"),
-        row_shares=[3, 1, 1], name="rollouts")
+        row_shares=[5, 2, 2], name="rollouts")
     learner = f"{METRICS}/learner"
     curves = rrb.Vertical(
         *[_curves(name, learner, fields) for name, fields in LEARNER_CURVES.items()],
-        rrb.TimeSeriesView(name="actors", origin=METRICS, contents=[f"$origin/{a}/steps_per_s" for a in actors]),
+        rrb.TimeSeriesView(name="env steps/s", origin=METRICS, contents=[
+            "$origin/learner/status/consumed_steps_per_s", *[f"$origin/{a}/status/steps_per_s" for a in actors]]),
+        rrb.TimeSeriesView(name="drops", origin=METRICS, contents=[
+            *[f"$origin/learner/status/{d}" for d in DROPS],
+            *[f"$origin/{a}/status/{c}" for a in actors for c in ("dropped_no_credit", "monitor/rollouts_dropped")]]),
         name="training")
     columns: list[rrb.Container] = [rollouts, curves]
     if curriculum:

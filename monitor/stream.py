@@ -156,14 +156,15 @@ class Monitor:
     # -- the logging thread --------------------------------------------------------------------------------------
 
     def _probe(self) -> None:
-        if self.url is None:
-            up = True
-        else:
-            up = server_reachable(self.url)
+        up = self.url is None or server_reachable(self.url)
         if up and self._recording is None:
             self._recording = open_recording(self.run, url=self.url, path=self.path, blueprint=self.blueprint)
             log.info("streaming to Rerun at %s (recording %s)", self.url or self.path, self.run)
-        if up != self.viewer_up:
+        elif up and not self.viewer_up and self.url is not None:
+            # The viewer came back: Rerun's sink does not reconnect to a restarted server by itself.
+            assert self._recording is not None
+            self._recording.connect_grpc(self.url, default_blueprint=self.blueprint)
+        if up != self.viewer_up and self.url is not None:
             log.info("Rerun viewer at %s %s", self.url, "reachable" if up else "gone: dropping what is logged")
         self.viewer_up = up
 
@@ -208,5 +209,5 @@ class Monitor:
             try:
                 self._recording.flush(timeout_sec=FLUSH_TIMEOUT_S)
                 self._recording.disconnect()
-            except Exception:
-                log.exception("could not flush the Rerun recording")
+            except RuntimeError as err:  # the viewer went away with data in flight
+                log.warning("could not flush the Rerun recording: %s", err)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
@@ -26,13 +25,22 @@ from monitor.stream import server_address
 
 
 def rerun_binary() -> str:
-    """The `rerun` command installed with rerun-sdk (beside this Python, else on PATH)."""
-    beside = Path(sys.executable).parent / "rerun"
-    if beside.is_file():
-        return str(beside)
+    """The Rerun executable itself. rerun-sdk installs it inside the `rerun_cli` package; the `rerun` console
+    script beside Python only wraps it in a Python process that does not pass signals on, so stopping the wrapper
+    would leave the server running. RERUN_CLI_PATH overrides it, as it does for that script."""
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    try:
+        import rerun_cli
+    except ImportError:
+        rerun_cli = None
+    if rerun_cli is not None:
+        inside = Path(rerun_cli.__file__).parent / "rerun"
+        if inside.is_file():
+            return str(inside)
     found = shutil.which("rerun")
     if found is None:
-        raise FileNotFoundError("the `rerun` command (from the rerun-sdk package) is not installed")
+        raise FileNotFoundError("the Rerun viewer (the `rerun` command of the rerun-sdk package) is not installed")
     return found
 
 

@@ -41,6 +41,7 @@ import itertools
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import socket
@@ -90,8 +91,9 @@ class Children:
     def log_tail(self, proc: subprocess.Popen[bytes], lines: int = 15) -> str:
         for p, log in self.procs:
             if p is proc:
-                text = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
-                return "\n".join(text[-lines:]) if text else "(no output)"
+                text = re.sub(r"\x1b\[[0-9;]*m", "", log.read_text(errors="replace"))
+                keep = [ln for ln in text.splitlines() if ln.strip() and not re.match(r"\s+(\d+: |at )", ln)]
+                return "\n".join(keep[-lines:]) if keep else "(no output)"
         return ""
 
     def close(self) -> None:
@@ -122,13 +124,13 @@ def _group_alive(pgid: int) -> bool:
 
 
 def find_rerun() -> str:
-    candidate = Path(sys.executable).parent / "rerun"
-    if candidate.is_file() and os.access(candidate, os.X_OK):
-        return str(candidate)
+    for candidate in (Path(sys.executable).parent / "rerun", Path(__file__).resolve().parents[2] / ".venv/bin/rerun"):
+        if candidate.is_file() and os.access(candidate, os.X_OK):
+            return str(candidate)
     found = shutil.which("rerun")
     if found:
         return found
-    raise ScreenshotError("rerun CLI not found next to the Python interpreter or on PATH (pip install rerun-sdk)")
+    raise ScreenshotError("rerun CLI not found next to python, in .venv or on PATH (pip install rerun-sdk)")
 
 
 def find_chromium() -> str:
@@ -222,6 +224,7 @@ class McpClient:
 def shot_native(source: str, out: Path, width: int, height: int, wait: float, deadline: float, tmp: Path) -> None:
     rerun = find_rerun()
     children = Children(tmp)
+    viewer: subprocess.Popen[bytes] | None = None
     try:
         port = free_port()
         viewer = children.start(
@@ -257,7 +260,7 @@ def shot_native(source: str, out: Path, width: int, height: int, wait: float, de
         mcp.tool("rerun_run_command", {"id": "recording.seek_to_end_and_follow"})
         # The headless viewer only paints on demand, and its start-up toasts only age while it paints:
         # keep it busy while waiting so that chunks get fetched and the toasts fade out.
-        wait_until = min(time.monotonic() + wait, deadline)
+        wait_until = time.monotonic() + wait
         while time.monotonic() < wait_until:
             mcp.tool("rerun_get_state")
             time.sleep(0.2)
@@ -266,6 +269,15 @@ def shot_native(source: str, out: Path, width: int, height: int, wait: float, de
             out.unlink()
         mcp.tool("rerun_save_screenshot", {"file_path": str(out), "max_size": 0})
         check_png(out)
+    except ScreenshotError as err:
+        # A viewer that dies (e.g. no usable graphics adapter) shows up first as a failing MCP call: report the cause.
+        if viewer is not None and not isinstance(err, SourceError):
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                viewer.wait(timeout=2.0)
+            if viewer.returncode is not None:
+                msg = f"the viewer exited with code {viewer.returncode}:\n{children.log_tail(viewer)}"
+                raise ScreenshotError(msg) from err
+        raise
     finally:
         children.close()
 
@@ -407,12 +419,12 @@ def shot_web(source: str, out: Path, width: int, height: int, wait: float, deadl
             if time.monotonic() > deadline:
                 raise ScreenshotError("timed out waiting for the web viewer to start")
             time.sleep(0.25)
-        time.sleep(min(2.0, max(0.0, deadline - time.monotonic())))  # let the first data arrive
+        time.sleep(2.0)  # let the first data arrive before seeking
         devtools.evaluate("document.querySelector('canvas').focus()")
         for kind in ("rawKeyDown", "keyUp"):  # Ctrl+Shift+Right: go to the end of the timeline and follow
             devtools.call("Input.dispatchKeyEvent", type=kind, key="ArrowRight", code="ArrowRight",
                           windowsVirtualKeyCode=39, nativeVirtualKeyCode=39, modifiers=2 | 8)  # fmt: skip
-        time.sleep(max(0.0, min(wait, deadline - time.monotonic())))
+        time.sleep(wait)
         data = devtools.call("Page.captureScreenshot", format="png")["data"]
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(base64.b64decode(data))
@@ -438,7 +450,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wait", type=float, default=5.0,
                         help="seconds to wait after the data has loaded, before the capture (default 5)")  # fmt: skip
     parser.add_argument("--method", choices=("auto", "native", "web"), default="auto")
-    parser.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds (default 120)")
+    timeout_help = "give up if the viewer or the data is not up after this many seconds (default 120)"
+    parser.add_argument("--timeout", type=float, default=120.0, help=timeout_help)
     args = parser.parse_args(argv)
 
     try:
@@ -471,8 +484,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"viewer_screenshot: wrote {out} ({name}, {time.monotonic() - t0:.1f}s)", file=sys.stderr)
         return 0
-    if any("No graphics adapter" in e or "adapter" in e.lower() for e in errors):
-        print("hint: on a machine without a GPU, `apt-get install mesa-vulkan-drivers` (lavapipe)", file=sys.stderr)
+    if any(word in e for e in errors for word in ("adapter", "render context", "graphics")):
+        print("hint: without a GPU the native viewer needs Mesa's lavapipe: apt-get install mesa-vulkan-drivers",
+              file=sys.stderr)  # fmt: skip
     return 1
 
 

@@ -120,6 +120,7 @@ def check_recording(path, run: str) -> None:
         assert rows.get(f"/rollouts/{actor}/env-0/scene/polygons", 0) >= 32, (actor, sorted(rows))
         assert rows.get(f"/metrics/{actor}/steps_per_s", 0) >= 2
     assert rows.get("/metrics/learner/total_loss", 0) >= 3 and rows.get("/metrics/learner/window/solve_rate", 0)
+    assert rows.get("/metrics/learner/status/consumed_steps_per_s", 0) >= 2
     assert rows.get("/curriculum/histograms/score", 0) >= 1 and rows.get("/curriculum/stats/buffer_fill", 0) >= 1
     assert rows.get("/curriculum/top/0/scene/polygons", 0) >= 1
     assert "sfl_ratio: 0.5 -> 1.0" in knob_lines, knob_lines

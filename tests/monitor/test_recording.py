@@ -5,13 +5,16 @@ logger's promise: under load it drops rollouts instead of blocking, and with no 
 from __future__ import annotations
 
 import functools
+import signal
 import socket
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pyarrow as pa
 import pytest
 from monitor_scenes import small_level
 from rerun.chunk import RrdReader
@@ -22,6 +25,7 @@ from engine.levels.level import stack_levels
 from engine.levels.scene import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
 from engine.physics.sizes import SIZE_S
 from monitor.draw import SCENE_PARTS
+from monitor.metrics import log_scalars
 from monitor.png import render_scene, world_to_pixel
 from monitor.rollouts import RolloutFrames, log_rollout
 from monitor.stream import Monitor, open_recording
@@ -31,6 +35,7 @@ STEPS = 6
 ENVS = 2
 DRIVE = np.array([0, 1, 0, 0, 1, 0], np.int32)  # motor binding 1 forward, thruster binding 0 on
 ENTITY = "/rollouts/actor-7/env-0"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def drive_policy(params, obs, key):
@@ -180,4 +185,66 @@ def test_with_no_viewer_nothing_is_logged_or_kept() -> None:
 def test_a_bad_url_is_refused_at_once() -> None:
     with pytest.raises(ValueError, match="not a Rerun gRPC url"):
         Monitor("run-a", url="http://127.0.0.1:9876/")
-    assert pa is not None
+
+
+def processes_using(port: int) -> list[int]:
+    """PIDs whose command line names `port` (Rerun servers left behind would show here)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            words = (entry / "cmdline").read_bytes().split(b"\0") if entry.name.isdigit() else []
+        except OSError:
+            continue
+        if str(port).encode() in words and any(b"rerun" in w for w in words):
+            found.append(int(entry.name))
+    return found
+
+
+def view(run_dir: Path, record: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "deploy.cli", "view", str(run_dir), "--web", "--record",
+                             str(record)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def wait_until(condition, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def rows_of(path: Path, entity: str) -> list[float]:
+    return [v for c in RrdReader(path).stream().collect().stream() if c.entity_path == entity
+            for row in c.to_record_batch().column("Scalars:scalars").to_pylist() for v in row]
+
+
+def test_impulse_view_can_come_and_go_during_a_run(tmp_path) -> None:
+    """A process streams before, during, between and after two `impulse view --record` sessions: each file holds
+    what was logged while its viewer was up, nothing is kept for a viewer that is not there, and stopping the
+    viewer leaves no Rerun server behind."""
+    port = free_port()
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    (tmp_path / "config.toml").write_text(f"name = 'come-and-go'\n[monitor]\nurl = '{url}'\nweb_port = "
+                                          f"{free_port()}\n")
+    values = iter(range(100))
+
+    def log_five(monitor: Monitor) -> None:
+        for _ in range(5):
+            value = float(next(values))
+            monitor.log(lambda rec, value=value: log_scalars(rec, "metrics/test", {"x": value}))
+        time.sleep(0.5)
+
+    with Monitor("come-and-go", url=url, probe_every_s=0.1) as monitor:
+        log_five(monitor)  # 0..4: no viewer yet
+        for record in (tmp_path / "first.rrd", tmp_path / "second.rrd"):
+            viewer = view(tmp_path, record)
+            wait_until(lambda: monitor.viewer_up)
+            log_five(monitor)  # 5..9, then 15..19
+            time.sleep(1.0)
+            viewer.send_signal(signal.SIGINT)
+            assert viewer.wait(30) == 0
+            assert processes_using(port) == []
+            wait_until(lambda: not monitor.viewer_up)
+            log_five(monitor)  # 10..14, then 20..24: the viewer is gone
+        assert monitor.counts["no_viewer"] == 15 and monitor.counts["records_logged"] == 10
+    assert rows_of(tmp_path / "first.rrd", "/metrics/test/x") == [5, 6, 7, 8, 9]
+    assert rows_of(tmp_path / "second.rrd", "/metrics/test/x") == [15, 16, 17, 18, 19]
