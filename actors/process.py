@@ -124,7 +124,8 @@ class Actor:
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
                        "weights_by_query": 0}
         self._steps_done = 0
-        self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps) if self.watch else None
+        self._stream = (RolloutStream(monitor, self.name, self.watch, self.num_steps, config.monitor.contacts)
+                        if monitor is not None and self.watch else None)
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
         self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
@@ -156,6 +157,7 @@ class Actor:
             queried = bool(answers) and not payloads
             payloads = answers[-1:] + payloads
         for payload in payloads[-1:]:
+            first = self.params is None
             try:
                 self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
             except Rejected as err:
@@ -163,8 +165,9 @@ class Actor:
                 continue
             if queried:
                 self.counts["weights_by_query"] += 1
-                log.info("adopted the learner's current weights by query: version %d, epoch %d", self.version,
-                         self.epoch)
+            if first:
+                log.info("adopted the learner's current weights %s: version %d, epoch %d",
+                         "by query" if queried else "from its cached broadcast", self.version, self.epoch)
 
     # -- credits ------------------------------------------------------------------------------------------
 

@@ -188,6 +188,8 @@ class MonitorConfig:
     """Environments each actor streams (its first ones); 0 streams curves only."""
     frames_per_s: float = 30.0
     """Most frames per second an actor streams; it streams whole rollouts, skipping rollouts to keep to this."""
+    contacts: bool = False
+    """Also draw where shapes touch in streamed rollouts (found again on the logging thread)."""
     queue_rollouts: int = 2
     """Rollouts waiting for the logging thread; one more is dropped (and counted), never waited for."""
     curriculum_every_s: float = 10.0

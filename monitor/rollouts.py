@@ -5,7 +5,8 @@ for the watched environments (`actors.rollout.Watched`, still on the device: `lo
 logging thread) and what the trajectory says of each step. Each frame logs, under
 `rollouts/<source>/<env>/`:
 
-    scene/...        the scene (`monitor.draw.log_scene`): shapes, motors driven, thrusters firing
+    scene/...        the scene (`monitor.draw.log_scene`): shapes, motors driven, thrusters firing, and with
+                     `contacts` on, scene/contacts: where shapes touch (the engine's narrowphase, rerun here)
     reward           Scalars, the step's reward
     episode_return   Scalars, at the step that ends an episode
     info             TextDocument: level id, policy version, episode; logged when it changes
@@ -18,6 +19,8 @@ finished before this one), `episode_step` (step within the episode: select it to
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,10 +31,17 @@ import rerun as rr
 from engine.env.state import EnvState
 from engine.levels.level import level_id_values
 from engine.levels.scene import scene_drawing
-from monitor.draw import log_scene
+from engine.physics.narrowphase import detect_contacts
+from engine.physics.pairs import pair_tables
+from engine.physics.sizes import SceneSizes
+from engine.physics.state import SimState
+from engine.physics.validate import scene_sizes_of
+from monitor.draw import log_scene, to_view
 from monitor.stream import Monitor
 
 ROLLOUTS = "rollouts"
+CONTACT_COLOUR = (255, 40, 40)
+CONTACT_RADIUS = 0.04
 
 
 def env_entity(source: str, name: str) -> str:
@@ -66,10 +76,31 @@ class RolloutFrames:
     """Entity name of each environment (default env-<w>)."""
     keep: np.ndarray | None = None
     """[T, W] bool: the frames to log (default all)."""
+    contacts: bool = False
+    """Also draw the contact points (found again here, on the logging thread: the rollout does not keep them)."""
 
     @property
     def num_frames(self) -> int:
         return int(np.size(self.reward) if self.keep is None else np.asarray(self.keep).sum())
+
+
+@functools.cache
+def _contact_finder(sizes: SceneSizes) -> Callable[[SimState], tuple[jax.Array, jax.Array]]:
+    tables = pair_tables(sizes)
+
+    def touching_points(sim: SimState) -> tuple[jax.Array, jax.Array]:
+        found = detect_contacts(sim, tables)
+        return found.touching & sim.pair_collides[tables.contact_pair], found.point
+
+    return jax.jit(jax.vmap(touching_points))
+
+
+def contact_points(sims: SimState) -> list[np.ndarray]:
+    """For a sequence of states ([T] leading axis), the world points [k, 2] where shapes touch in each, as the
+    engine's narrowphase finds them (pairs joined by a joint excluded, as the solver excludes them)."""
+    first = jax.tree.map(lambda x: np.asarray(x)[0], sims)
+    touching, points = jax.device_get(_contact_finder(scene_sizes_of(first))(sims))
+    return [p[t] for p, t in zip(points, touching, strict=True)]
 
 
 def _outcome(solved: bool, truncated: bool) -> str:
@@ -89,6 +120,7 @@ def log_rollout(recording: rr.RecordingStream, frames: RolloutFrames) -> int:
         path = env_entity(frames.source, names[w])
         episode = int(frames.episodes_before[w])
         shown_info = None
+        contacts = contact_points(jax.tree.map(lambda x, w=w: x[:, w], states.sim)) if frames.contacts else None
         for t in range(steps):
             if keep[t, w]:
                 recording.set_time("env_step", sequence=frames.first_step + t)
@@ -97,6 +129,10 @@ def log_rollout(recording: rr.RecordingStream, frames: RolloutFrames) -> int:
                 recording.set_time("wall", timestamp=frames.started_at + frames.seconds * (t + 1) / steps)
                 scene = jax.tree.map(lambda x, t=t, w=w: x[t, w], states)
                 log_scene(recording, f"{path}/scene", scene_drawing(scene.level, scene.sim, actuation[t, w]))
+                if contacts is not None:
+                    recording.log(f"{path}/scene/contacts", rr.Points2D(
+                        to_view(contacts[t].reshape(-1, 2)), radii=CONTACT_RADIUS,
+                        colors=[CONTACT_COLOUR] * len(contacts[t])))
                 recording.log(f"{path}/reward", rr.Scalars(float(frames.reward[t, w])))
                 info = (int(level_ids[t, w]), episode)
                 if info != shown_info:
@@ -123,8 +159,9 @@ class RolloutStream:
     `episode` timeline stays right across rollouts it does not stream) and, when the monitor wants frames now,
     offers them. Never waits: the copy off the device and the logging happen on the monitor's thread."""
 
-    def __init__(self, monitor: Monitor, source: str, watch: int, num_steps: int):
+    def __init__(self, monitor: Monitor, source: str, watch: int, num_steps: int, contacts: bool = False):
         self.monitor, self.source, self.watch, self.num_steps = monitor, source, watch, num_steps
+        self.contacts = contacts
         self.rollouts = 0
         self.episodes = np.zeros(watch, np.int64)
 
@@ -140,7 +177,7 @@ class RolloutStream:
                 done=done, solved=np.asarray(steps.solved)[:, :w], truncated=np.asarray(steps.truncated)[:, :w],
                 episode_return=np.asarray(steps.episode_return)[:, :w], policy_version=policy_version,
                 first_step=self.rollouts * self.num_steps, episodes_before=self.episodes.copy(),
-                started_at=started_at, seconds=seconds)
+                started_at=started_at, seconds=seconds, contacts=self.contacts)
             self.monitor.offer_frames(lambda recording: log_rollout(recording, frames))
         self.episodes += done.sum(axis=0)
         self.rollouts += 1

@@ -4,6 +4,7 @@ logger's promise: under load it drops rollouts instead of blocking, and with no 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import signal
 import socket
@@ -27,7 +28,7 @@ from engine.physics.sizes import SIZE_S
 from monitor.draw import SCENE_PARTS
 from monitor.metrics import log_scalars
 from monitor.png import render_scene, world_to_pixel
-from monitor.rollouts import RolloutFrames, log_rollout
+from monitor.rollouts import RolloutFrames, contact_points, log_rollout
 from monitor.stream import Monitor, open_recording
 
 SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=4)  # an episode ends within the rollout
@@ -58,7 +59,7 @@ def frames() -> RolloutFrames:
         source="actor-7", states=watched.state, actuation=watched.actuation, reward=steps.reward[:, :1],
         done=steps.done[:, :1], solved=steps.solved[:, :1], truncated=steps.truncated[:, :1],
         episode_return=steps.episode_return[:, :1], policy_version=3, first_step=100,
-        episodes_before=np.array([5]), started_at=1.7e9, seconds=0.5)
+        episodes_before=np.array([5]), started_at=1.7e9, seconds=0.5, contacts=True)
 
 
 def read_back(path) -> dict[str, list]:
@@ -96,7 +97,7 @@ def test_a_rollout_recorded_to_rrd_reads_back(tmp_path) -> None:
     recording.disconnect()
     chunks = read_back(path)
 
-    for part in SCENE_PARTS:
+    for part in (*SCENE_PARTS, "contacts"):
         assert sum(c.num_rows for c in chunks[f"{ENTITY}/scene/{part}"]) == STEPS, part
     assert sum(c.num_rows for c in chunks[f"{ENTITY}/reward"]) == STEPS
     for entity in (f"{ENTITY}/scene/polygons", f"{ENTITY}/reward"):
@@ -146,6 +147,23 @@ def test_the_png_renderer_draws_the_same_geometry(tmp_path) -> None:
             continue  # arena walls outside the picture
         rgb = ((colour >> 24) & 255, (colour >> 16) & 255, (colour >> 8) & 255)
         assert tuple(image[world_to_pixel(*centre)]) == rgb
+
+
+def test_contacts_are_where_shapes_touch() -> None:
+    """The green box (0.8 x 0.6 m, centre x = 1.5) pushed 5 cm into the floor touches it along its bottom edge;
+    in the level as built nothing touches (the red ball is hinged to the box: joined pairs do not count)."""
+    level = small_level()
+    floor_top = float(np.max(np.asarray(level.state.polygon_vertices)[0, :, 1]) + level.state.bodies.position[0, 1])
+    box = 4  # the first polygon after the four arena ones
+    sunk = level.state.bodies.position.copy()
+    sunk[box, 1] = floor_top + 0.3 - 0.05
+    sims = jax.tree.map(lambda a, b: np.stack([a, b]), level.state,
+                        dataclasses.replace(level.state, bodies=dataclasses.replace(level.state.bodies,
+                                                                                    position=sunk)))
+    before, after = contact_points(sims)
+    assert before.shape == (0, 2)
+    assert 1 <= len(after) <= 2, after
+    assert np.all(np.abs(after[:, 1] - floor_top) < 0.06) and np.all((after[:, 0] > 1.05) & (after[:, 0] < 1.95))
 
 
 def free_port() -> int:
