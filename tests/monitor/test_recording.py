@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from launch_procs import free_port, wait_for
 from monitor_scenes import small_level
 from rerun.chunk import RrdReader
 
@@ -166,12 +166,6 @@ def test_contacts_are_where_shapes_touch() -> None:
     assert np.all(np.abs(after[:, 1] - floor_top) < 0.06) and np.all((after[:, 0] > 1.05) & (after[:, 0] < 1.95))
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_the_logger_drops_rollouts_under_load_and_never_blocks(tmp_path) -> None:
     slow = frames()
 
@@ -223,13 +217,6 @@ def view(run_dir: Path, record: Path) -> subprocess.Popen:
                              str(record)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def wait_until(condition, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
-
-
 def rows_of(path: Path, entity: str) -> list[float]:
     return [v for c in RrdReader(path).stream().collect().stream() if c.entity_path == entity
             for row in c.to_record_batch().column("Scalars:scalars").to_pylist() for v in row]
@@ -255,13 +242,13 @@ def test_impulse_view_can_come_and_go_during_a_run(tmp_path) -> None:
         log_five(monitor)  # 0..4: no viewer yet
         for record in (tmp_path / "first.rrd", tmp_path / "second.rrd"):
             viewer = view(tmp_path, record)
-            wait_until(lambda: monitor.viewer_up)
+            wait_for(lambda: monitor.viewer_up, 30, "the monitor to see the viewer")
             log_five(monitor)  # 5..9, then 15..19
             time.sleep(1.0)
             viewer.send_signal(signal.SIGINT)
             assert viewer.wait(30) == 0
             assert processes_using(port) == []
-            wait_until(lambda: not monitor.viewer_up)
+            wait_for(lambda: not monitor.viewer_up, 30, "the monitor to see the viewer go")
             log_five(monitor)  # 10..14, then 20..24: the viewer is gone
         assert monitor.counts["no_viewer"] == 15 and monitor.counts["records_logged"] == 10
     assert rows_of(tmp_path / "first.rrd", "/metrics/test/x") == [5, 6, 7, 8, 9]
