@@ -72,3 +72,17 @@ def make_batch(
         actor_id=jnp.asarray(actor_id, jnp.int32),
         seq=jnp.asarray(seq, jnp.int32),
     )
+
+
+def env_axes(batch: TrajectoryBatch) -> TrajectoryBatch:
+    """The environment axis of every leaf of `batch` (None for the per-batch scalars), the axis a learner on
+    several devices splits the batch along: 1 for the [T, E] steps and train mask, 0 for the [E] bootstrap
+    observation."""
+    return TrajectoryBatch(
+        steps=jax.tree.map(lambda _: 1, batch.steps),
+        bootstrap_obs=jax.tree.map(lambda _: 0, batch.bootstrap_obs),
+        behaviour_version=None,
+        train_mask=1,
+        actor_id=None,
+        seq=None,
+    )

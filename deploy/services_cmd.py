@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy.config import ConfigError, config_to_toml, load_run_config, write_resolved_config
+from deploy.devices import restrict_gpus
 from deploy.monitoring import MetricsLogger, open_monitor
 from deploy.train_cmd import enable_compile_cache
 from learner.config import TrainConfig
@@ -73,6 +74,11 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
     if resolved is None:
         return EXIT_USAGE
     config, run_dir = resolved
+    try:
+        restrict_gpus(config.learner.devices)
+    except ValueError as err:
+        print(f"impulse learner: learner.devices: {err}", file=sys.stderr)
+        return EXIT_USAGE
     enable_compile_cache()
     from bus.session import Bus
     from deploy.runloop import run_loop
@@ -136,6 +142,12 @@ def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
     if config.actors.memory_fraction > 0:
         # Read by JAX's GPU backend when it starts, so it must be set before the first import of jax.
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{config.actors.memory_fraction:g}")
+    if config.actors.devices:
+        try:
+            restrict_gpus([config.actors.devices[args.index % len(config.actors.devices)]])
+        except ValueError as err:
+            print(f"impulse actor: actors.devices: {err}", file=sys.stderr)
+            return EXIT_USAGE
     enable_compile_cache()
     from actors.levels import CurriculumLevels, LevelSource, LocalLevels
     from actors.process import ACTOR_ROLE, Actor, actor_name

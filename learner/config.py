@@ -18,6 +18,13 @@ from curriculum.config import CurriculumConfig
 from engine.env.config import EnvConfig
 
 
+def check_device_list(name: str, devices: tuple[int, ...]) -> None:
+    """Device positions are distinct non-negative integers."""
+    if any(isinstance(d, bool) or not isinstance(d, int) or d < 0 for d in devices) or len(set(devices)) != len(
+            devices):
+        raise ValueError(f"{name} must list distinct device numbers >= 0, got {list(devices)}")
+
+
 @dataclass(frozen=True)
 class PPOConfig:
     """PPO hyper-parameters, plus the correction for data collected by an older policy (distributed actors)."""
@@ -151,8 +158,13 @@ class ActorConfig:
     actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""
     status_every_s: float = 1.0
     """How often each process publishes its status line for `impulse launch`'s display."""
+    devices: tuple[int, ...] = ()
+    """GPUs the actors run on, as positions among the GPUs the process may see: actor i takes
+    devices[i % len(devices)] and sees only it (CUDA_VISIBLE_DEVICES); empty: every actor sees them all and JAX
+    uses the first."""
 
     def __post_init__(self) -> None:
+        check_device_list("actors.devices", self.devices)
         if self.num_actors < 0 or self.credits < 1:
             raise ValueError(f"actors.num_actors must be >= 0 and actors.credits >= 1, got {self.num_actors}, "
                              f"{self.credits}")
@@ -168,8 +180,13 @@ class LearnerConfig:
     """Publish the weights every this many updates."""
     slow_down_s: float = 0.0
     """Sleep this long after every update: simulates a slow learner (back-pressure tests and experiments)."""
+    devices: tuple[int, ...] = ()
+    """GPUs the PPO update is sharded over, data parallel (`learner.sharding`), as positions among the GPUs the
+    process may see; the learner sees only these. Empty: the first device only. On a machine without GPUs, the
+    first len(devices) devices (several only when XLA simulates them)."""
 
     def __post_init__(self) -> None:
+        check_device_list("learner.devices", self.devices)
         if self.publish_every < 1 or self.slow_down_s < 0:
             raise ValueError(f"learner.publish_every must be >= 1 and learner.slow_down_s >= 0, got "
                              f"{self.publish_every}, {self.slow_down_s}")

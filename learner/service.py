@@ -42,6 +42,7 @@ from learner.agent import Agent
 from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
 from learner.progress import CycleReport
+from learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
 from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
 
 log = logging.getLogger("impulse.learner")
@@ -83,6 +84,11 @@ class LearnerService:
         self.steps_per_batch = ppo.num_envs * ppo.num_steps
         self.num_updates = max(1, math.ceil(config.total_env_steps / self.steps_per_batch))
         optimizer = make_optimizer(ppo, self.num_updates)
+        try:
+            self.parallel = DataParallel(learner_devices(len(config.learner.devices)))
+            check_divisible(ppo, self.parallel.size)
+        except DeviceError as err:
+            raise LearnerError(str(err)) from err
         params = agent.init(jax.random.PRNGKey(config.seed))
         self.train = TrainState(params, optimizer.init(params), np.asarray(0, np.int32))
         self.checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
@@ -98,13 +104,15 @@ class LearnerService:
         elif resume:
             log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
         self.epoch += 1
+        self.train = self.parallel.replicate(self.train)
 
-        self._update = jax.jit(
-            lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,
-                                                 distribution=agent.distribution, optimizer=optimizer, config=ppo),
-            donate_argnums=0,
-        )
         self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
+        self._update = self.parallel.jit_update(
+            lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,
+                                                 distribution=agent.distribution, optimizer=optimizer, config=ppo,
+                                                 minibatch_sharding=self.parallel.minibatches),
+            self._template,
+        )
         self._schema = trajectory_schema(self._template)
         self.key = jax.random.PRNGKey(config.seed + 7 + self.epoch)
 
@@ -285,7 +293,7 @@ class LearnerService:
         done = np.asarray(steps.done)
         episodes = int(done.sum())
         self.key, update_key = jax.random.split(self.key)
-        self.train, losses = self._update(self.train, jax.device_put(batch), update_key)
+        self.train, losses = self._update(self.train, self.parallel.place_batch(batch), update_key)
         self.update += 1
         self.env_steps += self.steps_per_batch
         if self.update % self.config.learner.publish_every == 0:

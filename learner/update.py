@@ -95,9 +95,13 @@ def ppo_update(
     distribution,
     optimizer: optax.GradientTransformation,
     config: PPOConfig,
+    minibatch_sharding: jax.sharding.Sharding | None = None,
 ) -> tuple[TrainState, dict[str, Array]]:
     """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps, plus
-    `policy_lag`, the versions between the batch's behaviour policy and `state`."""
+    `policy_lag`, the versions between the batch's behaviour policy and `state`.
+
+    `minibatch_sharding` (see `learner.sharding`) splits every minibatch's samples over devices, so that each
+    device evaluates the loss on its share and only gradients cross between them; the result is the same."""
     trajectory = batch.steps
     num_steps, num_envs = trajectory.reward.shape
 
@@ -145,8 +149,13 @@ def ppo_update(
         per = num_envs // config.num_minibatches
 
         def split(x):
+            # [T, E] -> [minibatch, env, T] -> [minibatch, env * T]: env-major, so a split of the samples over
+            # devices is a split of environments.
             x = jnp.take(x, order, axis=1).reshape((num_steps, config.num_minibatches, per) + x.shape[2:])
-            return jnp.moveaxis(x, 1, 0).reshape((config.num_minibatches, num_steps * per) + x.shape[3:])
+            x = jnp.moveaxis(x, 0, 2).reshape((config.num_minibatches, per * num_steps) + x.shape[3:])
+            if minibatch_sharding is not None:
+                x = jax.lax.with_sharding_constraint(x, minibatch_sharding)
+            return x
 
         return jax.lax.scan(minibatch_step, carry, jax.tree.map(split, samples))
 
