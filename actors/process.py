@@ -17,13 +17,16 @@ Credits. The learner acknowledges every batch it takes off its queue (trained on
 `credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
 that. Acknowledgements name the actor's incarnation (a random number drawn at start), so a restarted actor is not
 confused by acknowledgements meant for its predecessor; and they carry the learner's epoch, so when a restarted
-learner (new epoch) appears, whatever was in flight to the old one is written off at once. If no acknowledgement
-arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written off too.
+learner (new epoch) appears, whatever was in flight to the old one is written off at once, as it is when the
+learner's liveliness token goes and comes back (the link to it broke: a router restart, a network partition). If
+no acknowledgement arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written
+off too.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import secrets
 import time
 from collections import deque
@@ -36,7 +39,8 @@ from actors.levels import LevelSource
 from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
 from actors.wire import PUBLISHED_AT, weights_schema
-from bus.codec import Kind, Message, Rejected, decode, encode
+from bus.codec import Kind, Message, Rejected, decode, encode, expect_sender
+from bus.keys import ACTOR, LEARNER
 from bus.schema import check
 from bus.session import Bus
 from bus.status import StatusPublisher
@@ -53,7 +57,7 @@ from monitor.stream import Monitor
 
 log = logging.getLogger("impulse.actor")
 
-ACTOR_ROLE = "actor"
+ACTOR_ROLE = ACTOR
 WEIGHTS_QUERY_EVERY_S = 2.0
 """While it has no weights, an actor asks the learner's queryable this often (the cached broadcast usually
 arrives first)."""
@@ -111,6 +115,8 @@ class Actor:
         self._results = bus.publisher(keys.levels_results(self.name))
         self._weights = bus.inbox(keys.weights_policy, 1, drop_oldest=True, latest=True)
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
+        self._learner_presence = bus.watch_alive(keys.alive_pattern(LEARNER))
+        self._learner_away = False
         self._status = StatusPublisher(bus, config.actors.status_every_s)
 
         self.params: Any = None
@@ -144,7 +150,7 @@ class Actor:
         self.epoch, self.version = message.learner_epoch, message.policy_version
         self.counts["weights_adopted"] += 1
         published = message.meta.get(PUBLISHED_AT)
-        if isinstance(published, float):
+        if isinstance(published, float) and math.isfinite(published):
             self._weights_latency_ms.append(1000.0 * (time.time() - published))
 
     def _receive_weights(self) -> None:
@@ -159,7 +165,7 @@ class Actor:
         for payload in payloads[-1:]:
             first = self.params is None
             try:
-                self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
+                self._adopt(expect_sender(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS), LEARNER))
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "weights", err.detail)
                 continue
@@ -176,10 +182,25 @@ class Actor:
         self.acked = self.seq
         self._blocked_since = None
 
+    def _watch_learner(self) -> None:
+        """The learner gone and back (a broken link, a restarted router, a restarted learner): what was in flight
+        may have been lost on the way, so it is written off now rather than after the credit timeout. A batch
+        that did arrive is still trained on; its late acknowledgement is ignored."""
+        for _, alive in self._learner_presence.poll():
+            if not alive:
+                self._learner_away = True
+            elif self._learner_away:
+                self._learner_away = False
+                if self.in_flight:
+                    log.info("the learner is back after an interruption: %d batches in flight written off",
+                             self.in_flight)
+                    self._write_off()
+
     def _receive_acks(self) -> None:
+        self._watch_learner()
         for received in self._credits.poll():
             try:
-                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT)
+                message = expect_sender(decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT), LEARNER)
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "credit", err.detail)
                 continue

@@ -77,9 +77,11 @@ REASONS = (
     "tree_hash",
     "stale",
     "duplicate",
+    "foreign_sender",
 )
 """Why a message was refused. `decode` uses the first ten; `schema.check` adds non_finite, schema, tree_hash (and
-bad_dtype, bad_shape); stale and duplicate are for consumers that track policy versions and sequence numbers."""
+bad_dtype, bad_shape); stale and duplicate are for consumers that track policy versions and sequence numbers;
+foreign_sender is `expect_sender`'s."""
 
 _U32_MAX = (1 << 32) - 1
 _U64_MAX = (1 << 64) - 1
@@ -156,6 +158,15 @@ class Message:
     sender: str
     meta: dict[str, Any]
     arrays: dict[str, np.ndarray]
+
+
+def expect_sender(message: Message, sender: str) -> Message:
+    """`message` if it declares `sender` as its sender, else Rejected("foreign_sender"): weights and credits come
+    from the learner only, level batches from the curriculum only. Routers with access control stop other
+    publishers on the way (`bus.router`); this check also holds on an open bus against a misconfigured process."""
+    if message.sender != sender:
+        raise Rejected("foreign_sender", f"{message.kind.name} frame from {message.sender!r}, expected {sender!r}")
+    return message
 
 
 @lru_cache(maxsize=64)

@@ -15,6 +15,14 @@ SCHEMA_MAJOR = 1
 PREFIX = "impulse"
 """First chunk of every key the system uses."""
 
+LEARNER = "learner"
+CURRICULUM = "curriculum"
+ACTOR = "actor"
+OPERATOR = "operator"
+ROLES = (LEARNER, CURRICULUM, ACTOR, OPERATOR)
+"""The roles of a run's processes (the `<role>` chunk of their keys); the operator is any command-line tool.
+Across machines each role has credentials of its own (`bus.router`)."""
+
 _FORBIDDEN = frozenset("/*$#?")
 
 

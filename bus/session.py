@@ -40,6 +40,7 @@ Measured with eclipse-zenoh 1.10.2 on loopback (see tests/bus/test_session.py):
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -53,6 +54,9 @@ import zenoh.ext
 from bus.inbox import AliveWatcher, Inbox, QueryInbox
 from bus.keys import Keys, check_name
 from bus.rejects import RejectCounter
+from bus.router import client_security
+
+log = logging.getLogger("impulse.bus")
 
 PEER_LISTEN = "tcp/127.0.0.1:0"
 """Where a non-hub peer listens (any free port, loopback only) so the hub's gossip can link peers directly."""
@@ -101,6 +105,9 @@ class BusConfig:
     """How long a blocking put waits for a full queue before zenoh drops the message (longest receiver pause)."""
     query_timeout_s: float = 10.0
     """Default timeout of `Bus.get`."""
+    credentials: str = ""
+    """With `connect`: the credentials directory (see `bus.router`) holding `ca.pem` for TLS and this process's
+    `<role>.pem`/`.key` (mutual TLS) and `<role>.password` (user/password); empty: plain, unauthenticated."""
 
     def __post_init__(self) -> None:
         _check_endpoint(self.hub, "bus.hub")
@@ -116,14 +123,17 @@ class BusConfig:
         _check_positive("bus.query_timeout_s", self.query_timeout_s, int | float)
 
 
-def zenoh_config(config: BusConfig, *, listen: bool) -> zenoh.Config:
-    """The zenoh configuration of a hub (`listen=True`: listens on `config.hub`) or of a peer (connects to it).
+def zenoh_config(config: BusConfig, *, listen: bool, role: str = "") -> zenoh.Config:
+    """The zenoh configuration of a hub (`listen=True`: listens on `config.hub`), of a peer (connects to it), or,
+    when `config.connect` lists routers, of a client of those routers with `role`'s credentials.
 
     Peer mode, multicast scouting off (nothing leaves loopback unless configured), gossip on (peers link
     directly), timestamping on (the advanced publisher/subscriber need it), connect endpoints retried forever.
+    A client has no direct links: everything passes the router, which enforces its access control.
     """
+    client = bool(config.connect) and not listen
     settings: dict[str, Any] = {
-        "mode": "peer",
+        "mode": "client" if client else "peer",
         "scouting/multicast/enabled": False,
         "timestamping/enabled": True,
         "listen/endpoints": [config.hub] if listen else [PEER_LISTEN],
@@ -140,6 +150,9 @@ def zenoh_config(config: BusConfig, *, listen: bool) -> zenoh.Config:
         "transport/link/tx/lease": config.lease_ms,
         "transport/link/tx/queue/congestion_control/block/wait_before_close": config.block_timeout_ms * 1000,
     }
+    if client:
+        del settings["listen/endpoints"]
+        settings.update(client_security(config.credentials, role))
     conf = zenoh.Config()
     for key, value in settings.items():
         conf.insert_json5(key, json.dumps(value))
@@ -162,7 +175,11 @@ class Bus:
         self._advanced_subscribers: list[Any] = []
         self._entities: list[Any] = []
         self._closed = False
-        self.session = zenoh.open(zenoh_config(config, listen=listen))
+        conf = zenoh_config(config, listen=listen, role=self.role)
+        if config.connect and not listen:
+            log.info("connecting to %s as %s/%s (waits until a router answers)", ", ".join(config.connect),
+                     self.role, self.ident)
+        self.session = zenoh.open(conf)
         try:
             self._settle_links()
             self.alive_key = self.keys.alive(self.role, self.ident)

@@ -30,6 +30,7 @@ import numpy as np
 
 from bus.codec import Kind, Rejected, decode, encode
 from bus.inbox import IncomingQuery
+from bus.keys import CURRICULUM
 from bus.session import Bus
 from bus.status import StatusPublisher
 from curriculum.algorithms import Curriculum
@@ -43,7 +44,7 @@ from engine.physics.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
 
-CURRICULUM_ROLE = "curriculum"
+CURRICULUM_ROLE = CURRICULUM
 CURRICULUM_ID = "0"
 RESULTS_PER_POLL = 64
 """Result messages applied per poll at most, so a flood of results never starves sample queries."""
@@ -192,7 +193,7 @@ class CurriculumService:
         self.state, batch = self._sample(self.state, key)
         self.samples += 1
         query.reply(encode(Kind.LEVELS, level_batch_arrays(batch), run=self.bus.keys.run, seq=self.samples,
-                           sender=f"{self.bus.role}/{self.bus.ident}"))
+                           sender=CURRICULUM))
         return 1
 
     # -- control -------------------------------------------------------------------------------------------------------
@@ -267,7 +268,7 @@ class CurriculumService:
             report = self.inspect(top)
             arrays = tree_arrays(self.top_levels(top)) if request.get("levels") else {}
             query.reply(encode(Kind.CONTROL, arrays, run=self.bus.keys.run, meta={"report": report}))
-        except (ValueError, TypeError) as err:
+        except (ValueError, TypeError, OverflowError) as err:
             query.reply(encode(Kind.CONTROL, {}, run=self.bus.keys.run, meta={"error": str(err)}))
 
     def status(self) -> dict[str, Any]:

@@ -97,7 +97,7 @@ def control_reply(payload: bytes) -> dict[str, Any]:
     """A control query's or reply's JSON object; ValueError with the reason if it is not one."""
     try:
         value = json.loads(payload.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+    except (ValueError, RecursionError) as err:  # also nesting deeper than the parser's recursion limit
         raise ValueError(f"not a JSON control message: {err}") from err
     if not isinstance(value, dict):
         raise ValueError(f"a control message is a JSON object, got {type(value).__name__}")

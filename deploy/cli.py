@@ -58,10 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_command(commands: argparse._SubParsersAction, spec: Command) -> None:
-    paragraphs = [spec.description]
-    if spec.pending is not None:
-        paragraphs.append(f"Not built yet: it arrives with {spec.pending}.")
-    description = "\n\n".join(textwrap.fill(text, 79) for text in paragraphs)
+    description = textwrap.fill(spec.description, 79)
     p = commands.add_parser(
         spec.name, help=spec.summary, description=description, allow_abbrev=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -123,12 +120,6 @@ def _run_command(spec: Command, args: argparse.Namespace) -> int:
         if args.print_config:
             sys.stdout.write(config_to_toml(config))
             return 0
-    if spec.run is None:
-        print(
-            f"impulse {spec.name} ({spec.summary}) is not built yet; it arrives with {spec.pending}",
-            file=sys.stderr,
-        )
-        return EXIT_USAGE
     return int(spec.run(args, config) or 0)
 
 

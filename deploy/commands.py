@@ -13,10 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from deploy import curriculum_cmd, launch_cmd, levels_cmd, services_cmd, view_cmd
+from deploy.router_cmd import add_router_arguments, run_router_command
 from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
-
-ISSUE_MULTI_HOST = "the multi-host issue (routers, TLS, several machines)"
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
 
@@ -29,12 +28,10 @@ class Command:
     summary: str
     """One line for `impulse --help`."""
     description: str
-    """What the command does when built, for `impulse NAME --help`."""
+    """What the command does, for `impulse NAME --help`."""
+    run: RunFn
     config: type | None = None
     """The config dataclass it resolves from --config and key=value overrides; None if it takes none."""
-    pending: str | None = None
-    """The issue that builds it, while it is not built."""
-    run: RunFn | None = None
     arguments: Callable[[argparse.ArgumentParser], None] | None = None
     """Adds the command's own options (beyond --config, --print-config and key=value overrides)."""
 
@@ -93,8 +90,12 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "router",
         "run a Zenoh router for a multi-host run",
-        "A Zenoh router for one host of a multi-host run, with TLS and access control from a file.",
-        pending=ISSUE_MULTI_HOST,
+        "A Zenoh router for a multi-host run: learner, curriculum and actors on any machine connect to it "
+        "(--connect ENDPOINT). Its [router] config section sets where it listens, the routers of other hosts it "
+        "links to, and TLS, passwords and access control from a credentials directory (docs/multi-host.md).",
+        config=TrainConfig,
+        run=run_router_command,
+        arguments=add_router_arguments,
     ),
     Command(
         "eval",

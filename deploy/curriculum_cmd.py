@@ -126,7 +126,10 @@ def inspect(args: argparse.Namespace, config: TrainConfig) -> int:
         if "error" in message.meta:
             print(f"impulse curriculum inspect: refused: {message.meta['error']}", file=sys.stderr)
             return EXIT_USAGE
-        report = message.meta["report"]
+        report = message.meta.get("report")
+        if not isinstance(report, dict):
+            print("impulse curriculum inspect: the reply holds no report", file=sys.stderr)
+            return EXIT_FAILED
         if args.render:
             _render(config, message.arrays, report, args.render)
     if args.json:

@@ -193,4 +193,8 @@ def _read_status(received: Received, bus: Bus, statuses: dict[str, dict]) -> Non
     except Rejected as err:
         bus.rejects.record(err.reason, received.key, err.detail)
         return
-    statuses[status.get("name", sender.rsplit("/", 1)[-1])] = status
+    name = status.get("name", sender.rsplit("/", 1)[-1])
+    if not isinstance(name, str):
+        bus.rejects.record("bad_table", received.key, f"status 'name' is a {type(name).__name__}")
+        return
+    statuses[name] = status

@@ -70,7 +70,7 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
            curriculum_name: str = "curriculum", viewer_name: str = "viewer") -> list[str]:
     """The display's lines: every child with its process state, then its latest status."""
     learner = statuses.get(learner_name)
-    lags = (learner or {}).get("actor_lag", {})
+    lags = learner.get("actor_lag", {}) if isinstance(learner, dict) else {}
     width = max(len(c.name) for c in children)
     lines = []
     for child in children:
@@ -83,14 +83,17 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
             lines.append(f"{child.name:<{width}}  {state} (restarts {child.restarts})")
             continue
         status = statuses.get(child.name)
-        if child.name == learner_name:
-            body = learner_line(status)
-        elif child.name == curriculum_name:
-            body = curriculum_line(status)
-        elif child.name == viewer_name:
-            body = f"Rerun viewer (its address is logged above and in {child.log_path})"
-        else:
-            body = actor_line(status, lags.get(child.name))
+        try:
+            if child.name == learner_name:
+                body = learner_line(status)
+            elif child.name == curriculum_name:
+                body = curriculum_line(status)
+            elif child.name == viewer_name:
+                body = f"Rerun viewer (its address is logged above and in {child.log_path})"
+            else:
+                body = actor_line(status, lags.get(child.name) if isinstance(lags, dict) else None)
+        except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types
+            body = "malformed status"
         lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")
     return lines
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from bus.router import RouterConfig
 from bus.session import BusConfig
 from curriculum.config import CurriculumConfig
 from engine.env.config import EnvConfig
@@ -251,6 +252,8 @@ class TrainConfig:
     actors: ActorConfig = field(default_factory=ActorConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     bus: BusConfig = field(default_factory=BusConfig)
+    router: RouterConfig = field(default_factory=RouterConfig)
+    """`impulse router`, for runs across machines."""
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
 
     def output_dir(self) -> Path:

@@ -32,6 +32,7 @@ from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
 from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, weights_meta
 from bus.codec import Kind, Message, Rejected, decode, encode
+from bus.keys import LEARNER
 from bus.session import Bus
 from bus.status import StatusPublisher
 from engine.env.spec import EnvParams
@@ -47,8 +48,8 @@ from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_upd
 
 log = logging.getLogger("impulse.learner")
 
-LEARNER_ROLE = "learner"
-LEARNER_ID = "learner"
+LEARNER_ROLE = LEARNER
+LEARNER_ID = LEARNER
 ACK_REFRESH_S = 1.0
 """Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
 RATE_WINDOW = 20

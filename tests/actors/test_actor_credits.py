@@ -43,7 +43,7 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner:
         weights = learner.latest_publisher(learner.keys.weights_policy)
         weights.put(encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, policy_version=5, learner_epoch=1,
-                           meta=weights_meta(params)))
+                           sender="learner", meta=weights_meta(params)))
         trajectories = learner.inbox(learner.keys.traj_all, 16)
         with Bus(config.bus, RUN, "actor", "actor-0") as bus:
             actor = Actor(config, 0, bus, agent, env_params, LocalLevels(config.env, spec.sizes))
@@ -58,15 +58,18 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
 
             credit = learner.publisher(learner.keys.credit("actor-0"))
             assert learner.wait_matching(credit, 10)
-            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
+            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1, sender="learner",
                               meta={"incarnation": actor.incarnation, "acked_seq": 2}))
             waited = cycle_until(actor, lambda: actor.counts["sent"] == 3, 30, "the acknowledged credit")
             assert waited < TIMEOUT_S and actor.counts["written_off"] == 1, "freed by the acknowledgement"
 
-            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
+            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1, sender="learner",
                               meta={"incarnation": actor.incarnation + 1, "acked_seq": 3}))
+            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1, sender="actor-1",
+                              meta={"incarnation": actor.incarnation, "acked_seq": 3}))
             for _ in range(20):
                 actor.cycle()
-            assert actor.in_flight == 1, "an acknowledgement for another incarnation frees nothing"
+            assert actor.in_flight == 1, "acknowledgements for another incarnation or not from the learner free nothing"
+            assert bus.rejects.counts()["foreign_sender"] == 1
         received = trajectories.poll()
     assert [len(r.payload) > 0 for r in received] == [True] * 3

@@ -149,7 +149,7 @@ def test_encode_refuses_what_the_wire_cannot_carry() -> None:
 
 
 def test_rejected_only_takes_known_reasons() -> None:
-    assert len(set(REASONS)) == len(REASONS) == 15
+    assert len(set(REASONS)) == len(REASONS) == 16
     with pytest.raises(ValueError, match="unknown reject reason"):
         Rejected("because", "no")
 
@@ -337,3 +337,13 @@ def test_tree_hash_covers_structure_not_values() -> None:
     assert tree_hash({**flat, "w": np.zeros((3, 4), np.float64)}) != reference
     assert tree_hash({"W": flat["w"], "b": flat["b"]}) != reference
     assert tree_hash({**flat, "extra": np.zeros(1)}) != reference
+
+
+def test_expect_sender_refuses_frames_from_anyone_else() -> None:
+    from bus.codec import expect_sender
+
+    message = decode(encode(Kind.WEIGHTS, sample_arrays(), run=RUN, sender="learner"), run=RUN)
+    assert expect_sender(message, "learner") is message
+    with pytest.raises(Rejected) as info:
+        expect_sender(message, "curriculum")
+    assert info.value.reason == "foreign_sender" and "'learner'" in info.value.detail

@@ -113,9 +113,9 @@ def rss_mib(pid: int) -> float:
 class StatusWatcher:
     """The latest status of every process of a run, read from the bus like the launcher's display."""
 
-    def __init__(self, run: str, port: int):
+    def __init__(self, run: str, port: int, config: BusConfig | None = None):
         self.run = run
-        self.bus = Bus(BusConfig(hub=f"tcp/127.0.0.1:{port}"), run, "test", "watcher")
+        self.bus = Bus(config or BusConfig(hub=f"tcp/127.0.0.1:{port}"), run, "test", "watcher")
         self.inbox = self.bus.inbox(self.bus.keys.metrics_all, 256, drop_oldest=True)
         self.latest: dict[str, dict[str, Any]] = {}
 

@@ -46,12 +46,10 @@ def test_print_config_shows_overrides(tmp_path: Path) -> None:
     assert printed["ppo"]["num_envs"] == 2048
 
 
-def test_unbuilt_command_says_which_issue(capsys: pytest.CaptureFixture[str]) -> None:
-    for name, issue in (("router", "multi-host issue"),):
-        assert main([name]) == 2
-        err = capsys.readouterr().err.strip()
-        assert "not built yet" in err and issue in err
-        assert "\n" not in err
+def test_router_names_a_missing_credentials_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["router", f"router.credentials={tmp_path / 'nowhere'}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "credentials directory" in err and "nowhere" in err and "\n" not in err
 
 
 def test_view_needs_a_run_directory_and_a_free_port(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

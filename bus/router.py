@@ -1,0 +1,261 @@
+"""The bus across machines: a Zenoh router, its TLS and authentication, and who may publish what.
+
+On one machine the processes are peers around a hub (`bus.session`). Across machines every process is a client
+of a router (`impulse router`, one per host or one for the run) and all traffic passes through routers, which is
+what lets a router enforce access control: a peer-to-peer link would bypass it.
+
+Security material lives in one credentials directory (made for trials by deploy/security/make-test-certs.sh):
+
+- `ca.pem`: the certificate authority everyone trusts; with it the bus runs over TLS (`tls/HOST:PORT` endpoints);
+- `router.pem`, `router.key`: the router's certificate, whose names clients verify;
+- `<role>.pem`, `<role>.key`: a process's client certificate, its common name the role (mutual TLS);
+- `<role>.password`: a process's password for Zenoh's user/password authentication, the user being the role;
+- `users.txt`: the router's `role:password` dictionary.
+
+A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`: `learner`, `curriculum`,
+`actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect`, status watchers).
+
+With access control on, the router denies by default and allows each role only its part of the protocol
+(`access_rules`): only the learner may publish weights and credits, only the curriculum may answer level and
+knob queries, only actors may publish trajectories and level results, and trajectories reach only the learner.
+Receivers also check each frame's declared sender, which catches a misconfigured process on an open bus.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from bus.keys import OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
+
+log = logging.getLogger("impulse.router")
+
+CA_FILE = "ca.pem"
+ROUTER_ROLE = "router"
+USERS_FILE = "users.txt"
+
+
+class CredentialsError(ValueError):
+    """The credentials directory lacks a file the configuration needs."""
+
+
+def _check_endpoints(name: str, endpoints: object) -> tuple[str, ...]:
+    if isinstance(endpoints, str) or not isinstance(endpoints, tuple | list):
+        raise ValueError(f"{name} must be a list of endpoints, got {endpoints!r}")
+    for endpoint in endpoints:
+        protocol, _, address = str(endpoint).partition("/")
+        if not isinstance(endpoint, str) or not protocol or not address or any(c.isspace() for c in endpoint):
+            raise ValueError(f"{name} entry {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
+    return tuple(endpoints)
+
+
+@dataclass(frozen=True)
+class RouterConfig:
+    """`impulse router`: where it listens, which routers it links to, and its security."""
+
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    """Endpoints the router listens on. Loopback by default: listen on a host's address (e.g. "tls/0.0.0.0:7447")
+    to serve other machines, with credentials."""
+    connect: tuple[str, ...] = ()
+    """Other routers to link to (one router per host, each host's processes connecting to their own)."""
+    credentials: str = ""
+    """Credentials directory (see `bus.router`): TLS with `ca.pem`, the router's certificate and, when
+    `mutual_tls`, clients' certificates; user/password authentication with `users.txt`. Empty: neither."""
+    mutual_tls: bool = True
+    """With TLS, clients must present a certificate signed by the CA as well."""
+    access_control: bool = True
+    """With credentials, allow each role only its part of the protocol (needs an authentication method)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "listen", _check_endpoints("router.listen", self.listen))
+        object.__setattr__(self, "connect", _check_endpoints("router.connect", self.connect))
+        if not self.listen:
+            raise ValueError("router.listen is empty: a router must listen somewhere")
+
+
+@dataclass(frozen=True)
+class Security:
+    """What a credentials directory provides, found once (files are read by zenoh itself)."""
+
+    directory: Path
+    tls: bool
+    passwords: bool
+
+    @staticmethod
+    def find(credentials: str) -> Security | None:
+        if not credentials:
+            return None
+        directory = Path(credentials).expanduser()
+        if not directory.is_dir():
+            raise CredentialsError(f"credentials directory {directory} does not exist")
+        return Security(directory, (directory / CA_FILE).is_file(), (directory / USERS_FILE).is_file())
+
+    def file(self, name: str) -> str:
+        path = self.directory / name
+        if not path.is_file():
+            raise CredentialsError(f"{path} is missing from the credentials directory")
+        return str(path)
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a listen endpoint is reachable from this machine only (127.x, ::1, localhost, a unix socket)."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol.startswith("unixsock"):
+        return True
+    host = address.split("?")[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def client_security(credentials: str, role: str) -> dict[str, Any]:
+    """Zenoh settings for a client process of `role`: TLS trust (and its certificate when one is there) and its
+    user/password when a password file is there. Roles other than ROLES (the launcher, command-line tools) use
+    the operator's. Raises CredentialsError when the directory has neither."""
+    security = Security.find(credentials)
+    if security is None:
+        return {}
+    role = role if role in ROLES else OPERATOR
+    settings: dict[str, Any] = {}
+    if security.tls:
+        tls: dict[str, Any] = {"root_ca_certificate": security.file(CA_FILE)}
+        if (security.directory / f"{role}.pem").is_file():
+            tls.update(connect_certificate=security.file(f"{role}.pem"),
+                       connect_private_key=security.file(f"{role}.key"), enable_mtls=True)
+        settings["transport/link/tls"] = tls
+    password = security.directory / f"{role}.password"
+    if password.is_file():
+        settings["transport/auth/usrpwd"] = {"user": role, "password": password.read_text().strip()}
+    if not settings:
+        raise CredentialsError(f"credentials directory {security.directory} holds neither {CA_FILE} nor "
+                               f"{role}.password")
+    return settings
+
+
+def _allow(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys}
+
+
+def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
+    """Zenoh access control for the router: deny by default, then each role's part of the protocol.
+
+    `ingress` rules say what a role may send into the router, `egress` what the router may deliver to it. Keys
+    cover every run (`impulse/*/v1/...`); the advanced publisher's cache for late joiners lives under
+    `weights/policy/@adv/**`, which `**` does not match (`@` chunks match only themselves), hence its own keys.
+    """
+    run = f"{PREFIX}/*/v{SCHEMA_MAJOR}"
+    weights = [f"{run}/weights/**", f"{run}/weights/policy/@adv/**"]
+    everything = [f"{PREFIX}/**", f"{run}/weights/policy/@adv/**"]
+    declarations = ["declare_subscriber", "declare_queryable", "liveliness_token", "liveliness_query",
+                    "declare_liveliness_subscriber"]
+    rules = [
+        _allow("declare", "ingress", declarations, everything),
+        _allow("hear-declarations", "egress", [*declarations, "reply"], everything),
+        _allow("status", "ingress", ["put"], [f"{run}/metrics/**"]),
+        _allow("learner-sends", "ingress", ["put", "reply"], [*weights, f"{run}/credit/**"]),
+        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/traj/**", *weights, f"{run}/metrics/**"]),
+        _allow("actor-sends", "ingress", ["put"], [f"{run}/traj/**", f"{run}/levels/results/**"]),
+        _allow("actor-asks", "ingress", ["query"], [*weights, f"{run}/levels/sample"]),
+        _allow("actor-hears", "egress", ["put"], [*weights, f"{run}/credit/**"]),
+        _allow("curriculum-sends", "ingress", ["reply"], [f"{run}/levels/sample", f"{run}/curriculum/**"]),
+        _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/levels/**", f"{run}/curriculum/**"]),
+        _allow("operator-asks", "ingress", ["query"], [f"{run}/curriculum/**"]),
+        _allow("operator-hears", "egress", ["put"], [f"{run}/metrics/**"]),
+    ]
+    own = {
+        "learner": ["learner-sends", "learner-hears"],
+        "curriculum": ["curriculum-sends", "curriculum-hears"],
+        "actor": ["actor-sends", "actor-asks", "actor-hears"],
+        "operator": ["operator-asks", "operator-hears"],
+    }
+    subjects, policies = [], []
+    for role in ROLES:
+        subject: dict[str, Any] = {"id": role}
+        if by_certificate:
+            subject["cert_common_names"] = [role]
+        if by_password:
+            subject["usernames"] = [role]
+        subjects.append(subject)
+        policies.append({"id": role, "subjects": [role], "rules": ["declare", "hear-declarations", "status",
+                                                                   *own[role]]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def router_zenoh_config(config: RouterConfig, lease_ms: int = 3000) -> zenoh.Config:
+    """The zenoh configuration of a router: its endpoints, TLS, user/password dictionary and access control.
+    Raises CredentialsError for missing files or access control without any way to tell roles apart."""
+    settings: dict[str, Any] = {
+        "mode": "router",
+        "scouting/multicast/enabled": False,
+        "timestamping/enabled": True,
+        "listen/endpoints": list(config.listen),
+        "connect/endpoints": list(config.connect),
+        "connect/timeout_ms": -1,
+        "connect/exit_on_failure": False,
+        "transport/link/tx/lease": lease_ms,
+    }
+    security = Security.find(config.credentials)
+    by_certificate = by_password = False
+    if security is not None:
+        if security.tls:
+            settings["transport/link/tls"] = {
+                "root_ca_certificate": security.file(CA_FILE),
+                "listen_certificate": security.file(f"{ROUTER_ROLE}.pem"),
+                "listen_private_key": security.file(f"{ROUTER_ROLE}.key"),
+                "connect_certificate": security.file(f"{ROUTER_ROLE}.pem"),
+                "connect_private_key": security.file(f"{ROUTER_ROLE}.key"),
+                "enable_mtls": config.mutual_tls,
+            }
+            by_certificate = config.mutual_tls
+        if security.passwords:
+            settings["transport/auth/usrpwd"] = {"dictionary_file": security.file(USERS_FILE)}
+            by_password = True
+    if config.access_control and security is not None:
+        if not (by_certificate or by_password):
+            raise CredentialsError("router.access_control needs a way to tell roles apart: mutual TLS (ca.pem, "
+                                   "router.pem/.key) or passwords (users.txt) in the credentials directory")
+        settings["access_control"] = access_rules(by_certificate, by_password)
+    conf = zenoh.Config()
+    for key, value in settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    return conf
+
+
+def open_listeners_warning(config: RouterConfig) -> str | None:
+    """A warning when the router listens beyond loopback without authentication, else None."""
+    exposed = [e for e in config.listen if not is_loopback(e)]
+    if not exposed:
+        return None
+    security = Security.find(config.credentials)
+    if security is not None and (security.passwords or (security.tls and config.mutual_tls)):
+        return None
+    return (f"the router listens on {', '.join(exposed)} without authentication: anyone who can reach it can read "
+            "trajectories and publish weights; set router.credentials (deploy/security/make-test-certs.sh makes "
+            "trial ones) or listen on loopback only")
+
+
+def run_router(config: RouterConfig, stop: threading.Event | Callable[[], bool], poll_s: float = 0.1,
+               lease_ms: int = 3000) -> None:
+    """Keep a router open until `stop` is set (an Event) or returns True (a callable)."""
+    stopped = stop.is_set if isinstance(stop, threading.Event) else stop
+    session = zenoh.open(router_zenoh_config(config, lease_ms))
+    try:
+        log.info("router %s listening on %s%s", session.info.zid(), ", ".join(config.listen),
+                 f", linked to {', '.join(config.connect)}" if config.connect else "")
+        while not stopped():
+            time.sleep(poll_s)
+    finally:
+        session.close()

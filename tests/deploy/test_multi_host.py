@@ -1,0 +1,172 @@
+"""A run across a router, on loopback: `impulse router` with TLS, mutual TLS, passwords and access control, a learner
+and an actor connected to it as clients (as on separate hosts), and Zenoh clients of our own probing what the
+router lets through. Then the router is killed and restarted, and the run must go on training.
+
+What is checked is what real processes receive: the actor's status (policy version, rejects), the learner's
+progress, and probe sessions holding one role's credentials each.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import zenoh
+from launch_procs import QUICK_LAUNCH, REPO, StatusWatcher, free_port, tail, wait_for
+
+from bus.codec import Kind, decode, encode
+from bus.keys import Keys
+from bus.session import BusConfig, zenoh_config
+
+RUN = "multihost"
+FORGED_VERSION = 1_000_000
+
+
+@dataclass
+class Cluster:
+    run_dir: Path
+    credentials: Path
+    endpoint: str
+    port: int
+    processes: dict[str, subprocess.Popen]
+    logs: dict[str, Path]
+
+    def start(self, role: str, *extra: str) -> None:
+        log_path = self.run_dir.parent / f"{role}.log"
+        env = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache"), "PYTHONUNBUFFERED": "1"}
+        command = [sys.executable, "-m", "deploy.cli", role.split("-")[0], "--config", str(QUICK_LAUNCH),
+                   f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
+                   f"router.credentials={self.credentials}", f'router.listen=["{self.endpoint}"]',
+                   "total_env_steps=100000000", "checkpoint.every_updates=1000", *extra]
+        with log_path.open("ab") as out:
+            self.processes[role] = subprocess.Popen(command, cwd=REPO, env=env, stdout=out,
+                                                    stderr=subprocess.STDOUT)
+        self.logs[role] = log_path
+
+    def client(self, role: str) -> zenoh.Session:
+        """A session with `role`'s credentials (the operator's for any other role name)."""
+        return zenoh.open(zenoh_config(self.bus_config(), listen=False, role=role))
+
+    def bus_config(self) -> BusConfig:
+        return BusConfig(connect=(self.endpoint,), credentials=str(self.credentials))
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    root = tmp_path_factory.mktemp("multihost")
+    credentials = root / "credentials"
+    made = subprocess.run(["bash", str(REPO / "deploy" / "security" / "make-test-certs.sh"), str(credentials)],
+                          capture_output=True, text=True)
+    if made.returncode != 0 and "openssl" in made.stderr:
+        pytest.skip(f"openssl is needed to make test certificates: {made.stderr.strip()}")
+    assert made.returncode == 0, made.stderr
+    port = free_port()
+    cluster = Cluster(root / RUN, credentials, f"tls/localhost:{port}", port, {}, {})
+    cluster.start("router")
+    connect = f"--connect={cluster.endpoint}"
+    cluster.start("learner", connect)
+    cluster.start("actor", connect, "--index", "0")
+    try:
+        yield cluster
+    finally:
+        for process in cluster.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGKILL)
+                process.wait(timeout=30)
+
+
+def all_logs(cluster: Cluster) -> str:
+    return "\n".join(f"--- {role}\n{tail(path, 25)}" for role, path in cluster.logs.items())
+
+
+def watch(cluster: Cluster) -> StatusWatcher:
+    return StatusWatcher(RUN, cluster.port, cluster.bus_config())
+
+
+def wait_update(watcher: StatusWatcher, cluster: Cluster, beyond: int, timeout_s: float) -> int:
+    """The learner's update count once it exceeds `beyond`."""
+
+    def update() -> int:
+        learner = watcher.poll().get("learner", {})
+        return int(learner.get("update", 0)) if int(learner.get("update", 0)) > beyond else 0
+
+    try:
+        return wait_for(update, timeout_s, f"the learner past update {beyond}")
+    except AssertionError as err:
+        raise AssertionError(f"{err}\n{all_logs(cluster)}") from None
+
+
+def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
+    watcher = watch(cluster)
+    try:
+        wait_update(watcher, cluster, 2, 240)
+        keys = Keys(RUN)
+
+        # No credentials: TLS without a client certificate or a password does not even get a session.
+        bare = zenoh.Config()
+        for key, value in {"mode": '"client"', "scouting/multicast/enabled": "false",
+                           "connect/endpoints": f'["{cluster.endpoint}"]',
+                           "transport/link/tls/root_ca_certificate": f'"{cluster.credentials / "ca.pem"}"'}.items():
+            bare.insert_json5(key, value)
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(bare).close()
+
+        probe, rogue, curriculum = cluster.client("actor"), cluster.client("actor"), cluster.client("curriculum")
+        try:
+            weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
+            trajectories = rogue.declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
+            # The real curriculum role answers level queries; a second queryable, under actor credentials, tries to.
+            curriculum.declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"curriculum"))
+            rogue.declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"rogue"))
+            real = weights.recv().payload.to_bytes()  # the learner publishes after every update
+            genuine = decode(real, run=RUN, kinds=Kind.WEIGHTS)
+            forged = encode(Kind.WEIGHTS, genuine.arrays, run=RUN, policy_version=FORGED_VERSION,
+                            learner_epoch=genuine.learner_epoch, sender=genuine.sender, meta=genuine.meta)
+            for _ in range(5):
+                rogue.put(keys.weights_policy, bytes(forged))
+                time.sleep(0.2)
+            replies = probe.get(keys.levels_sample, target=zenoh.QueryTarget.ALL,
+                                consolidation=zenoh.ConsolidationMode.NONE, timeout=3)
+            answers = sorted(r.ok.payload.to_bytes() for r in replies if r.ok is not None)
+            time.sleep(3)
+            heard = []
+            while (sample := weights.try_recv()) is not None:
+                heard.append(decode(sample.payload.to_bytes(), run=RUN, kinds=Kind.WEIGHTS).policy_version)
+            stolen = trajectories.try_recv()
+        finally:
+            for session in (probe, rogue, curriculum):
+                session.close()
+
+        assert answers == [b"curriculum"]  # the actor-credentialed queryable's reply never arrived
+        assert heard and FORGED_VERSION not in heard  # the learner's weights arrive, the rogue's do not
+        assert stolen is None  # actor credentials do not read trajectories, though the actor keeps sending them
+        actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
+        assert actor["policy_version"] < FORGED_VERSION and actor["rejected"] == 0
+        assert actor["weights_adopted"] >= 2
+    finally:
+        watcher.close()
+
+
+def test_run_survives_a_router_restart(cluster: Cluster) -> None:
+    watcher = watch(cluster)
+    try:
+        before = wait_update(watcher, cluster, 0, 240)
+        router = cluster.processes["router"]
+        router.send_signal(signal.SIGKILL)
+        router.wait(timeout=30)
+        time.sleep(2.0)
+        watcher.latest.clear()
+        cluster.start("router")
+        after = wait_update(watcher, cluster, before + 3, 180)
+        assert after > before + 3
+        for role in ("learner", "actor"):
+            assert cluster.processes[role].poll() is None, all_logs(cluster)
+    finally:
+        watcher.close()
