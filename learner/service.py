@@ -5,7 +5,7 @@ One cycle (driven by the shared run loop):
    leaving (liveliness);
 2. take every trajectory frame waiting in the bounded inbox, decode and check it in this thread (never in a
    zenoh callback): a malformed or foreign frame is dropped and counted by reason; a duplicate sequence number is
-   dropped; a gap in an actor's sequence is counted as lost;
+   dropped; a gap in an actor's sequence (after the first batch of it this learner sees) is counted as lost;
 3. take the oldest ready batch off the queue and acknowledge it to its actor (that frees a credit); a batch
    acted by weights of an earlier learner epoch (before a restart) or more than `ppo.max_policy_lag` versions
    old is dropped and counted instead of trained on;
@@ -218,13 +218,15 @@ class LearnerService:
                                    "incarnation")
                 batch = checked_tree(message, self._schema, self._template)
                 stream = (source, incarnation)
-                last = self._last_seq.get(stream, 0)
-                if message.seq <= last:
+                last = self._last_seq.get(stream)
+                if last is not None and message.seq <= last:
                     raise Rejected("duplicate", f"sequence number {message.seq} after {last}")
             except Rejected as err:
                 self.bus.rejects.record(err.reason, source, err.detail)
                 continue
-            if message.seq > last + 1:
+            # Gaps count from the first batch of a stream this learner sees: a restarted learner joins streams
+            # midway, and what was sent before it started was not lost to it.
+            if last is not None and message.seq > last + 1:
                 self.counts["lost"] += message.seq - last - 1
             self._last_seq[stream] = message.seq
             if len(self._ready) >= self._ready_limit:

@@ -1,15 +1,11 @@
 """A real distributed run (`impulse launch`: learner + 2 actor processes over Zenoh on loopback, CPU) that learns
-our easy car while it is attacked: malformed and foreign messages on every key, an actor killed with SIGKILL,
-then the learner killed with SIGKILL. It must keep training, restart what died, lose nothing beyond one
-checkpoint interval, and still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer
-running: they count what they could not stream and neither stall nor keep it."""
+our easy car while it is attacked with malformed and foreign messages on every key. It must keep training and
+still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer running: they count what they
+could not stream and neither stall nor keep it. Processes killed at random are test_fault_injection.py's."""
 
 from __future__ import annotations
 
 import json
-import os
-import re
-import signal
 import subprocess
 import sys
 
@@ -20,8 +16,6 @@ from launch_procs import (
     StatusWatcher,
     free_port,
     last_update,
-    metrics,
-    service_pids,
     start_launch,
     stop_launch,
     tail,
@@ -99,7 +93,6 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
                                f"checkpoint.every_updates={EVERY}", "monitor.enabled=true",
                                f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy")
     watcher = StatusWatcher(run_dir.name, port)
-    learner_log, actor0_log = run_dir / "logs" / "learner.log", run_dir / "logs" / "actor-0.log"
     try:
         wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
 
@@ -120,43 +113,6 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
                  "both actors to count the foreign weights (and actor-1 the garbage credit)", launch, log)
         after_injection = last_update(run_dir)
         wait_for(lambda: last_update(run_dir) >= after_injection + 2, 60, "training to go on", launch, log)
-
-        # kill -9 an actor: the learner keeps going, the launcher restarts it, it asks for the current weights.
-        [actor0] = service_pids(run_dir, "actor", 0)
-        os.kill(actor0, signal.SIGKILL)
-        at_kill = last_update(run_dir)
-        wait_for(lambda: "actor actor-0 left" in learner_log.read_text(), 30, "the learner to see actor-0 leave")
-        wait_for(lambda: last_update(run_dir) >= at_kill + 2, 60, "the learner to keep training", launch, log)
-        wait_for(lambda: service_pids(run_dir, "actor", 0) not in ([], [actor0]), 60, "actor-0's restart",
-                 launch, log)
-        # By query or from the broadcast's cache for late joiners, whichever answers first.
-        adopted_line = "adopted the learner's current weights"
-        wait_for(lambda: actor0_log.read_text().count("actor-0 up:") >= 2
-                 and adopted_line in actor0_log.read_text().rsplit("actor-0 up:", 1)[1], 120,
-                 "the restarted actor-0 to get the current weights", launch, log)
-
-        # kill -9 the learner: restarted with --resume; the actors reconnect without being restarted.
-        wait_for(lambda: last_update(run_dir) >= at_kill + EVERY + 1, 120, "a checkpoint after the actor restart",
-                 launch, log)
-        actors = {i: service_pids(run_dir, "actor", i) for i in (0, 1)}
-        [learner] = service_pids(run_dir, "learner")
-        os.kill(learner, signal.SIGKILL)
-        lines_at_kill = len(metrics(run_dir))
-        update_at_kill = last_update(run_dir)
-        resumed = wait_for(
-            lambda: re.search(r"resumed from checkpoint (\d+) \(update (\d+), policy version (\d+)",
-                              learner_log.read_text()),
-            180, "the learner's restart with --resume", launch, log)
-        step, update, version = (int(x) for x in resumed.groups())
-        assert step == update == version, "one policy version per update, checkpointed with its counters"
-        assert update_at_kill - EVERY <= update <= update_at_kill, "nothing lost beyond one checkpoint interval"
-        wait_for(lambda: last_update(run_dir) >= update + 3, 180, "training to continue after the restart",
-                 launch, log)
-        resumed_updates = [r["update"] for r in metrics(run_dir)[lines_at_kill:]]
-        assert resumed_updates == list(range(update + 1, update + 1 + len(resumed_updates))), (
-            "the resumed learner continues from the checkpoint's counters")
-        wait_for(lambda: watcher.poll().get("learner", {}).get("epoch") == 2, 30, "the restarted learner's status")
-        assert {i: service_pids(run_dir, "actor", i) for i in (0, 1)} == actors, "actors were not restarted"
 
         assert launch.wait(timeout=600) == 0, tail(log)
     finally:

@@ -1,6 +1,7 @@
-"""A run across a router, on loopback: `impulse router` with TLS, mutual TLS, passwords and access control, a learner
-and an actor connected to it as clients (as on separate hosts), and Zenoh clients of our own probing what the
-router lets through. Then the router is killed and restarted, and the run must go on training.
+"""A run across a router: `impulse router` with TLS, mutual TLS, passwords and access control, a learner and an
+actor connected to it as clients (as on separate hosts), and Zenoh clients of our own probing what the router lets
+through; then the router is killed and restarted, and the run must go on training. On loopback always; in
+separate network namespaces, through a network cut and a router restart, where the machine allows it.
 
 What is checked is what real processes receive: the actor's status (policy version, rejects), the learner's
 progress, and probe sessions holding one role's credentials each.
@@ -14,12 +15,13 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 import zenoh
 from launch_procs import QUICK_LAUNCH, REPO, StatusWatcher, free_port, tail, wait_for
+from namespaces import Hosts, why_not
 
 from bus.codec import Kind, decode, encode
 from bus.keys import Keys
@@ -27,59 +29,78 @@ from bus.session import BusConfig, zenoh_config
 
 RUN = "multihost"
 FORGED_VERSION = 1_000_000
+PARTITION_S = 8.0
+"""Longer than the bus lease (3 s): both sides declare the other gone before the link comes back."""
 
 
 @dataclass
 class Cluster:
+    """Router, learner and actor processes of one run; `endpoints` says how each reaches the router (on loopback
+    all the same; from separate namespaces each its own address), `prefixes` how each is started."""
+
     run_dir: Path
     credentials: Path
-    endpoint: str
+    listen: str
+    endpoints: dict[str, str]
     port: int
-    processes: dict[str, subprocess.Popen]
-    logs: dict[str, Path]
+    prefixes: dict[str, list[str]] = field(default_factory=dict)
+    processes: dict[str, subprocess.Popen] = field(default_factory=dict)
+    logs: dict[str, Path] = field(default_factory=dict)
 
-    def start(self, role: str, *extra: str) -> None:
+    def start(self, role: str) -> None:
         log_path = self.run_dir.parent / f"{role}.log"
         env = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache"), "PYTHONUNBUFFERED": "1"}
-        command = [sys.executable, "-m", "deploy.cli", role.split("-")[0], "--config", str(QUICK_LAUNCH),
-                   f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
-                   f"router.credentials={self.credentials}", f'router.listen=["{self.endpoint}"]',
+        extra = [] if role == "router" else [f"--connect={self.endpoints[role]}"]
+        if role == "actor":
+            extra += ["--index", "0"]
+        command = [*self.prefixes.get(role, []), sys.executable, "-m", "deploy.cli", role, "--config",
+                   str(QUICK_LAUNCH), f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
+                   f"router.credentials={self.credentials}", f'router.listen=["{self.listen}"]',
                    "total_env_steps=100000000", "checkpoint.every_updates=1000", *extra]
         with log_path.open("ab") as out:
             self.processes[role] = subprocess.Popen(command, cwd=REPO, env=env, stdout=out,
                                                     stderr=subprocess.STDOUT)
         self.logs[role] = log_path
 
+    def start_all(self) -> None:
+        for role in ("router", "learner", "actor"):
+            self.start(role)
+
     def client(self, role: str) -> zenoh.Session:
         """A session with `role`'s credentials (the operator's for any other role name)."""
         return zenoh.open(zenoh_config(self.bus_config(), listen=False, role=role))
 
     def bus_config(self) -> BusConfig:
-        return BusConfig(connect=(self.endpoint,), credentials=str(self.credentials))
+        return BusConfig(connect=(self.endpoints["test"],), credentials=str(self.credentials))
+
+    def stop(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGKILL)
+                process.wait(timeout=30)
+
+
+def make_credentials(directory: Path, *router_hosts: str) -> Path:
+    made = subprocess.run(["bash", str(REPO / "deploy" / "security" / "make-test-certs.sh"), str(directory),
+                           *router_hosts], capture_output=True, text=True)
+    if made.returncode != 0 and "openssl" in made.stderr:
+        pytest.skip(f"openssl is needed to make test certificates: {made.stderr.strip()}")
+    assert made.returncode == 0, made.stderr
+    return directory
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     root = tmp_path_factory.mktemp("multihost")
-    credentials = root / "credentials"
-    made = subprocess.run(["bash", str(REPO / "deploy" / "security" / "make-test-certs.sh"), str(credentials)],
-                          capture_output=True, text=True)
-    if made.returncode != 0 and "openssl" in made.stderr:
-        pytest.skip(f"openssl is needed to make test certificates: {made.stderr.strip()}")
-    assert made.returncode == 0, made.stderr
     port = free_port()
-    cluster = Cluster(root / RUN, credentials, f"tls/localhost:{port}", port, {}, {})
-    cluster.start("router")
-    connect = f"--connect={cluster.endpoint}"
-    cluster.start("learner", connect)
-    cluster.start("actor", connect, "--index", "0")
+    endpoint = f"tls/localhost:{port}"
+    cluster = Cluster(root / RUN, make_credentials(root / "credentials"), endpoint,
+                      dict.fromkeys(("learner", "actor", "test"), endpoint), port)
+    cluster.start_all()
     try:
         yield cluster
     finally:
-        for process in cluster.processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGKILL)
-                process.wait(timeout=30)
+        cluster.stop()
 
 
 def all_logs(cluster: Cluster) -> str:
@@ -112,7 +133,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         # No credentials: TLS without a client certificate or a password does not even get a session.
         bare = zenoh.Config()
         for key, value in {"mode": '"client"', "scouting/multicast/enabled": "false",
-                           "connect/endpoints": f'["{cluster.endpoint}"]',
+                           "connect/endpoints": f'["{cluster.endpoints["test"]}"]',
                            "transport/link/tls/root_ca_certificate": f'"{cluster.credentials / "ca.pem"}"'}.items():
             bare.insert_json5(key, value)
         with pytest.raises(zenoh.ZError):
@@ -170,3 +191,48 @@ def test_run_survives_a_router_restart(cluster: Cluster) -> None:
             assert cluster.processes[role].poll() is None, all_logs(cluster)
     finally:
         watcher.close()
+
+
+def test_hosts_in_separate_namespaces_survive_a_partition_and_a_router_restart(tmp_path: Path) -> None:
+    """Router, learner and actor each in a network namespace of its own (as on three hosts), linked to the
+    router's by virtual ethernet: the actor's link is cut for longer than the lease, then the router is killed
+    and restarted; both times the run goes on training."""
+    reason = why_not()
+    if reason is not None:
+        pytest.skip(f"separate hosts need network namespaces: {reason} (the loopback tests above still run)")
+    hosts = Hosts()
+    try:
+        hosts.create(["learner", "actor", "here"])
+        port = free_port()
+        addresses = {role: hosts.hub_address(role) for role in ("learner", "actor", "here")}
+        credentials = make_credentials(tmp_path / "credentials", *addresses.values())
+        endpoints = {role: f"tls/{addresses[role]}:{port}" for role in ("learner", "actor")}
+        endpoints["test"] = f"tls/{addresses['here']}:{port}"
+        cluster = Cluster(tmp_path / RUN, credentials, f"tls/0.0.0.0:{port}", endpoints, port,
+                          {"router": hosts.prefix("hub"), "learner": hosts.prefix("learner"),
+                           "actor": hosts.prefix("actor")})
+        cluster.start_all()
+        watcher = watch(cluster)
+        try:
+            before = wait_update(watcher, cluster, 2, 300)
+            hosts.partition("actor", connected=False)
+            time.sleep(PARTITION_S)
+            learner = watcher.poll().get("learner", {})
+            assert "actor-0" not in learner.get("actors", ["actor-0"]), "the learner saw the actor go"
+            hosts.partition("actor", connected=True)
+            healed = wait_update(watcher, cluster, max(before, learner.get("update", 0)) + 3, 180)
+
+            cluster.processes["router"].send_signal(signal.SIGKILL)
+            cluster.processes["router"].wait(timeout=30)
+            time.sleep(2.0)
+            watcher.latest.clear()
+            cluster.start("router")
+            wait_update(watcher, cluster, healed + 3, 180)
+            for role in ("learner", "actor"):
+                assert cluster.processes[role].poll() is None, all_logs(cluster)
+            assert "actor actor-0 left" in cluster.logs["learner"].read_text()
+        finally:
+            watcher.close()
+            cluster.stop()
+    finally:
+        hosts.destroy()

@@ -1,0 +1,147 @@
+"""Fault injection: `impulse launch` on random levels with a curriculum service, while the test kills a random one of
+its processes (learner, curriculum, an actor) with SIGKILL at random times for a few minutes. The launcher restarts
+each. At the end the run must still be training, every learner checkpoint must restore, every restarted
+curriculum service must have resumed from its own checkpoint, and the policy version must never have gone back by
+more than one checkpoint interval. The counters of what was dropped and refused on the way are the test's figure
+(printed, visible with `pytest -s`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import time
+
+import jax
+import numpy as np
+from launch_procs import (
+    StatusWatcher,
+    free_port,
+    last_update,
+    metrics,
+    service_pids,
+    start_launch,
+    stop_launch,
+    wait_for,
+)
+
+from deploy.config import resolve_config
+from engine.env.spec import env_from_config
+from learner.agent import make_agent
+from learner.checkpoint import TRAIN, Checkpointer
+from learner.config import TrainConfig
+from learner.update import TrainState, make_optimizer
+
+EVERY = 3
+"""Learner checkpoint interval (updates): the most a learner kill may cost."""
+INJECT_FOR_S = 120.0
+PAUSE_S = (8.0, 20.0)
+"""Seconds between kills, drawn uniformly."""
+SEED = int(os.environ.get("IMPULSE_FAULT_SEED", "7"))
+VICTIMS = ("learner", "curriculum", "actor-0", "actor-1")
+
+
+def pids_of(run_dir, victim: str) -> list[int]:
+    role, _, index = victim.partition("-")
+    return service_pids(run_dir, role, int(index) if index else None)
+
+
+def has_checkpoint(directory) -> bool:
+    return directory.is_dir() and any(p.name.isdigit() for p in directory.iterdir())
+
+
+def learner_checkpoints_restore(run_dir) -> list[int]:
+    """Every learner checkpoint kept, restored with a template of the run's train state; the steps."""
+    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    spec, _ = env_from_config(config.env)
+    params = make_agent(config.network, spec).init(jax.random.PRNGKey(0))
+    template = TrainState(params, make_optimizer(config.ppo, 1).init(params), np.asarray(0, np.int32))
+    with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
+        steps = checkpoints.all_steps()
+        for step in steps:
+            items, counters, _ = checkpoints.restore({TRAIN: template}, step)
+            assert int(items[TRAIN].policy_version) == int(counters["update"]) == step
+    return steps
+
+
+def test_random_kills_over_minutes(tmp_path):
+    run_dir = tmp_path / "chaos"
+    port = free_port()
+    launch, log = start_launch(run_dir, port, "total_env_steps=40960000", f"checkpoint.every_updates={EVERY}",
+                               "env.levels=random", "curriculum=plr", "curriculum.buffer_size=32",
+                               "curriculum.noop_filter=false", "actors.credit_timeout_s=10")
+    watcher = StatusWatcher(run_dir.name, port)
+    rng = np.random.default_rng(SEED)
+    kills: list[tuple[float, str]] = []
+    versions: list[tuple[int, int]] = []  # (learner epoch, policy version) as the learner reported them
+    curriculum_kills_with_checkpoint = 0
+    totals: dict[str, dict[str, int]] = {}
+
+    def observe() -> None:
+        for name, status in watcher.poll().items():
+            if name == "learner" and (status["epoch"], status["policy_version"]) not in versions[-1:]:
+                versions.append((status["epoch"], status["policy_version"]))
+            counts = {k: v for k, v in status.items() if isinstance(v, int) and not isinstance(v, bool)
+                      and ("drop" in k or "written_off" in k or "lost" in k or "duplicate" in k)}
+            counts["rejected"] = sum(status.get("rejected", {}).values()) if isinstance(status.get("rejected"),
+                                                                                           dict) else 0
+            seen = totals.setdefault(name, {})
+            for key, value in counts.items():
+                seen[key] = max(seen.get(key, 0), value)  # a restarted process counts from zero again
+
+    try:
+        wait_for(lambda: last_update(run_dir) >= 2, 400, "the first updates", launch, log)
+        started = time.monotonic()
+        while time.monotonic() - started < INJECT_FOR_S:
+            pause_until = time.monotonic() + rng.uniform(*PAUSE_S)
+            while time.monotonic() < pause_until:
+                observe()
+                time.sleep(0.25)
+            victim = str(rng.choice(VICTIMS))
+            pids = pids_of(run_dir, victim)
+            if not pids:
+                continue  # still being restarted by the launcher
+            if victim == "curriculum" and has_checkpoint(run_dir / "curriculum" / "checkpoints"):
+                curriculum_kills_with_checkpoint += 1
+            for pid in pids:
+                os.kill(pid, signal.SIGKILL)
+            kills.append((round(time.monotonic() - started, 1), victim))
+        assert launch.poll() is None, "the launcher is still running"
+
+        # Still training: every process back and the learner making updates again.
+        wait_for(lambda: all(pids_of(run_dir, v) for v in VICTIMS), 120, "every process restarted", launch, log)
+        at_end = last_update(run_dir)
+        wait_for(lambda: (observe(), last_update(run_dir) >= at_end + 2)[1], 240, "training after the last kill",
+                 launch, log)
+        observe()
+    finally:
+        watcher.close()
+        stop_launch(launch, run_dir)
+
+    learner_log = (run_dir / "logs" / "learner.log").read_text()
+    curriculum_log = (run_dir / "logs" / "curriculum.log").read_text()
+    resumed = [int(m) for m in re.findall(r"resumed from checkpoint \d+ \(update (\d+)", learner_log)]
+    figure = {"kills": kills, "learner_resumes": resumed, "counters": totals, "policy_versions_seen": len(versions)}
+    print(json.dumps(figure))
+
+    assert len(kills) >= 6, figure
+    assert {"learner", "curriculum"} <= {victim for _, victim in kills}, f"seed {SEED} spared someone: {kills}"
+    # The policy version never goes back by more than one checkpoint interval, even across learner restarts.
+    highest = 0
+    for _, version in versions:
+        assert version >= highest - EVERY, (version, highest, versions)
+        highest = max(highest, version)
+    assert curriculum_log.count("curriculum resumed from checkpoint") >= curriculum_kills_with_checkpoint
+    assert "Traceback" not in curriculum_log and "Traceback" not in learner_log
+    steps = learner_checkpoints_restore(run_dir)
+    assert steps and max(steps) >= max(resumed, default=0)
+    # Each resumed learner went on from its checkpoint's update: no update number is missing from the metrics.
+    updates = sorted({record["update"] for record in metrics(run_dir)})
+    assert updates == list(range(updates[0], updates[-1] + 1)), updates
+    # The launcher restarted every killed actor, and each one's latest incarnation got the current weights.
+    for index in (0, 1):
+        name = f"actor-{index}"
+        text = (run_dir / "logs" / f"{name}.log").read_text()
+        assert log.read_text().count(f"{name} ended (") == sum(victim == name for _, victim in kills)
+        assert "adopted the learner's current weights" in text.rsplit(f"{name} up:", 1)[1]
