@@ -1,5 +1,5 @@
 """Fault injection: `impulse launch` on random levels with a curriculum service, while the test kills a random one of
-its processes (learner, curriculum, an actor) with SIGKILL at random times for a few minutes. The launcher restarts
+its processes (learner, curriculum, an actor) with SIGKILL at random times for a minute. The launcher restarts
 each. At the end the run must still be training, every learner checkpoint must restore, every restarted
 curriculum service must have resumed from its own checkpoint, and the policy version must never have gone back by
 more than one checkpoint interval. The counters of what was dropped and refused on the way are the test's figure
@@ -35,8 +35,8 @@ from learner.update import TrainState, make_optimizer
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""
-INJECT_FOR_S = 120.0
-PAUSE_S = (8.0, 20.0)
+INJECT_FOR_S = 60.0
+PAUSE_S = (5.0, 11.0)
 """Seconds between kills, drawn uniformly."""
 SEED = int(os.environ.get("IMPULSE_FAULT_SEED", "7"))
 VICTIMS = ("learner", "curriculum", "actor-0", "actor-1")
@@ -125,7 +125,7 @@ def test_random_kills_over_minutes(tmp_path):
     figure = {"kills": kills, "learner_resumes": resumed, "counters": totals, "policy_versions_seen": len(versions)}
     print(json.dumps(figure))
 
-    assert len(kills) >= 6, figure
+    assert len(kills) >= 4, figure
     assert {"learner", "curriculum"} <= {victim for _, victim in kills}, f"seed {SEED} spared someone: {kills}"
     # The policy version never goes back by more than one checkpoint interval, even across learner restarts.
     highest = 0
