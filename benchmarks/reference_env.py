@@ -201,14 +201,15 @@ def _clean_environment() -> dict[str, str]:
     return env
 
 
-def run_reference(args: list[str], timeout: float) -> list[dict[str, Any]]:
-    """Run ``_reference_runner.py ARGS`` in the reference venv and return its JSON-lines stdout as dicts.
+def run_reference(args: list[str], timeout: float, script: Path = RUNNER) -> list[dict[str, Any]]:
+    """Run ``script ARGS`` (by default ``_reference_runner.py``; any script beside it that follows the same
+    JSON-lines convention) in the reference venv and return its JSON-lines stdout as dicts.
 
     The runner's stderr (progress) is forwarded live to ours. Raises ReferenceEnvError on a non-zero exit or a
     timeout, with the tail of its stderr.
     """
     python = ensure_reference_env()
-    command = [str(python), "-I", str(RUNNER), *args]
+    command = [str(python), "-I", str(script), *args]
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
         env=_clean_environment(), cwd=str(RUNNER.parent),

@@ -10,7 +10,8 @@ Security material lives in one credentials directory (made for trials by deploy/
 - `router.pem`, `router.key`: the router's certificate, whose names clients verify;
 - `<role>.pem`, `<role>.key`: a process's client certificate, its common name the role (mutual TLS);
 - `<role>.password`: a process's password for Zenoh's user/password authentication, the user being the role;
-- `users.txt`: the router's `role:password` dictionary.
+- `users.txt`: the router's `role:password` dictionary;
+- `router.password`: what a router presents when it links to another (`router.connect`), the user being `router`.
 
 A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`: `learner`, `curriculum`,
 `actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect`, status watchers).
@@ -19,6 +20,12 @@ With access control on, the router denies by default and allows each role only i
 (`access_rules`): only the learner may publish weights and credits, only the curriculum may answer level and
 knob queries, only actors may publish trajectories and level results, and trajectories reach only the learner.
 Receivers also check each frame's declared sender, which catches a misconfigured process on an open bus.
+
+Routers linked to each other (one per host, `router.connect`) trust each other: a router is recognised by its
+certificate (common name `router`; a router sees the certificate of one it connects to but not its user name, so
+linked routers with access control need mutual TLS), presents `router.password` where passwords are required, and
+may pass on anything, since each router enforces the rules above on the clients connected to it. Guard
+`router.key` and `router.password` accordingly.
 """
 
 from __future__ import annotations
@@ -42,6 +49,9 @@ log = logging.getLogger("impulse.router")
 CA_FILE = "ca.pem"
 ROUTER_ROLE = "router"
 USERS_FILE = "users.txt"
+ALL_MESSAGES = ["put", "delete", "query", "reply", "declare_subscriber", "declare_queryable", "liveliness_token",
+                "liveliness_query", "declare_liveliness_subscriber"]
+"""Every message kind zenoh's access control names: what one router may pass to another."""
 
 
 class CredentialsError(ValueError):
@@ -173,12 +183,15 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/levels/**", f"{run}/curriculum/**"]),
         _allow("operator-asks", "ingress", ["query"], [f"{run}/curriculum/**"]),
         _allow("operator-hears", "egress", ["put"], [f"{run}/metrics/**"]),
+        _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
+        _allow("router-passes-out", "egress", ALL_MESSAGES, everything),
     ]
     own = {
         "learner": ["learner-sends", "learner-hears"],
         "curriculum": ["curriculum-sends", "curriculum-hears"],
         "actor": ["actor-sends", "actor-asks", "actor-hears"],
         "operator": ["operator-asks", "operator-hears"],
+        ROUTER_ROLE: ["router-passes-in", "router-passes-out"],
     }
     subjects, policies = [], []
     for role in ROLES:
@@ -190,6 +203,10 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         subjects.append(subject)
         policies.append({"id": role, "subjects": [role], "rules": ["declare", "hear-declarations", "status",
                                                                    *own[role]]})
+    if by_certificate:
+        # By certificate alone: a router sees the certificate of a router it connects to, but not its user name.
+        subjects.append({"id": ROUTER_ROLE, "cert_common_names": [ROUTER_ROLE]})
+        policies.append({"id": ROUTER_ROLE, "subjects": [ROUTER_ROLE], "rules": own[ROUTER_ROLE]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
@@ -221,12 +238,19 @@ def router_zenoh_config(config: RouterConfig, lease_ms: int = 3000) -> zenoh.Con
             }
             by_certificate = config.mutual_tls
         if security.passwords:
-            settings["transport/auth/usrpwd"] = {"dictionary_file": security.file(USERS_FILE)}
+            usrpwd = {"dictionary_file": security.file(USERS_FILE)}
+            if config.connect or (security.directory / f"{ROUTER_ROLE}.password").is_file():
+                password = Path(security.file(f"{ROUTER_ROLE}.password")).read_text().strip()
+                usrpwd.update(user=ROUTER_ROLE, password=password)
+            settings["transport/auth/usrpwd"] = usrpwd
             by_password = True
     if config.access_control and security is not None:
         if not (by_certificate or by_password):
             raise CredentialsError("router.access_control needs a way to tell roles apart: mutual TLS (ca.pem, "
                                    "router.pem/.key) or passwords (users.txt) in the credentials directory")
+        if config.connect and not by_certificate:
+            raise CredentialsError("router.connect with access control needs mutual TLS (ca.pem, router.pem/.key "
+                                   "and router.mutual_tls): linked routers recognise each other by certificate")
         settings["access_control"] = access_rules(by_certificate, by_password)
     conf = zenoh.Config()
     for key, value in settings.items():
