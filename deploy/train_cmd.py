@@ -141,7 +141,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
                         help="a run directory (its newest checkpoint) or one checkpoint's directory")
     parser.add_argument("--levels", metavar="SET",
-                        help='"handmade", a level file or a folder (default: eval.levels, else the training levels)')
+                        help='"handmade", "kinetix:s|m|l|all" (Kinetix\'s hand-made sets, found as '
+                        '$IMPULSE_KINETIX_LEVELS says), a level file, a folder or a glob (default: eval.levels, else '
+                        'the training levels)')
     parser.add_argument("--attempts", type=int, metavar="K", help="episodes per level (default: eval.attempts)")
     parser.add_argument("--seed", type=int, default=0, help="evaluation seed (same seed, same numbers)")
     parser.add_argument("--greedy", action="store_true", help="take the most likely action instead of sampling")

@@ -25,7 +25,7 @@ from curriculum.algorithms import Curriculum
 from curriculum.stats import buffer_summary
 from engine.env.spec import EnvParams, env_from_config
 from engine.levels.level import Level
-from engine.levels.sets import HANDMADE, RANDOM, load_level_set
+from engine.levels.sets import HANDMADE, RANDOM, kinetix_group, load_level_set
 from learner.agent import Agent, make_agent
 from learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
@@ -72,8 +72,21 @@ def _scores_table(names: list[str], scores: LevelScores) -> dict[str, dict[str, 
     }
 
 
+def kinetix_groups(table: dict[str, dict[str, float]]) -> dict[str, float]:
+    """Mean solve rate per group as Kinetix logs them for its hand-made sets: "<size>_all" and "<size>_<prefix>"
+    (`engine.levels.sets.kinetix_group`), for levels named "<size>/<file>" as the "kinetix:" sets name them."""
+    members: dict[str, list[float]] = {}
+    for name, scores in table.items():
+        if "/" not in name:
+            continue
+        for group in (f"{name.rpartition('/')[0]}_all", kinetix_group(name)):
+            members.setdefault(group, []).append(scores["solve_rate"])
+    return {group: float(np.mean(rates)) for group, rates in sorted(members.items())}
+
+
 def format_scores(table: dict[str, dict[str, float]]) -> str:
-    """A terminal table of per-level evaluation scores."""
+    """A terminal table of per-level evaluation scores, their mean, and Kinetix's group means where the levels
+    are Kinetix's."""
     width = max([len(n) for n in table] + [5])
     lines = [f"{'level':<{width}}  solved  return  length"]
     for name, s in table.items():
@@ -81,6 +94,8 @@ def format_scores(table: dict[str, dict[str, float]]) -> str:
     if table:
         mean = np.mean([s["solve_rate"] for s in table.values()])
         lines.append(f"{'mean':<{width}}  {mean:>6.0%}")
+    for group, rate in kinetix_groups(table).items():
+        lines.append(f"{group:<{width}}  {rate:>6.0%}")
     return "\n".join(lines)
 
 

@@ -2,13 +2,21 @@
 
 - "handmade": our own hand-made levels (`engine.levels.handmade`) that fit the size, the default evaluation set;
   "handmade:NAME,NAME" picks some of them by name.
-- a level file (".json") or a folder of them (searched recursively), each loaded into the size;
+- "kinetix:s", "kinetix:m", "kinetix:l" (Kinetix's hand-made sets of that size, 10 / 24 / 40 levels, as its
+  `eval/{s,m,l}.yaml`) and "kinetix:all" (all 74), read from Kinetix's level folder (`kinetix_levels_root`) and
+  named like Kinetix's ("s/h0_weak_thrust");
+- a level file (".json"), a folder of them (searched recursively), or a glob pattern ("levels/**/h*.json"), each
+  loaded into the size;
 - "random" is not a fixed set: trainers sample random levels on the device instead (see
   `engine.levels.generator`), so `load_level_set` rejects it with a message saying so.
 """
 
 from __future__ import annotations
 
+import glob
+import importlib.util
+import os
+import re
 from pathlib import Path
 
 from engine.levels.kinetix_json import LevelFileError, load_kinetix_level
@@ -17,6 +25,10 @@ from engine.physics.sizes import SceneSizes
 
 RANDOM = "random"
 HANDMADE = "handmade"
+KINETIX = "kinetix"
+KINETIX_SETS = {"s": ("s",), "m": ("m",), "l": ("l",), "all": ("s", "m", "l")}
+KINETIX_LEVELS_ENV = "IMPULSE_KINETIX_LEVELS"
+GLOB_CHARACTERS = frozenset("*?[")
 
 
 class LevelSetError(ValueError):
@@ -55,6 +67,56 @@ def _files(path: Path) -> list[Path]:
     )
 
 
+def kinetix_levels_root() -> Path:
+    """Kinetix's level folder (holding s/, m/ and l/): `$IMPULSE_KINETIX_LEVELS`, else the `levels` folder of an
+    installed `kinetix` package (`pip install kinetix-env`), else a `shared/kinetix-levels` folder beside this
+    checkout. Kinetix's files are not part of Impulse; raises LevelSetError saying how to provide them."""
+    candidates = []
+    if os.environ.get(KINETIX_LEVELS_ENV):
+        candidates.append(Path(os.environ[KINETIX_LEVELS_ENV]).expanduser())
+    else:
+        spec = importlib.util.find_spec(KINETIX)
+        if spec is not None and spec.submodule_search_locations:
+            candidates += [Path(location) / "levels" for location in spec.submodule_search_locations]
+        candidates.append(Path(__file__).resolve().parents[3] / "shared" / "kinetix-levels")
+    for candidate in candidates:
+        if (candidate / "s").is_dir():
+            return candidate
+    raise LevelSetError(f"Kinetix's level files were not found (looked in {', '.join(map(str, candidates))}): set "
+                        f"{KINETIX_LEVELS_ENV} to the folder holding s/, m/ and l/ (kinetix/levels in a Kinetix "
+                        "checkout or an installed kinetix-env)")
+
+
+def _kinetix_files(which: str) -> list[tuple[str, Path]]:
+    if which not in KINETIX_SETS:
+        raise LevelSetError(f"unknown Kinetix level set {KINETIX}:{which}; known: "
+                            f"{', '.join(f'{KINETIX}:{name}' for name in KINETIX_SETS)}")
+    root = kinetix_levels_root()
+    files = [(f"{size}/{file.stem}", file) for size in KINETIX_SETS[which]
+             for file in sorted((root / size).glob("*.json"))]
+    if not files:
+        raise LevelSetError(f"no level files in {root} for {KINETIX}:{which}")
+    return files
+
+
+def _glob_files(pattern: str) -> list[tuple[str, Path]]:
+    files = sorted(Path(match) for match in glob.glob(os.path.expanduser(pattern), recursive=True)
+                   if match.endswith(".json"))
+    if not files:
+        raise LevelSetError(f"no .json level files match {pattern!r}")
+    common = Path(os.path.commonpath([file.parent for file in files]))
+    return [(str(file.relative_to(common)).removesuffix(".json"), file) for file in files]
+
+
+def kinetix_group(name: str) -> str:
+    """The group Kinetix aggregates a hand-made level's score into, e.g. "l/mjc_hopper" -> "l_mjc" and
+    "s/h4_thrust_aim" -> "s_handmade": the size, then the file name's first word without digits ("h" meaning
+    hand-made)."""
+    size, _, stem = name.rpartition("/")
+    prefix = re.sub(r"\d", "", stem.split("_")[0]) or stem
+    return f"{size}_{'handmade' if prefix == 'h' else prefix}"
+
+
 def load_level_set(source: str, sizes: SceneSizes) -> tuple[list[str], Level]:
     """(names, batch of levels [K]) for a level-set string, every level in `sizes`."""
     if source == RANDOM:
@@ -63,14 +125,21 @@ def load_level_set(source: str, sizes: SceneSizes) -> tuple[list[str], Level]:
         picked = source.partition(":")[2]
         names, levels = _handmade([n for n in picked.split(",") if n] or None, sizes)
     else:
-        files = _files(Path(source))
+        if source.startswith(KINETIX + ":"):
+            named = _kinetix_files(source.partition(":")[2])
+        elif GLOB_CHARACTERS & set(source):
+            named = _glob_files(source)
+        else:
+            files = _files(Path(source))
+            named = [(file.stem if len(files) == 1 else str(file.relative_to(source)).removesuffix(".json"), file)
+                     for file in files]
         names, levels = [], []
-        for file in files:
+        for name, file in named:
             try:
                 levels.append(load_kinetix_level(file, sizes).level)
             except LevelFileError as err:
                 raise LevelSetError(str(err)) from err
-            names.append(file.stem if len(files) == 1 else str(file.relative_to(source)).removesuffix(".json"))
+            names.append(name)
     if not levels:
         raise LevelSetError(f"level set {source!r} has no level that fits the configured size")
     return names, stack_levels(levels)
