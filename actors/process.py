@@ -43,7 +43,7 @@ from bus.codec import Kind, Message, Rejected, decode, encode, expect_sender
 from bus.keys import ACTOR, LEARNER
 from bus.schema import check
 from bus.session import Bus
-from bus.status import StatusPublisher
+from bus.status import StatusPublisher, read_status
 from curriculum.results import LevelResults
 from curriculum.wire import results_arrays
 from engine.env.spec import EnvParams
@@ -117,6 +117,8 @@ class Actor:
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
         self._learner_presence = bus.watch_alive(keys.alive_pattern(LEARNER))
         self._learner_away = False
+        self._learner_status = bus.inbox(keys.metrics(LEARNER, LEARNER), 4, drop_oldest=True)
+        self._learner_finished = False
         self._status = StatusPublisher(bus, config.actors.status_every_s)
 
         self.params: Any = None
@@ -195,6 +197,15 @@ class Actor:
                     log.info("the learner is back after an interruption: %d batches in flight written off",
                              self.in_flight)
                     self._write_off()
+        for received in self._learner_status.poll():
+            try:
+                sender, status = read_status(received, self.bus.keys.run)
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, "learner status", err.detail)
+                continue
+            if sender == f"{LEARNER}/{LEARNER}" and status.get("finished") is True and not self._learner_finished:
+                log.info("the learner finished the run: %s stops", self.name)
+                self._learner_finished = True
 
     def _receive_acks(self) -> None:
         self._watch_learner()
@@ -318,4 +329,6 @@ class Actor:
         """An actor keeps no state worth a checkpoint: the learner and the curriculum own the run."""
 
     def finished(self) -> bool:
-        return False
+        """When the learner says the run is finished: on one machine the launcher stops the actors anyway, but
+        actors on other hosts would otherwise wait for weights that never come."""
+        return self._learner_finished

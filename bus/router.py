@@ -18,7 +18,8 @@ A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`
 
 With access control on, the router denies by default and allows each role only its part of the protocol
 (`access_rules`): only the learner may publish weights and credits, only the curriculum may answer level and
-knob queries, only actors may publish trajectories and level results, and trajectories reach only the learner.
+knob queries, only actors may publish trajectories and level results, and trajectories reach only the learner;
+actors hear the learner's status, which tells them when the run is finished.
 Receivers also check each frame's declared sender, which catches a misconfigured process on an open bus.
 
 Routers linked to each other (one per host, `router.connect`) trust each other: a router is recognised by its
@@ -178,7 +179,7 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("learner-hears", "egress", ["put", "query"], [f"{run}/traj/**", *weights, f"{run}/metrics/**"]),
         _allow("actor-sends", "ingress", ["put"], [f"{run}/traj/**", f"{run}/levels/results/**"]),
         _allow("actor-asks", "ingress", ["query"], [*weights, f"{run}/levels/sample"]),
-        _allow("actor-hears", "egress", ["put"], [*weights, f"{run}/credit/**"]),
+        _allow("actor-hears", "egress", ["put"], [*weights, f"{run}/credit/**", f"{run}/metrics/learner/**"]),
         _allow("curriculum-sends", "ingress", ["reply"], [f"{run}/levels/sample", f"{run}/curriculum/**"]),
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/levels/**", f"{run}/curriculum/**"]),
         _allow("operator-asks", "ingress", ["query"], [f"{run}/curriculum/**"]),

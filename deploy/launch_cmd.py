@@ -152,6 +152,9 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     if child.name == LEARNER and code == 0:
                         finished = True
                         break
+                    if code == 0 and child.name not in (CURRICULUM, VIEWER):
+                        log.info("%s ended: the learner finished the run", child.name)  # actors stop on their own
+                        continue
                     delay = supervisor.restart_later(child)
                     log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_exit(code), delay,
                                 " with --resume" if child.name == LEARNER else "")

@@ -278,6 +278,7 @@ class LearnerService:
             "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
             "rejected": self.bus.rejects.counts(),
             "solve_rate": self._last_metrics.get("window_solve_rate"),
+            "finished": self.finished(),
             **dict(self.counts),
         }
 
@@ -329,4 +330,7 @@ class LearnerService:
         return self.update >= self.num_updates
 
     def close(self) -> None:
+        """Wait for checkpoints, and tell whoever watches (actors on other hosts, which no launcher stops) whether
+        the run is finished."""
         self.checkpoints.close()
+        self._status.publish(self.status())

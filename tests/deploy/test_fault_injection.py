@@ -35,7 +35,8 @@ from learner.update import TrainState, make_optimizer
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""
-INJECT_FOR_S = 60.0
+INJECT_FOR_S = float(os.environ.get("IMPULSE_FAULT_SECONDS", "60"))
+"""A minute in CI (its time budget); `IMPULSE_FAULT_SECONDS=300` for the longer run docs/multi-host.md reports."""
 PAUSE_S = (5.0, 11.0)
 """Seconds between kills, drawn uniformly."""
 SEED = int(os.environ.get("IMPULSE_FAULT_SEED", "7"))
@@ -132,7 +133,12 @@ def test_random_kills_over_minutes(tmp_path):
     for _, version in versions:
         assert version >= highest - EVERY, (version, highest, versions)
         highest = max(highest, version)
-    assert curriculum_log.count("curriculum resumed from checkpoint") >= curriculum_kills_with_checkpoint
+    # Every curriculum incarnation that came up after one was killed with a checkpoint on disk came up resumed
+    # (one killed while starting never comes up, so incarnations are counted by their "up" lines).
+    fresh_starts = sum("curriculum resumed from checkpoint" not in segment
+                       for segment in curriculum_log.split("curriculum up:")[:-1])
+    curriculum_kills = sum(victim == "curriculum" for _, victim in kills)
+    assert fresh_starts <= 1 + curriculum_kills - curriculum_kills_with_checkpoint, curriculum_log
     assert "Traceback" not in curriculum_log and "Traceback" not in learner_log
     steps = learner_checkpoints_restore(run_dir)
     assert steps and max(steps) >= max(resumed, default=0)

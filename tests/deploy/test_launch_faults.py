@@ -119,6 +119,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         watcher.close()
         stop_launch(launch, run_dir)
 
+    for index in (0, 1):  # told by the learner's last status, as actors on other hosts are
+        assert f"the learner finished the run: actor-{index} stops" in (run_dir / "logs" / f"actor-{index}.log"
+                                                                         ).read_text()
     scores = json.loads((run_dir / "eval.json").read_text())
     assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores
     config = resolve_config(TrainConfig, run_dir / "config.toml")

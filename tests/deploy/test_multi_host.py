@@ -152,6 +152,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         probe, rogue, curriculum = cluster.client("actor"), cluster.client("actor"), cluster.client("curriculum")
         try:
             weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
+            learner_status = probe.declare_subscriber(keys.metrics("learner", "learner"), zenoh.handlers.FifoChannel(8))
             trajectories = rogue.declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
             # The real curriculum role answers level queries; a second queryable, under actor credentials, tries to.
             curriculum.declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"curriculum"))
@@ -171,6 +172,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             while (sample := weights.try_recv()) is not None:
                 heard.append(decode(sample.payload.to_bytes(), run=RUN, kinds=Kind.WEIGHTS).policy_version)
             stolen = trajectories.try_recv()
+            status = learner_status.try_recv()  # actors may hear when the run is finished
         finally:
             for session in (probe, rogue, curriculum):
                 session.close()
@@ -178,6 +180,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         assert answers == [b"curriculum"]  # the actor-credentialed queryable's reply never arrived
         assert heard and FORGED_VERSION not in heard  # the learner's weights arrive, the rogue's do not
         assert stolen is None  # actor credentials do not read trajectories, though the actor keeps sending them
+        assert status is not None and "finished" in decode(status.payload.to_bytes(), run=RUN, kinds=Kind.METRICS).meta
         actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
         assert actor["policy_version"] < FORGED_VERSION and actor["rejected"] == 0
         assert actor["weights_adopted"] >= 2
