@@ -36,6 +36,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from engine.levels.draws import DrawLayout
 from engine.levels.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
@@ -224,19 +225,27 @@ class SampledShape(NamedTuple):
     inverse_inertia: Array
 
 
-SHAPE_UNIFORMS = 5
+class ShapeDraws(NamedTuple):
+    half_extents: Array  # [2] rectangle half-size, as a fraction of the allowed range
+    long_axis: Array  # which axis a large dimension stretches
+    large_dimension: Array  # whether it does
+    radius: Array  # circle radius, as a fraction of the allowed range
+
+
+SHAPE_DRAWS = DrawLayout(ShapeDraws, {"half_extents": 2})
 
 
 def sample_shape(u: Array, is_rect: Array, max_size: Array, config: GeneratorConfig, max_vertices: int):
-    """Dimensions of a new rectangle or circle (Kinetix's `sample_dimensions`) from SHAPE_UNIFORMS uniforms, and
+    """Dimensions of a new rectangle or circle (Kinetix's `sample_dimensions`) from SHAPE_DRAWS.size uniforms, and
     its mass properties in Jax2D's convention (what Kinetix levels carry)."""
+    draws = SHAPE_DRAWS.split(u)
     cap_half = max_size / (2.0 * _SQRT2)
     cap_radius = max_size / 2.0 * config.circle_max_size_coeff
-    half = jnp.where(is_rect, u[0:2], 0.0) * (cap_half - config.min_half_extent) + config.min_half_extent
-    long_axis = jnp.floor(u[2] * 2.0)
-    stretch = jnp.where(u[3] < config.large_dimension_chance, config.large_dimension_scale, 1.0)
+    half = jnp.where(is_rect, draws.half_extents, 0.0) * (cap_half - config.min_half_extent) + config.min_half_extent
+    long_axis = jnp.floor(draws.long_axis * 2.0)
+    stretch = jnp.where(draws.large_dimension < config.large_dimension_chance, config.large_dimension_scale, 1.0)
     half = half * jnp.where(jnp.arange(2) == long_axis, stretch, 1.0)
-    radius = jnp.where(is_rect, 0.0, u[4]) * (cap_radius - config.min_radius) + config.min_radius
+    radius = jnp.where(is_rect, 0.0, draws.radius) * (cap_radius - config.min_radius) + config.min_radius
     vertices = _rectangle_vertices(half, max_vertices)
     density = jnp.asarray(config.density, jnp.float32)
     _, _, poly_im, poly_ii = polygon_mass_properties(vertices, 4, density, "jax2d")
@@ -311,7 +320,32 @@ def refresh_anchor_positions(state: SimState) -> SimState:
 # Single attempts
 
 
-SHAPE_ADD_UNIFORMS = 23 + SHAPE_UNIFORMS
+class ShapeAddDraws(NamedTuple):
+    target_kind: Array  # joined to a rectangle or a circle
+    target: Array  # which one
+    kind: Array  # the new shape: rectangle or circle
+    role: Array
+    rotation: Array
+    opposite_side: Array  # green left / blue right
+    free_position: Array  # [2]
+    fixate: Array
+    fixate_at_bottom: Array
+    new_anchor: Array  # [2] joint anchor on the new rectangle
+    target_anchor: Array  # [2] joint anchor on the target rectangle
+    revolute: Array
+    motor_on: Array
+    motor_speed: Array
+    motor_power: Array
+    wheel_power: Array
+    joint_limits: Array
+    min_rotation: Array
+    max_rotation: Array
+    motor_binding: Array
+    shape: Array  # [SHAPE_DRAWS.size] the new shape's dimensions
+
+
+SHAPE_ADD_DRAWS = DrawLayout(ShapeAddDraws, {"free_position": 2, "new_anchor": 2, "target_anchor": 2,
+                                             "shape": SHAPE_DRAWS.size})
 
 
 def add_shape_from_uniforms(
@@ -325,8 +359,9 @@ def add_shape_from_uniforms(
 ) -> tuple[Level, Array]:
     """Add a free shape or (if `connected`) a shape joined to an existing one. Returns the level (unchanged when
     there is no room or no target) and whether both shapes of a new joint stick out of each other (True for
-    free shapes). `u` holds SHAPE_ADD_UNIFORMS uniforms. The collision filter is not refreshed here."""
+    free shapes). `u` holds SHAPE_ADD_DRAWS.size uniforms. The collision filter is not refreshed here."""
     P, N, S, V = sizes.num_polygons, sizes.num_bodies, sizes.num_static_polygons, sizes.max_polygon_vertices
+    draws = SHAPE_ADD_DRAWS.split(u)
     state = level.state
     bodies, joints = state.bodies, state.joints
     body = jnp.arange(N)
@@ -345,47 +380,48 @@ def add_shape_from_uniforms(
     weight = weight * jnp.where(is_polygon_slot, jnp.maximum(2.0 - links, 0.0) / 2.0, (links == 0) * 1.0)
     rect_weight = jnp.where(is_polygon_slot, weight, 0.0)
     circle_weight = jnp.where(is_polygon_slot, 0.0, weight)
-    target_kind, has_target = choose(u[0], jnp.stack([rect_weight.sum() > 0, (circle_weight.sum() > 0) & poly_free]))
+    target_kinds = jnp.stack([rect_weight.sum() > 0, (circle_weight.sum() > 0) & poly_free])
+    target_kind, has_target = choose(draws.target_kind, target_kinds)
     target_is_rect = target_kind == 0
-    target, _ = choose(u[1], jnp.where(target_is_rect, rect_weight, circle_weight))
+    target, _ = choose(draws.target, jnp.where(target_is_rect, rect_weight, circle_weight))
     joint_slot, joint_free = first_free(joints.active)
 
-    kind, has_room = choose(u[2], jnp.stack([poly_free, circle_free]))
+    kind, has_room = choose(draws.kind, jnp.stack([poly_free, circle_free]))
     is_rect = (kind == 0) | (connected & ~target_is_rect)
     index = jnp.where(is_rect, poly_slot, circle_slot)
     valid = has_room & (~connected | (has_target & joint_free))
 
     target_role = level.roles[target]
     allowed = jnp.where(connected, _allowed_roles_next_to(target_role), 1.0)
-    role = _draw_role(u[3], level, allowed, config)
+    role = _draw_role(draws.role, level, allowed, config)
     goal = (role == ROLE_GREEN) | (role == ROLE_BLUE)
     max_size = config.max_shape_size * jnp.where(goal & ~connected, config.goal_size_factor, 1.0)
-    shape = sample_shape(u[23:], is_rect, max_size, config, V)
-    rotation = u[4] * _TWO_PI
+    shape = sample_shape(draws.shape, is_rect, max_size, config, V)
+    rotation = draws.rotation * _TWO_PI
 
     # Free placement: inside the arena with a margin, green left / blue right with opposite_side_chance.
     margin = jnp.maximum(_SQRT2 * shape.half.max(), shape.radius)
     low = jnp.stack([margin, margin + FLOOR_TOP])
     high = jnp.stack([ARENA_SIZE - margin, ARENA_SIZE - margin])
-    opposite = u[5] < config.opposite_side_chance
+    opposite = draws.opposite_side < config.opposite_side_chance
     high = high.at[0].add(jnp.where(opposite & (role == ROLE_GREEN), -ARENA_SIZE / 2.0, 0.0))
     low = low.at[0].add(jnp.where(opposite & (role == ROLE_BLUE), ARENA_SIZE / 2.0, 0.0))
-    free_position = _between(u[6:8], low, high)
+    free_position = _between(draws.free_position, low, high)
     mass = 1.0 / shape.inverse_mass
     fix_chance = jnp.minimum(config.fixate_chance_min + config.fixate_chance_scale * mass, config.fixate_chance_max)
-    fixed = (u[8] < fix_chance) & ~force_no_fixate & ~connected
+    fixed = (draws.fixate < fix_chance) & ~force_no_fixate & ~connected
     bias = config.fixate_bottom_bias + config.fixate_bottom_bias_special_role * (role != ROLE_NEUTRAL)
-    to_bottom = fixed & (u[9] < bias) & (free_position[1] >= ARENA_SIZE / 2.0)
+    to_bottom = fixed & (draws.fixate_at_bottom < bias) & (free_position[1] >= ARENA_SIZE / 2.0)
     free_position = free_position.at[1].add(jnp.where(to_bottom, -ARENA_SIZE / 2.0, 0.0))
 
     # Connected placement: anchors uniform in rectangles (local box), at circle centres; the new shape is put so
     # that the anchors coincide.
-    new_anchor = jnp.where(is_rect, (2.0 * u[10:12] - 1.0) * shape.half, 0.0)
+    new_anchor = jnp.where(is_rect, (2.0 * draws.new_anchor - 1.0) * shape.half, 0.0)
     target_poly = jnp.minimum(target, P - 1)
     target_vertices = state.polygon_vertices[target_poly]
     target_n = state.polygon_n_vertices[target_poly]
     target_anchor = jnp.where(
-        target_is_rect, _random_point_in_polygon(u[12:14], target_vertices, target_n), jnp.zeros(2)
+        target_is_rect, _random_point_in_polygon(draws.target_anchor, target_vertices, target_n), jnp.zeros(2)
     )
     target_rotation = bodies.rotation[target]
     anchor_world = bodies.position[target] + rotate(target_rotation, target_anchor)
@@ -424,20 +460,20 @@ def add_shape_from_uniforms(
     rotation_b = jnp.where(new_is_a, target_rotation, rotation)
     revolutes = (joints.active & ~joints.is_fixed_joint).sum()
     revolute = (
-        (u[14] < config.revolute_chance) | force_revolute | (revolutes < config.min_revolute_joints)
+        (draws.revolute < config.revolute_chance) | force_revolute | (revolutes < config.min_revolute_joints)
     )
     rect_rect = is_rect & target_is_rect
-    motor_on = (u[15] < config.motor_on_chance) & revolute
-    speed = _between(u[16], config.motor_min_speed, config.motor_max_speed)
+    motor_on = (draws.motor_on < config.motor_on_chance) & revolute
+    speed = _between(draws.motor_speed, config.motor_min_speed, config.motor_max_speed)
     power = jnp.where(
         rect_rect,
-        _between(u[17], config.motor_min_power, config.motor_max_power),
-        _between(u[18], config.motor_min_power, config.wheel_max_power),
+        _between(draws.motor_power, config.motor_min_power, config.motor_max_power),
+        _between(draws.wheel_power, config.motor_min_power, config.wheel_max_power),
     )
-    limits = (u[19] < config.joint_limit_chance) & rect_rect & revolute
-    min_rotation = jnp.where(limits, _between(u[20], -config.joint_limit_max, 0.0), 0.0)
-    max_rotation = jnp.where(limits, _between(u[21], 0.0, config.joint_limit_max), 0.0)
-    binding = jnp.minimum(jnp.floor(u[22] * NUM_MOTOR_BINDINGS), NUM_MOTOR_BINDINGS - 1).astype(jnp.int32)
+    limits = (draws.joint_limits < config.joint_limit_chance) & rect_rect & revolute
+    min_rotation = jnp.where(limits, _between(draws.min_rotation, -config.joint_limit_max, 0.0), 0.0)
+    max_rotation = jnp.where(limits, _between(draws.max_rotation, 0.0, config.joint_limit_max), 0.0)
+    binding = jnp.minimum(jnp.floor(draws.motor_binding * NUM_MOTOR_BINDINGS), NUM_MOTOR_BINDINGS - 1).astype(jnp.int32)
     j_hot = (jnp.arange(sizes.num_joints) == joint_slot) & valid & connected
     j = joints
     joints = j.replace(
@@ -491,7 +527,7 @@ def add_free_shape(
     key: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig(), force_no_fixate=False
 ) -> Level:
     """Add one unattached rectangle or circle (Kinetix's `mutate_add_shape`); no-op when no slot is free."""
-    u = uniforms(key, (SHAPE_ADD_UNIFORMS,))
+    u = uniforms(key, (SHAPE_ADD_DRAWS.size,))
     level, _ = add_shape_from_uniforms(u, level, sizes, config, False, jnp.asarray(force_no_fixate), False)
     return level
 
@@ -502,46 +538,61 @@ def add_connected_shape(
     """Add one shape joined to an existing one (Kinetix's `mutate_add_connected_shape`). Returns the level (with
     a refreshed collision filter) and whether both joined shapes stick out of each other. No-op when there is no
     free shape slot, no free joint slot or no shape that can take another joint."""
-    u = uniforms(key, (SHAPE_ADD_UNIFORMS,))
+    u = uniforms(key, (SHAPE_ADD_DRAWS.size,))
     level, visible = add_shape_from_uniforms(u, level, sizes, config, True, False, jnp.asarray(force_revolute))
     return level.replace(state=refresh_collision_filter(level.state)), visible
 
 
-THRUSTER_ADD_UNIFORMS = 10
+class ThrusterDraws(NamedTuple):
+    target: Array  # the dynamic shape it goes on
+    point_on_polygon: Array  # [2]
+    angle_on_circle: Array
+    distance_on_circle: Array
+    aim_outward: Array  # through the centre of mass, pushing or pulling
+    align_with_centre: Array  # aimed through the centre of mass at all
+    free_direction: Array  # otherwise this way
+    power_factor: Array
+    binding: Array
+
+
+THRUSTER_DRAWS = DrawLayout(ThrusterDraws, {"point_on_polygon": 2})
 
 
 def add_thruster(key: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig()) -> Level:
     """Put a thruster on a random dynamic shape (Kinetix's `mutate_add_thruster`); no-op when no thruster slot is
     free or no shape is dynamic."""
-    return add_thruster_from_uniforms(uniforms(key, (THRUSTER_ADD_UNIFORMS,)), level, sizes, config)
+    return add_thruster_from_uniforms(uniforms(key, (THRUSTER_DRAWS.size,)), level, sizes, config)
 
 
 def add_thruster_from_uniforms(u: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig) -> Level:
-    """`add_thruster` driven by THRUSTER_ADD_UNIFORMS uniforms instead of a key."""
+    """`add_thruster` driven by THRUSTER_DRAWS.size uniforms instead of a key."""
     if sizes.num_thrusters == 0:
         return level
+    draws = THRUSTER_DRAWS.split(u)
     P = sizes.num_polygons
     state = level.state
     bodies, thrusters = state.bodies, state.thrusters
-    target, has_target = choose(u[0], bodies.active & (bodies.inverse_mass != 0))
+    target, has_target = choose(draws.target, bodies.active & (bodies.inverse_mass != 0))
     slot, free = first_free(thrusters.active)
     valid = has_target & free
     poly = jnp.minimum(target, P - 1)
-    on_polygon = _random_point_in_polygon(u[1:3], state.polygon_vertices[poly], state.polygon_n_vertices[poly])
+    on_polygon = _random_point_in_polygon(draws.point_on_polygon, state.polygon_vertices[poly],
+                                          state.polygon_n_vertices[poly])
     radius = circle_radius_of(state, target, sizes)
-    angle = u[3] * _TWO_PI
-    on_circle = u[4] * radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+    angle = draws.angle_on_circle * _TWO_PI
+    on_circle = draws.distance_on_circle * radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)])
     relative = jnp.where(target < P, on_polygon, on_circle)
     # Mostly aimed through the centre of mass (towards or away from it), otherwise at a random angle.
-    aim = jnp.where(u[5] > 0.5, 1.0, -1.0) * relative
+    aim = jnp.where(draws.aim_outward > 0.5, 1.0, -1.0) * relative
     aim = jnp.where(jnp.all(aim == 0), jnp.asarray([1.0, 0.0]), aim)
     direction = jnp.where(
-        u[6] < config.thruster_align_com_chance, jnp.arctan2(aim[1], aim[0]), u[7] * _TWO_PI
+        draws.align_with_centre < config.thruster_align_com_chance, jnp.arctan2(aim[1], aim[0]),
+        draws.free_direction * _TWO_PI,
     )
     inverse_mass = bodies.inverse_mass[target]
     mass = 1.0 / jnp.where(inverse_mass == 0, 1.0, inverse_mass)
-    factor = _between(u[8], config.thruster_min_factor, config.thruster_max_factor)
-    binding = jnp.minimum(jnp.floor(u[9] * NUM_THRUSTER_BINDINGS), NUM_THRUSTER_BINDINGS - 1).astype(jnp.int32)
+    factor = _between(draws.power_factor, config.thruster_min_factor, config.thruster_max_factor)
+    binding = jnp.minimum(jnp.floor(draws.binding * NUM_THRUSTER_BINDINGS), NUM_THRUSTER_BINDINGS - 1).astype(jnp.int32)
     hot = (jnp.arange(sizes.num_thrusters) == slot) & valid
     world = bodies.position[target] + rotate(bodies.rotation[target], relative)
     new = thrusters.replace(
@@ -613,7 +664,7 @@ def _add_shape_filtered(
     force_no_fixate: Array,
     force_revolute: Array,
 ) -> Level:
-    """The best of the proposals (one per row of `u`, [K, SHAPE_ADD_UNIFORMS]): fewest touching contact points,
+    """The best of the proposals (one per row of `u`, [K, SHAPE_ADD_DRAWS.size]): fewest touching contact points,
     plus a penalty for a connected shape hidden by its partner. Kinetix counts every contact of the scene; all
     proposals write the same slot of the same scene, so counting only the new shape's contacts ranks them
     identically at a fraction of the cost."""
@@ -688,6 +739,16 @@ def is_small_scene(sizes: SceneSizes, config: GeneratorConfig) -> bool:
     return sizes.num_polygons + sizes.num_circles <= config.small_scene_max_shapes
 
 
+class LevelDraws(NamedTuple):
+    floor_role: Array
+    green_may_fixate: Array  # which of green and blue may be fixed (never both)
+    control: Array  # motor only, thruster only, or both
+    swap_green_blue: Array
+    unused: Array  # drawn, never read: kept so that every later draw stays where it was
+    rest_slots: Array  # [one per remaining shape slot] connected shape, free shape or nothing
+    extra_thrusters: Array  # [one per thruster slot beyond the first]
+
+
 def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig = GeneratorConfig()) -> Level:
     """One random level (see the module docstring). Pure; jit with `sizes` and `config` static; vmap over keys."""
     P, C, T, S = sizes.num_polygons, sizes.num_circles, sizes.num_thrusters, sizes.num_static_polygons
@@ -697,24 +758,25 @@ def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig =
     num_extra = max(T - 1, 0)
     num_attempts = 4 + num_rest + num_extra
     k_level, k_attempts, k_permute = jax.random.split(key, 3)
-    u = uniforms(k_level, (5 + num_rest + num_extra,))
+    layout = DrawLayout(LevelDraws, {"rest_slots": num_rest, "extra_thrusters": num_extra})
+    draws = layout.split(uniforms(k_level, (layout.size,)))
 
     level = level_from_scene(empty_scene(sizes))
-    floor_role, _ = choose(u[0], jnp.asarray(config.floor_role_probs, jnp.float32))
+    floor_role, _ = choose(draws.floor_role, jnp.asarray(config.floor_role_probs, jnp.float32))
     if S > 0:
         level = level.replace(roles=level.roles.at[0].set(floor_role))
 
     # The attempts, in order: green/blue free shapes (never both fixable), forced controls, the other slots,
     # extra thrusters.
-    green_may_not_fix = (u[1] < 0.5) | (floor_role == ROLE_BLUE)
-    control = jnp.floor(u[2] * 3.0)  # 0 motor only, 1 thruster only, 2 both
+    green_may_not_fix = (draws.green_may_fixate < 0.5) | (floor_role == ROLE_BLUE)
+    control = jnp.floor(draws.control * 3.0)  # 0 motor only, 1 thruster only, 2 both
     force_motor, force_thruster = control != 1, control != 0
     rest_probs = jnp.asarray(
         [config.add_connected_shape_chance, config.add_free_shape_chance, config.add_nothing_chance], jnp.float32
     )
-    rest_pick = jax.vmap(lambda x: choose(x, rest_probs)[0])(u[5 : 5 + num_rest])
+    rest_pick = jax.vmap(lambda x: choose(x, rest_probs)[0])(draws.rest_slots)
     rest_kinds = jnp.asarray([_CONNECTED_SHAPE, _FREE_SHAPE, _NOTHING], jnp.int32)[rest_pick]
-    extra = u[5 + num_rest :] < config.add_thruster_chance
+    extra = draws.extra_thrusters < config.add_thruster_chance
     kinds = jnp.concatenate([
         jnp.asarray([_FREE_SHAPE, _FREE_SHAPE], jnp.int32),
         jnp.where(force_motor, _CONNECTED_SHAPE, _FREE_SHAPE)[None].astype(jnp.int32),
@@ -729,9 +791,9 @@ def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig =
     def attempt(level: Level, inputs) -> tuple[Level, None]:
         kind, no_fix, revolute, k = inputs
         # Drawn here rather than for all attempts up front: a large batch then never holds every draw at once.
-        draws = uniforms(k, (num_proposals * SHAPE_ADD_UNIFORMS + THRUSTER_ADD_UNIFORMS,))
-        shape_rows = draws[: num_proposals * SHAPE_ADD_UNIFORMS].reshape(num_proposals, SHAPE_ADD_UNIFORMS)
-        thruster_row = draws[num_proposals * SHAPE_ADD_UNIFORMS :]
+        row = uniforms(k, (num_proposals * SHAPE_ADD_DRAWS.size + THRUSTER_DRAWS.size,))
+        shape_rows = row[: num_proposals * SHAPE_ADD_DRAWS.size].reshape(num_proposals, SHAPE_ADD_DRAWS.size)
+        thruster_row = row[num_proposals * SHAPE_ADD_DRAWS.size :]
         connected = kind == _CONNECTED_SHAPE
         with_shape = _add_shape_filtered(shape_rows, level, sizes, config, connected, no_fix, revolute)
         with_thruster = add_thruster_from_uniforms(thruster_row, level, sizes, config)
@@ -743,7 +805,7 @@ def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig =
     level, _ = jax.lax.scan(attempt, level, (kinds, no_fixate, force_revolute, attempt_keys))
 
     # Swap green and blue (neutral floor only), then shuffle the slots.
-    swap = (u[3] < config.swap_green_blue_chance) & (floor_role == ROLE_NEUTRAL)
+    swap = (draws.swap_green_blue < config.swap_green_blue_chance) & (floor_role == ROLE_NEUTRAL)
     roles = level.roles
     swapped = jnp.where(roles == ROLE_GREEN, ROLE_BLUE, jnp.where(roles == ROLE_BLUE, ROLE_GREEN, roles))
     level = level.replace(roles=jnp.where(swap, swapped, roles))

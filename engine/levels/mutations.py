@@ -31,14 +31,16 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from engine.levels.draws import DrawLayout
 from engine.levels.generator import (
-    SHAPE_ADD_UNIFORMS,
-    SHAPE_UNIFORMS,
-    THRUSTER_ADD_UNIFORMS,
+    SHAPE_ADD_DRAWS,
+    SHAPE_DRAWS,
+    THRUSTER_DRAWS,
     GeneratorConfig,
     add_shape_from_uniforms,
     add_thruster_from_uniforms,
@@ -75,8 +77,48 @@ EDIT_NAMES = (
 )
 EDIT_INDEX = {name: i for i, name in enumerate(EDIT_NAMES)}
 
-# Uniform numbers one edit consumes (the largest operator's need).
-EDIT_UNIFORMS = max(SHAPE_ADD_UNIFORMS, THRUSTER_ADD_UNIFORMS, 1 + SHAPE_UNIFORMS, 3)
+
+
+class PickDraws(NamedTuple):
+    which: Array  # the slot (shape, joint or thruster) an edit acts on
+
+
+class SwapDraws(NamedTuple):
+    first: Array
+    second: Array  # a shape of another role
+
+
+class ResizeDraws(NamedTuple):
+    which: Array
+    shape: Array  # [SHAPE_DRAWS.size] new dimensions
+
+
+class MoveDraws(NamedTuple):
+    which: Array
+    offset: Array  # [2]
+
+
+class TurnDraws(NamedTuple):
+    which: Array
+    turn: Array
+
+
+PICK_DRAWS = DrawLayout(PickDraws)
+SWAP_DRAWS = DrawLayout(SwapDraws)
+RESIZE_DRAWS = DrawLayout(ResizeDraws, {"shape": SHAPE_DRAWS.size})
+MOVE_DRAWS = DrawLayout(MoveDraws, {"offset": 2})
+TURN_DRAWS = DrawLayout(TurnDraws)
+EDIT_UNIFORMS = max(layout.size for layout in (SHAPE_ADD_DRAWS, THRUSTER_DRAWS, PICK_DRAWS, SWAP_DRAWS, RESIZE_DRAWS,
+                                               MOVE_DRAWS, TURN_DRAWS))
+"""Uniform numbers one edit consumes (the largest operator's need); each operator reads its own layout's part."""
+
+
+class EditDraws(NamedTuple):
+    edit: Array  # which edit
+    operands: Array  # [EDIT_UNIFORMS] what the edit draws
+
+
+EDIT_DRAWS = DrawLayout(EditDraws, {"operands": EDIT_UNIFORMS})
 
 
 @dataclass(frozen=True)
@@ -199,14 +241,14 @@ def _deactivate_one(u: Array, active: Array) -> Array:
 
 
 def _remove_joint(u, level, sizes, config):
-    joints = level.state.joints.replace(active=_deactivate_one(u[0], level.state.joints.active))
+    joints = level.state.joints.replace(active=_deactivate_one(PICK_DRAWS.split(u).which, level.state.joints.active))
     return level.replace(state=level.state.replace(joints=joints)), jnp.asarray(False)
 
 
 def _remove_shape(u, level, sizes, config):
     # Never the green or blue shape: a level without them could not be solved (Kinetix does not guard this).
     candidates = _shape_candidates(level, sizes) & (level.roles != ROLE_GREEN) & (level.roles != ROLE_BLUE)
-    body, any_body = choose(u[0], candidates)
+    body, any_body = choose(PICK_DRAWS.split(u).which, candidates)
     state = level.state
     hot = (jnp.arange(sizes.num_bodies) == body) & any_body
     joints, thrusters = state.joints, state.thrusters
@@ -223,8 +265,9 @@ def _swap_role(u, level, sizes, config):
     candidates = _shape_candidates(level, sizes)
     roles = level.roles
     present = ((jax.nn.one_hot(roles, 4) * candidates[:, None]).sum(axis=0) > 0).sum()
-    first, _ = choose(u[0], candidates)
-    second, any_other = choose(u[1], candidates & (roles != roles[first]))
+    draws = SWAP_DRAWS.split(u)
+    first, _ = choose(draws.first, candidates)
+    second, any_other = choose(draws.second, candidates & (roles != roles[first]))
     do = (present >= 2) & any_other
     body = jnp.arange(sizes.num_bodies)
     swapped = jnp.where(body == first, roles[second], jnp.where(body == second, roles[first], roles))
@@ -232,16 +275,17 @@ def _swap_role(u, level, sizes, config):
 
 
 def _add_thruster(u, level, sizes, config):
-    return add_thruster_from_uniforms(u[:THRUSTER_ADD_UNIFORMS], level, sizes, config.shapes), jnp.asarray(False)
+    return add_thruster_from_uniforms(u[: THRUSTER_DRAWS.size], level, sizes, config.shapes), jnp.asarray(False)
 
 
 def _remove_thruster(u, level, sizes, config):
-    thrusters = level.state.thrusters.replace(active=_deactivate_one(u[0], level.state.thrusters.active))
+    which = PICK_DRAWS.split(u).which
+    thrusters = level.state.thrusters.replace(active=_deactivate_one(which, level.state.thrusters.active))
     return level.replace(state=level.state.replace(thrusters=thrusters)), jnp.asarray(False)
 
 
 def _toggle_fixed(u, level, sizes, config):
-    body, any_body = choose(u[0], _shape_candidates(level, sizes))
+    body, any_body = choose(PICK_DRAWS.split(u).which, _shape_candidates(level, sizes))
     hot = (jnp.arange(sizes.num_bodies) == body) & any_body
     was_fixed = level.state.bodies.inverse_mass[body] == 0
     inverse_mass, inverse_inertia = mass_from_density(level.state, level.densities, body, sizes)
@@ -253,10 +297,11 @@ def _toggle_fixed(u, level, sizes, config):
 
 def _change_size(u, level, sizes, config):
     P, N = sizes.num_polygons, sizes.num_bodies
-    body, any_body = choose(u[0], _shape_candidates(level, sizes))
+    draws = RESIZE_DRAWS.split(u)
+    body, any_body = choose(draws.which, _shape_candidates(level, sizes))
     state = level.state
     is_rect = body < P
-    shape = sample_shape(u[1 : 1 + SHAPE_UNIFORMS], is_rect, config.shapes.max_shape_size, config.shapes,
+    shape = sample_shape(draws.shape, is_rect, config.shapes.max_shape_size, config.shapes,
                          sizes.max_polygon_vertices)
     poly = jnp.minimum(body, P - 1)
     # Per-axis ratio of the new to the old local half-size: for Kinetix's centred rectangles this is its ratio of
@@ -290,10 +335,11 @@ def _change_size(u, level, sizes, config):
 def _change_location(u, level, sizes, config):
     N = sizes.num_bodies
     candidates = _shape_candidates(level, sizes)
-    body, any_body = choose(u[0], candidates)
+    draws = MOVE_DRAWS.split(u)
+    body, any_body = choose(draws.which, candidates)
     state = level.state
     bodies = state.bodies
-    offset = (2.0 * u[1:3] - 1.0) * config.max_location_offset
+    offset = (2.0 * draws.offset - 1.0) * config.max_location_offset
     group = connected_by_joints(state.joints, N)[body] & candidates & any_body
     position = bodies.position + jnp.where(group[:, None], offset, 0.0)
     # Shift the moved group back inside x in [0, 5], y in [FLOOR_TOP, 5] by its world bounding box.
@@ -308,10 +354,11 @@ def _change_location(u, level, sizes, config):
 
 
 def _change_rotation(u, level, sizes, config):
-    body, any_body = choose(u[0], _shape_candidates(level, sizes))
+    draws = TURN_DRAWS.split(u)
+    body, any_body = choose(draws.which, _shape_candidates(level, sizes))
     state = level.state
     bodies, joints = state.bodies, state.joints
-    delta = jnp.where(any_body, u[1] * config.max_rotation_change, 0.0)
+    delta = jnp.where(any_body, draws.turn * config.max_rotation_change, 0.0)
     hot = jnp.arange(sizes.num_bodies) == body
     welded = joints.active & joints.is_fixed_joint
     # A fixed joint holds rotation_b - rotation_a at its reference: move the reference with the turned shape.
@@ -349,7 +396,8 @@ def _apply(u: Array, level: Level, sizes: SceneSizes, edit: Array, config: Mutat
     connected = edit == EDIT_INDEX["add_connected_shape"]
 
     def add_shape(u, level):
-        level, _ = add_shape_from_uniforms(u[:SHAPE_ADD_UNIFORMS], level, sizes, config.shapes, connected, False, False)
+        level, _ = add_shape_from_uniforms(u[: SHAPE_ADD_DRAWS.size], level, sizes, config.shapes, connected, False,
+                                           False)
         return level, jnp.asarray(False)
 
     branches = [add_shape] + [functools.partial(op, sizes=sizes, config=config) for op in _OPERATORS[2:]]
@@ -414,13 +462,13 @@ def mutate_level(
     child_id = random_level_id(jax.random.fold_in(key, CHILD_ID_STREAM))
     if config.num_edits == 0:
         return level.replace(level_id=child_id)
-    draws = uniforms(key, (config.num_edits, 1 + EDIT_UNIFORMS))
+    draws = EDIT_DRAWS.split(uniforms(key, (config.num_edits, EDIT_DRAWS.size)))
     wanted = config.num_edits if num_edits is None else num_edits
 
-    def one_edit(level: Level, indexed: tuple[Array, Array]) -> tuple[Level, Array]:
-        index, u = indexed
-        edit, _ = choose(u[0], edit_weights(level, sizes, config))
-        edited = _apply(u[1:], level, sizes, edit, config)
+    def one_edit(level: Level, indexed: tuple[Array, EditDraws]) -> tuple[Level, Array]:
+        index, edit_draws = indexed
+        edit, _ = choose(edit_draws.edit, edit_weights(level, sizes, config))
+        edited = _apply(edit_draws.operands, level, sizes, edit, config)
         keep = index < wanted
         return jax.tree.map(lambda new, old: jnp.where(keep, new, old), edited, level), edit
 
