@@ -18,8 +18,9 @@ test: $(STAMP)
 venv: $(STAMP)
 
 # `make bench-gpu`: every GPU benchmark at GPU sizes in one go, against Jax2D (engine) and Kinetix (env) measured in
-# the same run, on a machine whose JAX sees a GPU. Sized for under 25 minutes on one H100: each benchmark has a time
-# limit (GPU_LIMIT seconds), so a slow one loses its last lines rather than the others. JSON lines are appended to
+# the same run, on a machine whose JAX sees a GPU. Sized for under 25 minutes on one H100 in the usual case (the
+# limits add up to 27): each benchmark has a time limit (GPU_LIMIT seconds), so a slow one loses its last lines
+# rather than the others. The profile (benchmarks/profile.py) splits an S training iteration into its parts. JSON lines are appended to
 # GPU_RESULTS (one start line per run names the commit), progress goes to the terminal. Building the reference
 # venv (benchmarks/reference_env.py, needs the package index) is not counted; without it, engine and env run alone.
 # Distributed: train.py's network and settings (2,048 envs x 64 steps, entity network 128 x 5, all S levels); a
@@ -38,6 +39,7 @@ bench-gpu: $(STAMP)
 	$(call GPU_LIMIT,390) benchmarks.engine --num-envs 1,32768 $$ref >> $(GPU_RESULTS) || status=1; \
 	$(call GPU_LIMIT,210) benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
 	$(call GPU_LIMIT,390) benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,180) benchmarks.profile --sizes s --kinetix-settings >> $(GPU_RESULTS) || status=1; \
 	$(call GPU_LIMIT,450) benchmarks.distributed --parts runs costs --size s --kinetix-settings \
 		--set network.width=128 --set network.depth=5 --set bus.shm_pool_mib=512 \
 		--actors 1 2 4 --updates 20 --no-fused-after --timeout 200 >> $(GPU_RESULTS) || status=1; \

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import NamedTuple
 
 import jax
 
@@ -26,15 +27,27 @@ from actors.trajectory import make_batch
 from benchmarks._harness import emit, environment, progress, require_levels, time_jitted
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import stack_levels
+from engine.levels.level import Level, stack_levels
 from engine.physics.sizes import size_preset
-from learner.agent import make_agent
+from learner.agent import Agent, make_agent
 from learner.config import NetworkConfig, PPOConfig
-from learner.fused import FusedTrainer
+from learner.fused import FusedCarry, FusedTrainer
 from learner.update import ppo_update
 
 
-def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> dict:
+class FusedSetup(NamedTuple):
+    """A fused trainer on every shared Kinetix level of one size, initialised: what the training benchmarks time."""
+
+    spec: EnvSpec
+    agent: Agent
+    trainer: FusedTrainer
+    levels: Level
+    carry: FusedCarry
+    num_levels: int
+
+
+def fused_setup(size: str, ppo: PPOConfig, network: NetworkConfig) -> FusedSetup:
+    """Build and initialise the fused trainer `impulse train` would run on the shared levels of `size`."""
     sizes = size_preset(size)
     paths = sorted((require_levels() / size).glob("*.json"))
     levels = stack_levels([load_kinetix_level(path, sizes).level for path in paths])
@@ -43,6 +56,11 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
     trainer = FusedTrainer(agent, EnvParams(dense_reward_scale=0.2), ppo, num_updates=1000)
     carry = jax.jit(trainer.init)(jax.random.PRNGKey(0), levels)
     jax.block_until_ready(carry)
+    return FusedSetup(spec, agent, trainer, levels, carry, len(paths))
+
+
+def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> dict:
+    spec, agent, trainer, levels, carry, num_levels = fused_setup(size, ppo, network)
 
     iterate = jax.jit(trainer.iterate)
     start = time.perf_counter()
@@ -82,7 +100,7 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
         "rollout_s": rollout_s,
         "update_s": update_s,
         "rollout_share": rollout_s / (rollout_s + update_s),
-        "levels": len(paths),
+        "levels": num_levels,
         **environment(),
     }
 
