@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from actors.rollout import rollout
 from actors.trajectory import make_batch
 from benchmarks._harness import emit, environment, progress, time_jitted
-from benchmarks.train import fused_setup
+from benchmarks.train import add_training_arguments, fused_setup, training_settings
 from engine.env.env import step as env_step
 from engine.env.observations import observe
 from engine.physics.step import step as physics_step
@@ -148,27 +148,12 @@ def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, tra
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="impulse bench profile", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
-    parser.add_argument("--network", default="entity", choices=["entity", "transformer", "flat"])
-    parser.add_argument("--num-envs", type=int, default=256)
-    parser.add_argument("--num-steps", type=int, default=64)
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--minibatches", type=int, default=8)
-    parser.add_argument("--repeats", type=int, default=3)
+    add_training_arguments(parser)
     parser.add_argument("--trace", metavar="DIR", help="also record one fused iteration with jax.profiler here")
-    parser.add_argument("--kinetix-settings", action="store_true",
-                        help="2,048 envs x 64 steps, 8 epochs, 32 minibatches (Kinetix's PPO benchmark)")
-    parser.add_argument("--quick", action="store_true", help="S only, 64 envs, 16 steps, 2 epochs")
     args = parser.parse_args(argv)
-    if args.kinetix_settings:
-        args.num_envs, args.num_steps, args.epochs, args.minibatches = 2048, 64, 8, 32
-    if args.quick:
-        args.sizes, args.num_envs, args.num_steps, args.epochs, args.minibatches = ["s"], 64, 16, 2, 4
-    ppo = PPOConfig(num_envs=args.num_envs, num_steps=args.num_steps, update_epochs=args.epochs,
-                    num_minibatches=args.minibatches)
-    for size in args.sizes:
-        trace = f"{args.trace}/{size}" if args.trace else None
-        emit(profile(size, ppo, NetworkConfig(kind=args.network), args.repeats, trace))
+    sizes, ppo, network = training_settings(args)
+    for size in sizes:
+        emit(profile(size, ppo, network, args.repeats, f"{args.trace}/{size}" if args.trace else None))
 
 
 if __name__ == "__main__":

@@ -105,9 +105,8 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="impulse bench train", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_training_arguments(parser: argparse.ArgumentParser) -> None:
+    """The sizes, network and PPO settings the training benchmarks share (read back with `training_settings`)."""
     parser.add_argument("--sizes", nargs="+", default=["s", "m", "l"], choices=["s", "m", "l"])
     parser.add_argument("--network", default="entity", choices=["entity", "transformer", "flat"])
     parser.add_argument("--num-envs", type=int, default=256)
@@ -118,15 +117,27 @@ def main(argv: list[str] | None = None) -> None:
                         help="2,048 envs x 64 steps, 8 epochs, 32 minibatches (Kinetix's PPO benchmark)")
     parser.add_argument("--quick", action="store_true", help="S only, 64 envs, 16 steps, 2 epochs")
     parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
+
+
+def training_settings(args: argparse.Namespace) -> tuple[list[str], PPOConfig, NetworkConfig]:
+    """(sizes, PPO settings, network) from `add_training_arguments`' options; the presets win over the numbers."""
+    sizes, num_envs, num_steps, epochs, minibatches = args.sizes, args.num_envs, args.num_steps, args.epochs, \
+        args.minibatches
     if args.kinetix_settings:
-        args.num_envs, args.num_steps, args.epochs, args.minibatches = 2048, 64, 8, 32
+        num_envs, num_steps, epochs, minibatches = 2048, 64, 8, 32
     if args.quick:
-        args.sizes, args.num_envs, args.num_steps, args.epochs, args.minibatches = ["s"], 64, 16, 2, 4
-    ppo = PPOConfig(num_envs=args.num_envs, num_steps=args.num_steps, update_epochs=args.epochs,
-                    num_minibatches=args.minibatches)
-    network = NetworkConfig(kind=args.network)
-    for size in args.sizes:
+        sizes, num_envs, num_steps, epochs, minibatches = ["s"], 64, 16, 2, 4
+    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, update_epochs=epochs, num_minibatches=minibatches)
+    return sizes, ppo, NetworkConfig(kind=args.network)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="impulse bench train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_training_arguments(parser)
+    args = parser.parse_args(argv)
+    sizes, ppo, network = training_settings(args)
+    for size in sizes:
         progress(f"fused PPO, size {size}: compiling and timing ...")
         emit(measure(size, ppo, network, args.repeats))
 
