@@ -8,9 +8,9 @@ measure is the largest distance between the two engines' positions of one body, 
 (benchmarks/reference_env.py), all levels of one mode in one process (`_reference_runner.py trajectories`, one
 compile per size); our side also compiles once per size.
 
-Prints JSON lines: one per (level, mode), then one summary per mode (levels, how many within ``--threshold`` at
-the last step, the fraction, the levels outside with their differences and what was observed, and the levels
-within at the last step that exceeded the threshold earlier, with their peak).
+Prints JSON lines: one per (level, mode, solver), then one summary per (mode, solver) (levels, how many within
+``--threshold`` at the last step, the fraction, the levels outside with their differences and what was observed,
+and the levels within at the last step that exceeded the threshold earlier, with their peak).
 
 What "observed" means for a level outside the threshold (nothing is inferred beyond this): the first step at
 which the difference exceeds 1 mm; the contacts between dynamic bodies that may collide (not joined) in our
@@ -20,14 +20,19 @@ deliberate difference); and the label ``chaotic`` when the positions agree withi
 start touching and part by more than 1 mm within 15 steps of that start. Bodies are named by global index:
 polygons first (the four static arena polygons are 0-3), then circles.
 
-    impulse bench compat_jax2d                                   # all 42 levels, zero and scripted actions
+Our side runs once per ``--solver`` (the ``SceneSizes.solver`` schedule: ``phased``, the default, and
+``jax2d``, Jax2D's batch order); every record and summary names its solver, and Jax2D runs once per action mode.
+
+    impulse bench compat_jax2d                                   # all 42 levels, zero and scripted, both solvers
     impulse bench compat_jax2d --levels 's/*' --actions zero
     impulse bench compat_jax2d --levels m/h0_unicycle,h4_cartpole --steps 60 --threshold 0.01
+    impulse bench compat_jax2d --solver jax2d --actions scripted
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import glob as globlib
 import os
@@ -43,7 +48,7 @@ from benchmarks._harness import LEVELS_DIR, emit, environment, progress, require
 from benchmarks.scripted_actions import engine_actions
 from engine.levels.kinetix_json import load_kinetix_level
 from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
+from engine.physics.sizes import SOLVERS, SceneSizes
 from engine.physics.step import step
 
 CHECKPOINTS = (30, 60, 120)
@@ -286,9 +291,9 @@ def _rollout(state, params, actions, sizes: SceneSizes):
     return jax.lax.scan(body, state, actions)[1]
 
 
-def run_ours(path: Path, steps: int, mode: str) -> dict[str, Any]:
+def run_ours(path: Path, steps: int, mode: str, solver: str = "phased") -> dict[str, Any]:
     level = load_kinetix_level(path)
-    sizes = level.sizes
+    sizes = dataclasses.replace(level.sizes, solver=solver)
     actions = action_sequence(steps, sizes.num_joints, sizes.num_thrusters, mode)
     positions, touching = _rollout(level.state, level.params, jnp.asarray(actions), sizes)
     tables = pair_tables(sizes)
@@ -313,33 +318,40 @@ def run_reference_mode(paths: Sequence[Path], steps: int, mode: str) -> dict[str
     return {r["level"]: r for r in records if r.get("kind") == "trajectories"}
 
 
-def run_mode(paths: Sequence[Path], steps: int, mode: str, threshold: float) -> dict[str, Any]:
+def run_mode(
+    paths: Sequence[Path], steps: int, mode: str, threshold: float, solvers: Sequence[str] = ("phased",)
+) -> list[dict[str, Any]]:
+    """Jax2D once, then our engine once per solver; one summary per solver."""
     progress(f"compat_jax2d: {mode} actions, Jax2D on {len(paths)} levels ...")
     reference = run_reference_mode(paths, steps, mode)
-    reference_env = {}
-    records = []
-    for path in paths:
-        name = level_name(path)
-        if name not in reference:
-            raise SystemExit(f"the reference runner returned no trajectory for {name}")
-        ref = reference[name]
-        reference_env = {k: ref[k] for k in ("jax_version", "backend", "device")}
-        progress(f"compat_jax2d: {mode} actions, ours on {name} ...")
-        ours = run_ours(path, steps, mode)
-        ref_positions = np.asarray(ref["positions"], np.float64)
-        ref_dynamic = dynamic_mask(ref["initial"]["active"], ref["initial"]["inverse_mass"])
-        if ref_positions.shape != ours["positions"].shape or not np.array_equal(ref_dynamic, ours["dynamic"]):
-            raise SystemExit(f"{name}: the engines disagree on the scene layout (shapes {ref_positions.shape} vs "
-                             f"{ours['positions'].shape}, dynamic bodies {ref_dynamic} vs {ours['dynamic']})")
-        log = ContactLog(ours["touching"], ours["pair_a"], ours["pair_b"], ours["collides"], ours["b1_pairs"])
-        record = {"benchmark": "compat_jax2d", "level": name, "actions": mode, "steps": steps,
-                  **compare_level(ours["positions"], ref_positions, ours["dynamic"], steps, threshold, log)}
-        emit(record)
-        records.append(record)
-    summary = {"benchmark": "compat_jax2d", "summary": True, "actions": mode,
-               **summarise(records, steps, threshold), "ours": environment(), "jax2d": reference_env}
-    emit(summary)
-    return summary
+    missing = [level_name(p) for p in paths if level_name(p) not in reference]
+    if missing:
+        raise SystemExit(f"the reference runner returned no trajectory for {', '.join(missing)}")
+    summaries = []
+    for solver in solvers:
+        reference_env = {}
+        records = []
+        for path in paths:
+            name = level_name(path)
+            ref = reference[name]
+            reference_env = {k: ref[k] for k in ("jax_version", "backend", "device")}
+            progress(f"compat_jax2d: {mode} actions, ours ({solver}) on {name} ...")
+            ours = run_ours(path, steps, mode, solver)
+            ref_positions = np.asarray(ref["positions"], np.float64)
+            ref_dynamic = dynamic_mask(ref["initial"]["active"], ref["initial"]["inverse_mass"])
+            if ref_positions.shape != ours["positions"].shape or not np.array_equal(ref_dynamic, ours["dynamic"]):
+                raise SystemExit(f"{name}: the engines disagree on the scene layout (shapes {ref_positions.shape} "
+                                 f"vs {ours['positions'].shape}, dynamic bodies {ref_dynamic} vs {ours['dynamic']})")
+            log = ContactLog(ours["touching"], ours["pair_a"], ours["pair_b"], ours["collides"], ours["b1_pairs"])
+            record = {"benchmark": "compat_jax2d", "level": name, "actions": mode, "solver": solver, "steps": steps,
+                      **compare_level(ours["positions"], ref_positions, ours["dynamic"], steps, threshold, log)}
+            emit(record)
+            records.append(record)
+        summary = {"benchmark": "compat_jax2d", "summary": True, "actions": mode, "solver": solver,
+                   **summarise(records, steps, threshold), "ours": environment(), "jax2d": reference_env}
+        emit(summary)
+        summaries.append(summary)
+    return summaries
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -349,6 +361,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=max(CHECKPOINTS), help="engine steps (default 120)")
     parser.add_argument("--threshold", type=float, default=0.05, help="metres (default 0.05)")
     parser.add_argument("--actions", default=",".join(ACTION_MODES), help="comma-separated among zero,scripted")
+    parser.add_argument("--solver", default=",".join(SOLVERS),
+                        help=f"comma-separated among {','.join(SOLVERS)}: our engine's schedule (default: both)")
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error("--steps must be at least 1")
@@ -356,12 +370,15 @@ def main(argv: list[str] | None = None) -> None:
     unknown = [m for m in modes if m not in ACTION_MODES]
     if unknown or not modes:
         parser.error(f"--actions: expected some of {', '.join(ACTION_MODES)}, got {args.actions!r}")
+    solvers = [m.strip() for m in args.solver.split(",") if m.strip()]
+    if not solvers or any(m not in SOLVERS for m in solvers):
+        parser.error(f"--solver: expected some of {', '.join(SOLVERS)}, got {args.solver!r}")
     require_levels()
     paths = resolve_levels(args.levels)
     if not paths:
         raise SystemExit(f"no level files under {LEVELS_DIR}")
     for mode in modes:
-        run_mode(paths, args.steps, mode, args.threshold)
+        run_mode(paths, args.steps, mode, args.threshold, solvers)
 
 
 if __name__ == "__main__":

@@ -7,23 +7,26 @@ interpreter's JAX version) because Kinetix pins an old JAX.
     impulse bench engine                      # S, M, L at 1 and 1,024 envs (+32,768 on a GPU), with Jax2D
     impulse bench engine --quick              # our engine only, small batches: a smoke run
     impulse bench engine --sizes s --num-envs 4096 --no-reference
+    impulse bench engine --quick --solver phased,jax2d   # both contact schedules (SceneSizes.solver)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 
 from benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
 from engine.levels.kinetix_json import load_kinetix_level
+from engine.physics.sizes import SOLVERS
 from engine.physics.step import step
 
 
-def measure_ours(level_path: str, num_envs: int, num_steps: int, repeats: int) -> dict:
+def measure_ours(level_path: str, num_envs: int, num_steps: int, repeats: int, solver: str = "phased") -> dict:
     level = load_kinetix_level(level_path)
-    sizes, params = level.sizes, level.params
+    sizes, params = dataclasses.replace(level.sizes, solver=solver), level.params
     batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_envs,) + x.shape), level.state)
     actions = jnp.ones((num_envs, sizes.num_joints + sizes.num_thrusters), jnp.float32)
     step_batch = jax.vmap(lambda s, a: step(s, params, a, sizes)[0])
@@ -44,7 +47,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-reference", action="store_true", help="skip Jax2D")
     parser.add_argument("--quick", action="store_true", help="our engine only, 1 and 256 envs, 50 steps")
+    parser.add_argument("--solver", default="phased",
+                        help=f"comma-separated among {','.join(SOLVERS)}: our contact schedule(s) (default phased)")
     args = parser.parse_args(argv)
+    solvers = [m.strip() for m in args.solver.split(",") if m.strip()]
+    if not solvers or any(m not in SOLVERS for m in solvers):
+        parser.error(f"--solver: expected some of {', '.join(SOLVERS)}, got {args.solver!r}")
 
     on_gpu = jax.default_backend() == "gpu"
     if args.quick:
@@ -64,11 +72,18 @@ def main(argv: list[str] | None = None) -> None:
         level = str(levels_dir / DEFAULT_LEVELS[size])
         for num_envs in env_counts:
             progress(f"engine: size {size}, {num_envs} envs ...")
-            ours = measure_ours(level, num_envs, args.steps, args.repeats)
-            emit({"system": "impulse", "size": size, "level": DEFAULT_LEVELS[size], "num_envs": num_envs,
-                  "steps": args.steps, **ours, **env_info})
+            measured = {}
+            for solver in solvers:
+                measured[solver] = measure_ours(level, num_envs, args.steps, args.repeats, solver)
+                emit({"system": "impulse", "solver": solver, "size": size, "level": DEFAULT_LEVELS[size],
+                      "num_envs": num_envs, "steps": args.steps, **measured[solver], **env_info})
+            if "phased" in measured and "jax2d" in measured:
+                emit({"comparison": "jax2d/phased", "size": size, "num_envs": num_envs,
+                      "speed_ratio": measured["jax2d"]["steps_per_s"] / measured["phased"]["steps_per_s"],
+                      **env_info})
             if reference is None:
                 continue
+            ours = measured[solvers[0]]
             (ref,) = [
                 r for r in reference(
                     ["engine-speed", "--level", level, "--num-envs", str(num_envs), "--steps", str(args.steps),
@@ -77,7 +92,7 @@ def main(argv: list[str] | None = None) -> None:
                 ) if r.get("system") == "jax2d"
             ]
             emit({**ref, "size": size})
-            emit({"comparison": "impulse/jax2d", "size": size, "num_envs": num_envs,
+            emit({"comparison": "impulse/jax2d", "solver": solvers[0], "size": size, "num_envs": num_envs,
                   "speedup": ours["steps_per_s"] / ref["steps_per_s"],
                   "compile_ratio": ours["compile_s"] / ref["compile_s"], **env_info})
 

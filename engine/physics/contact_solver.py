@@ -1,9 +1,10 @@
 """Sequential-impulse contact constraints: per-step constants, warm start, and one Gauss-Seidel sweep.
 
-Everything that does not change during the solver iterations (lever arms, effective masses, friction
-coefficient, bias and restitution target) is computed once per step. Jax2D recomputes it in every iteration from
-the current positions; the only difference is that a joint's position correction during the iterations no longer
-shifts the lever arms of that body's contacts, a sub-millimetre effect.
+Lever arms, effective masses, friction coefficient, bias and restitution target are computed once per step, which
+keeps the sweep cheap. Jax2D recomputes lever arms and effective masses at every visit from the current
+positions, which the joints' position projection moves during the iterations. That is not a negligible
+difference on articulated levels: measured against Jax2D it parts some of them by tens of centimetres within
+two seconds (benchmarks/RESULTS.md). `solver="jax2d"` (batched_contacts.py) recomputes them as Jax2D does.
 """
 
 from __future__ import annotations

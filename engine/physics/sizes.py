@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
+
+Solver = Literal["phased", "jax2d"]
+SOLVERS: tuple[str, ...] = ("phased", "jax2d")
 
 
 @dataclass(frozen=True)
@@ -11,6 +15,8 @@ class SceneSizes:
 
     The first `num_static_polygons` polygons are the arena (floor, left wall, right wall, ceiling) by convention.
     Polygons carry up to `max_polygon_vertices` vertices; raising it is a size change, not a code change.
+    `solver` picks the contact schedule (static, so it is compiled in): "phased" (default, fastest) or "jax2d"
+    (Jax2D's batch order, for trajectories that follow Jax2D's closely; see docs/engine.md).
     """
 
     num_polygons: int = 5
@@ -21,6 +27,7 @@ class SceneSizes:
     num_static_polygons: int = 4
     num_solver_iterations: int = 10
     warm_starting: bool = True
+    solver: Solver = "phased"
 
     def __post_init__(self) -> None:
         if self.num_polygons < self.num_static_polygons:
@@ -33,6 +40,8 @@ class SceneSizes:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.max_polygon_vertices < 3:
             raise ValueError(f"max_polygon_vertices must be >= 3, got {self.max_polygon_vertices}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
         if self.num_solver_iterations < 1:
             raise ValueError(f"num_solver_iterations must be >= 1, got {self.num_solver_iterations}")
 

@@ -2,7 +2,9 @@
 scenes.
 
 Order (Jax2D's): gravity; contact detection; motors; thrusters; warm start; `num_solver_iterations` sweeps of
-(joints in slot order, then contacts phase by phase); symplectic Euler integration; clamping.
+(joints in slot order, then contacts); symplectic Euler integration; clamping. `sizes.solver` picks how contacts
+are swept: phase by phase with per-step lever arms ("phased", the default, faster) or as Jax2D does, in sorted
+Jacobi batches with lever arms that follow the joints' position corrections ("jax2d", see docs/engine.md).
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from engine.physics.actuators import apply_motors, apply_thrusters, thruster_positions
+from engine.physics.batched_contacts import ContactConstants, batch_slots, solve_contacts
 from engine.physics.contact_solver import ContactRows, contact_rows, solve_phase, warm_start
-from engine.physics.joint_solver import JointSolverState, joint_rows, solve_joint, warm_start_joints
-from engine.physics.narrowphase import detect_contacts
-from engine.physics.pairs import pair_tables
+from engine.physics.joint_solver import JointRows, JointSolverState, joint_rows, solve_joint, warm_start_joints
+from engine.physics.narrowphase import Contacts, detect_contacts
+from engine.physics.pairs import PairTables, pair_tables
 from engine.physics.params import SimParams
 from engine.physics.sizes import SceneSizes
-from engine.physics.state import ContactCache, SimState
+from engine.physics.state import ContactCache, Joints, SimState
 
 Array = jax.Array
 
@@ -79,22 +82,6 @@ def step(
     else:
         acc_impulse, acc_r_impulse = jnp.zeros_like(joints.acc_impulse), jnp.zeros_like(joints.acc_r_impulse)
 
-    phase_rows = [ContactRows(*(field[phase] for field in rows)) for phase in tables.phases]
-    phase_a = [tables.contact_a[phase] for phase in tables.phases]
-    phase_b = [tables.contact_b[phase] for phase in tables.phases]
-
-    def iteration(_, carry):
-        joint_state, normals, tangents = carry
-        for j in range(num_joints):
-            joint_state = solve_joint(joint_state, j, jrows, joints, params)
-        v, w = joint_state.velocity, joint_state.angular_velocity
-        new_normals, new_tangents = [], []
-        for p in range(len(tables.phases)):
-            v, w, n_imp, t_imp = solve_phase(v, w, phase_rows[p], phase_a[p], phase_b[p], normals[p], tangents[p])
-            new_normals.append(n_imp)
-            new_tangents.append(t_imp)
-        return joint_state._replace(velocity=v, angular_velocity=w), new_normals, new_tangents
-
     start = JointSolverState(
         position=bodies.position,
         velocity=velocity,
@@ -103,13 +90,14 @@ def step(
         acc_r_impulse=acc_r_impulse,
         anchor=joints.global_position,
     )
-    in_phases = lambda values: [values[phase] for phase in tables.phases]  # noqa: E731
-    carry = (start, in_phases(normal_impulse), in_phases(tangent_impulse))
-    solved, normals, tangents = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
-    if tables.num_contacts:
-        slot_order = np.argsort(np.concatenate(tables.phases))
-        normal_impulse = jnp.concatenate(normals)[slot_order]
-        tangent_impulse = jnp.concatenate(tangents)[slot_order]
+    if sizes.solver == "jax2d":
+        solved, normal_impulse, tangent_impulse = _iterate_jax2d(
+            start, normal_impulse, tangent_impulse, contacts, rows, enabled, jrows, joints, params, sizes, tables
+        )
+    else:
+        solved, normal_impulse, tangent_impulse = _iterate_phased(
+            start, normal_impulse, tangent_impulse, rows, jrows, joints, params, sizes, tables
+        )
 
     num_contacts = tables.num_contacts
     velocity = jnp.clip(solved.velocity, -params.clip_velocity, params.clip_velocity)
@@ -146,3 +134,85 @@ def step(
         normal_impulse=normal_impulse[first],
     )
     return new_state, step_contacts
+
+
+def _iterate_phased(
+    start: JointSolverState,
+    normal_impulse: Array,
+    tangent_impulse: Array,
+    rows: ContactRows,
+    jrows: JointRows,
+    joints: Joints,
+    params: SimParams,
+    sizes: SceneSizes,
+    tables: PairTables,
+) -> tuple[JointSolverState, Array, Array]:
+    """The default schedule: joints in slot order, then contacts phase by phase, with lever arms and effective
+    masses fixed per step (cheaper; the joints' position projection does not reach them)."""
+    phase_rows = [ContactRows(*(field[phase] for field in rows)) for phase in tables.phases]
+    phase_a = [tables.contact_a[phase] for phase in tables.phases]
+    phase_b = [tables.contact_b[phase] for phase in tables.phases]
+
+    def iteration(_, carry):
+        joint_state, normals, tangents = carry
+        for j in range(sizes.num_joints):
+            joint_state = solve_joint(joint_state, j, jrows, joints, params)
+        v, w = joint_state.velocity, joint_state.angular_velocity
+        new_normals, new_tangents = [], []
+        for p in range(len(tables.phases)):
+            v, w, n_imp, t_imp = solve_phase(v, w, phase_rows[p], phase_a[p], phase_b[p], normals[p], tangents[p])
+            new_normals.append(n_imp)
+            new_tangents.append(t_imp)
+        return joint_state._replace(velocity=v, angular_velocity=w), new_normals, new_tangents
+
+    in_phases = lambda values: [values[phase] for phase in tables.phases]  # noqa: E731
+    carry = (start, in_phases(normal_impulse), in_phases(tangent_impulse))
+    solved, normals, tangents = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
+    if tables.num_contacts:
+        slot_order = np.argsort(np.concatenate(tables.phases))
+        normal_impulse = jnp.concatenate(normals)[slot_order]
+        tangent_impulse = jnp.concatenate(tangents)[slot_order]
+    return solved, normal_impulse, tangent_impulse
+
+
+def _iterate_jax2d(
+    start: JointSolverState,
+    normal_impulse: Array,
+    tangent_impulse: Array,
+    contacts: Contacts,
+    rows: ContactRows,
+    enabled: Array,
+    jrows: JointRows,
+    joints: Joints,
+    params: SimParams,
+    sizes: SceneSizes,
+    tables: PairTables,
+) -> tuple[JointSolverState, Array, Array]:
+    """Jax2D's schedule (batched_contacts.py): joints in slot order, then contacts in sorted Jacobi batches of
+    16, kind by kind, with lever arms and effective masses taken from the current positions at every visit."""
+    constants = ContactConstants(
+        point=contacts.point,
+        normal=rows.normal,
+        tangent=rows.tangent,
+        inverse_mass_a=rows.inverse_mass_a,
+        inverse_mass_b=rows.inverse_mass_b,
+        inverse_inertia_a=rows.inverse_inertia_a,
+        inverse_inertia_b=rows.inverse_inertia_b,
+        friction=rows.friction,
+        target_velocity=rows.target_velocity,
+        enabled=enabled,
+    )
+    batches = batch_slots(tables, contacts.touching) if tables.num_contacts else []
+
+    def iteration(_, carry):
+        joint_state, normals, tangents = carry
+        for j in range(sizes.num_joints):
+            joint_state = solve_joint(joint_state, j, jrows, joints, params)
+        v, w, normals, tangents = solve_contacts(
+            joint_state.position, joint_state.velocity, joint_state.angular_velocity, normals, tangents,
+            batches, constants, tables,
+        )
+        return joint_state._replace(velocity=v, angular_velocity=w), normals, tangents
+
+    carry = (start, normal_impulse, tangent_impulse)
+    return jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)

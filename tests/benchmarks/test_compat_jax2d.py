@@ -16,6 +16,7 @@ from benchmarks.compat_jax2d import (
     dynamic_mask,
     first_step_over,
     jax2d_b1_pairs,
+    main,
     max_difference,
     resolve_levels,
     summarise,
@@ -193,3 +194,9 @@ def test_resolve_levels_by_name_glob_and_size(tmp_path: Path) -> None:
     assert names(resolve_levels("c, s/b.json,c", tmp_path)) == ["l/c.json", "s/b.json"]
     with pytest.raises(SystemExit):
         resolve_levels("zzz", tmp_path)
+
+
+def test_unknown_solver_is_refused_before_any_engine_runs() -> None:
+    with pytest.raises(SystemExit) as raised:
+        main(["--solver", "phased,gauss"])
+    assert raised.value.code == 2  # argparse's usage error, raised before the reference venv or levels are touched

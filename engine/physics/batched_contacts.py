@@ -1,0 +1,155 @@
+"""Contact solve in Jax2D's schedule: the `solver="jax2d"` option of the step.
+
+Why it exists: our default schedule (phased Gauss-Seidel, constants fixed per step, see contact_solver.py) is
+faster but visits contacts in another order, and on articulated levels that order difference grows into
+centimetres within a couple of seconds. This schedule reproduces Jax2D 1.0.2's order so that trajectories can be
+matched where that matters:
+
+- per iteration, contacts are visited kind by kind: polygon pairs' point 0, polygon pairs' point 1,
+  circle-polygon, circle-circle;
+- within a kind, pairs are ordered touching-last (a stable sort on the touching flag; for polygon pairs, either
+  point touching), the list is padded to a multiple of `BATCH` and dealt round-robin into batches of `BATCH`;
+- batches run one after another; the contacts of one batch are solved from the same velocities (Jacobi) and
+  their velocity changes are summed;
+- lever arms and effective masses are recomputed at every visit from the current positions, which the joint
+  pass moves during the iterations.
+
+Padding slots do nothing here: Jax2D's padding also overwrites the accumulated impulse of each kind's last pair
+(bug B1 of the Jax2D digest), which we do not copy.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from engine.physics.geometry import cross_scalar_vector, dot, nonzero
+from engine.physics.pairs import PairTables
+
+Array = jax.Array
+
+BATCH = 16  # Jax2D's default solver_batch_size, which Kinetix keeps
+
+
+class ContactConstants(NamedTuple):
+    """What stays fixed for a contact slot during the iterations of one step."""
+
+    point: Array  # [K, 2] world contact point
+    normal: Array  # [K, 2]
+    tangent: Array  # [K, 2]
+    inverse_mass_a: Array  # [K]
+    inverse_mass_b: Array
+    inverse_inertia_a: Array
+    inverse_inertia_b: Array
+    friction: Array  # [K]
+    target_velocity: Array  # [K] position bias minus restitution bounce
+    enabled: Array  # [K] bool: may exchange impulses
+
+
+def batch_slots(tables: PairTables, touching: Array) -> list[Array]:
+    """Per kind, the [num_batches, BATCH] contact slots to visit in Jax2D's order; padding is the out-of-range
+    slot K (its reads are clamped and masked, its writes dropped)."""
+    num_contacts = tables.num_contacts
+    kinds = []
+    rr, cr, cc = tables.num_rr, tables.num_cr, tables.num_cc
+    if rr:
+        either = touching[:rr] | touching[rr:2 * rr]
+        kinds += [(either, 0, rr), (either, rr, rr)]
+    if cr:
+        kinds.append((touching[2 * rr:2 * rr + cr], 2 * rr, cr))
+    if cc:
+        kinds.append((touching[2 * rr + cr:], 2 * rr + cr, cc))
+    out = []
+    for active, first, count in kinds:
+        num_batches = math.ceil(count / BATCH)
+        order = jnp.argsort(active, stable=True).astype(jnp.int32) + first
+        padded = jnp.concatenate([order, jnp.full(num_batches * BATCH - count, num_contacts, jnp.int32)])
+        out.append(padded.reshape(BATCH, num_batches).T)
+    return out
+
+
+def solve_batch(
+    position: Array,
+    velocity: Array,
+    angular_velocity: Array,
+    normal_impulse: Array,
+    tangent_impulse: Array,
+    slots: Array,
+    constants: ContactConstants,
+    tables: PairTables,
+) -> tuple[Array, Array, Array, Array]:
+    """One Jacobi batch: every slot in `slots` reads the same velocities; the changes are summed onto bodies."""
+    num_contacts = tables.num_contacts
+    real = slots < num_contacts
+    k = jnp.minimum(slots, num_contacts - 1)
+    a = jnp.asarray(tables.contact_a)[k]
+    b = jnp.asarray(tables.contact_b)[k]
+    c = constants
+    on = real & c.enabled[k]
+    n, t = c.normal[k], c.tangent[k]
+    ima, imb = c.inverse_mass_a[k], c.inverse_mass_b[k]
+    iia, iib = c.inverse_inertia_a[k], c.inverse_inertia_b[k]
+    ra = c.point[k] - position[a]
+    rb = c.point[k] - position[b]
+    va, vb = velocity[a], velocity[b]
+    wa, wb = angular_velocity[a], angular_velocity[b]
+    lam_n, lam_t = normal_impulse[k], tangent_impulse[k]
+
+    def inverse_effective_mass(direction: Array) -> Array:
+        ra_n, rb_n = dot(ra, direction), dot(rb, direction)
+        return ima + imb + iia * (dot(ra, ra) - ra_n * ra_n) + iib * (dot(rb, rb) - rb_n * rb_n)
+
+    def relative(va: Array, wa: Array, vb: Array, wb: Array) -> Array:
+        return (vb + cross_scalar_vector(wb, rb)) - (va + cross_scalar_vector(wa, ra))
+
+    def turn(r: Array, impulse: Array) -> Array:
+        return r[:, 0] * impulse[:, 1] - r[:, 1] * impulse[:, 0]
+
+    speed_n = dot(relative(va, wa, vb, wb), n)
+    new_n = jnp.maximum(lam_n + (c.target_velocity[k] - speed_n) / nonzero(inverse_effective_mass(n)), 0.0)
+    p_n = (new_n - lam_n)[:, None] * n
+    dva, dvb = -ima[:, None] * p_n, imb[:, None] * p_n
+    dwa, dwb = -iia * turn(ra, p_n), iib * turn(rb, p_n)
+
+    speed_t = dot(relative(va + dva, wa + dwa, vb + dvb, wb + dwb), t)
+    limit = c.friction[k] * new_n
+    new_t = jnp.clip(lam_t - speed_t / nonzero(inverse_effective_mass(t)), -limit, limit)
+    p_t = (new_t - lam_t)[:, None] * t
+    dva, dvb = dva - ima[:, None] * p_t, dvb + imb[:, None] * p_t
+    dwa, dwb = dwa - iia * turn(ra, p_t), dwb + iib * turn(rb, p_t)
+
+    mask = on.astype(velocity.dtype)
+    velocity = velocity.at[a].add(dva * mask[:, None]).at[b].add(dvb * mask[:, None])
+    angular_velocity = angular_velocity.at[a].add(dwa * mask).at[b].add(dwb * mask)
+    normal_impulse = normal_impulse.at[slots].set(jnp.where(on, new_n, 0.0), mode="drop")
+    tangent_impulse = tangent_impulse.at[slots].set(jnp.where(on, new_t, 0.0), mode="drop")
+    return velocity, angular_velocity, normal_impulse, tangent_impulse
+
+
+def solve_contacts(
+    position: Array,
+    velocity: Array,
+    angular_velocity: Array,
+    normal_impulse: Array,
+    tangent_impulse: Array,
+    batches: list[Array],
+    constants: ContactConstants,
+    tables: PairTables,
+) -> tuple[Array, Array, Array, Array]:
+    """One iteration's contact sweep, kind after kind, batch after batch."""
+    for slots_of_kind in batches:
+        def visit(carry: tuple[Array, Array, Array, Array], slots: Array) -> tuple:
+            return solve_batch(position, *carry, slots, constants, tables), None
+
+        carry = (velocity, angular_velocity, normal_impulse, tangent_impulse)
+        if slots_of_kind.shape[0] == 1:
+            velocity, angular_velocity, normal_impulse, tangent_impulse = visit(carry, slots_of_kind[0])[0]
+        else:
+            (velocity, angular_velocity, normal_impulse, tangent_impulse), _ = jax.lax.scan(
+                visit, carry, slots_of_kind
+            )
+    return velocity, angular_velocity, normal_impulse, tangent_impulse
+

@@ -1,0 +1,82 @@
+"""The `solver="jax2d"` schedule (SceneSizes.solver): its batch layout, conservation, and agreement with the
+default schedule where the visiting order cannot matter."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from physics_sim import CHUNK, NUM_ACTIONS, PARAMS, SIZES, arena_scene, open_scene, run, zero_gravity
+
+from engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint
+from engine.physics.batched_contacts import BATCH, batch_slots
+from engine.physics.pairs import pair_tables
+
+JAX2D = dataclasses.replace(SIZES, solver="jax2d")
+
+
+def _positions(state, sizes: SceneSizes, chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    actions = jnp.zeros((CHUNK, NUM_ACTIONS), jnp.float32)
+    positions, velocities = [], []
+    for _ in range(chunks):
+        state, record = run(state, PARAMS, actions, sizes)
+        positions.append(np.asarray(record[0]))
+        velocities.append(np.asarray(record[2]))
+    return np.concatenate(positions), np.concatenate(velocities)
+
+
+def test_unknown_solver_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown solver"):
+        SceneSizes(solver="jacobi")  # type: ignore[arg-type]
+
+
+def test_batches_put_touching_pairs_last_and_deal_them_round_robin() -> None:
+    tables = pair_tables(SIZES)
+    touching = np.zeros(tables.num_contacts, bool)
+    first_cr = 2 * tables.num_rr
+    touching[[first_cr + 1, first_cr + 5, first_cr + 20]] = True
+    touching[tables.num_rr + 2] = True  # point 1 of polygon pair 2 marks the whole pair touching
+    batches = [np.asarray(b) for b in batch_slots(tables, jnp.asarray(touching))]
+    rr0, rr1, cr, cc = batches
+    assert cr.shape == (-(-tables.num_cr // BATCH), BATCH)
+    # The list is the stable touching-last order plus padding (slot K), dealt out column by column.
+    listed = cr.T.reshape(-1)
+    real = listed[listed < tables.num_contacts]
+    assert real[-3:].tolist() == [first_cr + 1, first_cr + 5, first_cr + 20]
+    assert sorted(real.tolist()) == list(range(first_cr, first_cr + tables.num_cr))
+    assert (listed[len(real):] == tables.num_contacts).all()
+    # Both points of the polygon pairs share one order, with pair 2 last.
+    assert rr0.T.reshape(-1)[tables.num_rr - 1] == 2 and rr1.T.reshape(-1)[tables.num_rr - 1] == tables.num_rr + 2
+    assert cc.shape == (1, BATCH)
+
+
+def test_momentum_is_conserved_through_contacts_and_a_joint() -> None:
+    # No gravity, no arena: a jointed pair of circles runs into a box; every impulse is internal.
+    state = zero_gravity(open_scene())
+    state, box = add_rectangle(state, (2.0, 2.0), 0.5, 0.5, velocity=(-1.0, 0.0))
+    state, c1 = add_circle(state, (1.0, 2.1), 0.2, velocity=(1.5, 0.0))
+    state, c2 = add_circle(state, (0.6, 2.1), 0.2, velocity=(1.5, 0.3))
+    state, _ = add_revolute_joint(state, c1, c2, (-0.2, 0.0), (0.2, 0.0))
+    positions, velocities = _positions(state, JAX2D)
+    inverse_mass = np.asarray(state.bodies.inverse_mass)
+    moving = np.asarray(state.bodies.active) & (inverse_mass > 0)
+    mass = 1.0 / np.where(moving, inverse_mass, 1.0)
+    momentum = (velocities[:, moving] * mass[moving, None]).sum(axis=1)
+    initial = (np.asarray(state.bodies.velocity)[moving] * mass[moving, None]).sum(axis=0)
+    gap = np.linalg.norm(positions[:, int(box)] - positions[:, int(c1)], axis=1)
+    assert gap.min() < 0.5, "the circles never reached the box"
+    np.testing.assert_allclose(momentum, np.broadcast_to(initial, momentum.shape), atol=1e-4)
+
+
+def test_without_joints_or_shared_bodies_the_two_schedules_agree() -> None:
+    # A box and a circle land side by side on the floor: every contact touches one dynamic body, and no joint
+    # moves a body during the iterations, so the visiting order and the per-visit lever arms cannot matter.
+    state = arena_scene()
+    state, box = add_rectangle(state, (1.5, 0.8), 0.6, 0.3, rotation=0.2)
+    state, ball = add_circle(state, (3.0, 0.9), 0.25, velocity=(0.5, 0.0))
+    phased, _ = _positions(state, SIZES)
+    jax2d, _ = _positions(state, JAX2D)
+    assert phased[-1, int(box), 1] < 0.8 - 0.1, "the box did not fall onto the floor"
+    np.testing.assert_allclose(jax2d[:, [int(box), int(ball)]], phased[:, [int(box), int(ball)]], atol=1e-4)
