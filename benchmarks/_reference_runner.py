@@ -23,14 +23,10 @@ goes to stderr); ``reference_env.run_reference`` parses them.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import importlib.util
-import json
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import jax
@@ -42,50 +38,17 @@ from kinetix.environment import make_kinetix_env
 from kinetix.environment.spaces import ActionType, ObservationType
 from kinetix.util.saving import load_from_json_file
 
-
-def _load_scripted_actions() -> ModuleType:
-    """Load scripted_actions.py by path: the project is not importable (nor wanted) in this venv."""
-    path = Path(__file__).resolve().parent / "scripted_actions.py"
-    spec = importlib.util.spec_from_file_location("impulse_scripted_actions", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def emit(record: dict[str, Any]) -> None:
-    print(json.dumps(record), flush=True)
-
-
-def progress(message: str) -> None:
-    print(f"[reference] {message}", file=sys.stderr, flush=True)
-
-
-def environment() -> dict[str, str]:
-    """Same keys as benchmarks/_harness.environment, so records from both sides line up."""
-    device = jax.devices()[0]
-    return {"jax_version": jax.__version__, "backend": jax.default_backend(), "device": device.device_kind}
-
-
-def level_name(path: str) -> str:
-    """'s/h0_weak_thrust.json' style: the size folder plus the file name."""
-    resolved = Path(path)
-    return f"{resolved.parent.name}/{resolved.name}"
-
-
-def _project(instance: Any, cls: type) -> Any:
-    """Keep only the fields of a (Jax2D) base dataclass: Kinetix's EnvState/EnvParams/StaticEnvParams subclass
-    Jax2D's structs, and the engine benchmark should carry exactly Jax2D's own state, not Kinetix's extras."""
-    return cls(**{field.name: getattr(instance, field.name) for field in dataclasses.fields(cls)})
+sys.path.append(str(Path(__file__).resolve().parent))  # see _reference_common.py
+from _reference_common import action_sequence, as_base, emit, environment, level_name, progress, scripted_actions  # noqa: E402
 
 
 def load_sim(path: str) -> tuple[SimState, SimParams, StaticSimParams]:
     """Kinetix's JSON loader (kinetix.util.saving.load_from_json_file), reduced to Jax2D's types."""
     env_state, static_env_params, env_params = load_from_json_file(str(Path(path).resolve()))
     return (
-        _project(env_state, SimState),
-        _project(env_params, SimParams),
-        _project(static_env_params, StaticSimParams),
+        as_base(env_state, SimState),
+        as_base(env_params, SimParams),
+        as_base(static_env_params, StaticSimParams),
     )
 
 
@@ -154,7 +117,7 @@ def trajectory(args: argparse.Namespace) -> None:
     record_at = sorted({int(x) for x in args.record.split(",") if x.strip()})
     if record_at and (record_at[0] < 0 or record_at[-1] > args.steps):
         raise SystemExit(f"--record steps must lie in [0, {args.steps}]")
-    scripted = _load_scripted_actions() if args.actions == "scripted" else None
+    scripted = scripted_actions() if args.actions == "scripted" else None
     num_joints, num_thrusters = static.num_joints, static.num_thrusters
     frames = [{"step": 0, **_bodies(state)}] if 0 in record_at else []
     progress(f"jax2d trajectory {level_name(args.level)}: {args.steps} steps, {args.actions} actions")
@@ -169,15 +132,6 @@ def trajectory(args: argparse.Namespace) -> None:
     emit({"system": "jax2d", "kind": "trajectory", "level": level_name(args.level), "actions": args.actions,
           "steps": args.steps, "num_polygons": static.num_polygons, "num_circles": static.num_circles,
           "num_joints": num_joints, "num_thrusters": num_thrusters, "frames": frames, **environment()})
-
-
-def _action_sequence(steps: int, num_joints: int, num_thrusters: int, kind: str) -> np.ndarray:
-    """[steps, J + T] engine actions: zeros, or the shared scripted pattern."""
-    if kind == "zero":
-        return np.zeros((steps, num_joints + num_thrusters), np.float32)
-    scripted = _load_scripted_actions()
-    rows = [scripted.engine_actions(i, num_joints, num_thrusters) for i in range(steps)]
-    return np.stack(rows).reshape(steps, num_joints + num_thrusters).astype(np.float32)
 
 
 def trajectories(args: argparse.Namespace) -> None:
@@ -209,7 +163,7 @@ def trajectories(args: argparse.Namespace) -> None:
         if key not in rollouts:
             rollouts[key] = make_rollout(static)
         num_joints, num_thrusters = static.num_joints, static.num_thrusters
-        actions = _action_sequence(args.steps, num_joints, num_thrusters, args.actions)
+        actions = action_sequence(args.steps, num_joints, num_thrusters, args.actions)
         progress(f"jax2d trajectories {level_name(path)}: {args.steps} steps, {args.actions} actions")
         start = time.perf_counter()
         positions = np.asarray(jax.block_until_ready(rollouts[key](state, params, jnp.asarray(actions))))

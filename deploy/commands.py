@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from deploy import curriculum_cmd, launch_cmd, levels_cmd, services_cmd, view_cmd
+from deploy import curriculum_cmd, import_cmd, launch_cmd, levels_cmd, services_cmd, view_cmd
 from deploy.router_cmd import add_router_arguments, run_router_command
 from deploy.train_cmd import add_eval_arguments, add_train_arguments, run_eval, run_train
 from learner.config import TrainConfig
@@ -105,6 +105,19 @@ COMMANDS: tuple[Command, ...] = (
         config=TrainConfig,
         run=run_eval,
         arguments=add_eval_arguments,
+    ),
+    Command(
+        "import-kinetix",
+        "import a policy trained with Kinetix as a run directory",
+        "Read a Kinetix 3.0.x checkpoint (full_model.pbz2, params.pbz2 or model.pbz2 from its training scripts, or a "
+        "pretrained directory with params.safetensors and config.json), map its network exactly onto Impulse's "
+        "(entity transformer, permutation-invariant MLP or flat MLP; anything that cannot be reproduced exactly "
+        "is refused with the reason) and write RUN_DIR with config.toml and a checkpoint that `impulse eval "
+        "--checkpoint RUN_DIR` evaluates. Settings a .pbz2 does not record take Kinetix's defaults unless given "
+        "with --kinetix-config or --kinetix-option; the ones used are printed and kept in kinetix_import.json.",
+        config=TrainConfig,
+        run=import_cmd.run_import,
+        arguments=import_cmd.add_import_arguments,
     ),
     Command(
         "levels",

@@ -51,10 +51,8 @@ class Agent:
 
 
 def make_agent(network: NetworkConfig, spec: EnvSpec) -> Agent:
-    if (network.kind == "flat") != (spec.observation == "symbolic"):
-        raise ValueError(
-            f'network.kind "{network.kind}" needs env.observation '
-            f'"{"symbolic" if network.kind == "flat" else "entity"}", got "{spec.observation}"'
-        )
+    needed = {"flat": "symbolic", "cnn": "pixels"}.get(network.kind, "entity")
+    if spec.observation != needed:
+        raise ValueError(f'network.kind "{network.kind}" needs env.observation "{needed}", got "{spec.observation}"')
     distribution = distribution_for(action_space(spec))
     return Agent(make_network(network, distribution), distribution, spec)

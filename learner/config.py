@@ -75,10 +75,10 @@ class NetworkConfig:
     """Policy and value network shape (see `learner.networks`). Defaults give Kinetix's model sizes: separate
     actor and critic heads of 5 x Dense(128) tanh over a torso chosen by `kind`."""
 
-    kind: Literal["transformer", "entity", "flat"] = "transformer"
+    kind: Literal["transformer", "entity", "flat", "cnn"] = "transformer"
     """"transformer": attention over shapes with joint/thruster message passing (entity observation);
     "entity": a cheaper permutation-invariant MLP over the same entity observation; "flat": an MLP over the
-    symbolic flat observation vector."""
+    symbolic flat observation vector; "cnn": Kinetix's small CNN over the pixel observation."""
     width: int = 128
     """Units of each Dense layer of the actor and critic heads."""
     depth: int = 5
@@ -102,6 +102,21 @@ class NetworkConfig:
     """Permutation-invariant MLP: per-entity multi-head Dense (heads x size, ReLU), summed over entities."""
     flat_embedding_size: int = 128
     """Flat MLP: width of the ReLU layer between the observation vector and the heads."""
+    summary_token: Literal["learned", "ones"] = "learned"
+    """Transformer: the extra token that every shape may attend to and that joins the final mean: "learned" (a
+    parameter initialised to ones) or "ones" (a constant, as Kinetix's dummy token, for imported Kinetix
+    policies that should keep it fixed when fine-tuned)."""
+    sublayer_relu: bool = False
+    """Transformer: a ReLU on the attention output and on the feed-forward output (in place of `activation`)
+    before their gates, as Kinetix's layers have (needed to run Kinetix's weights)."""
+    shape_type_column: Literal["none", "type", "zero"] = "none"
+    """Transformer: "type" narrows the polygon and circle encoders by one unit and appends a constant type
+    column (1 for polygons, 0 for circles), as Kinetix's encoders; "zero" appends 0 for both, which is what the
+    networks of the Kinetix paper saw (Kinetix's `legacy_entity_id`)."""
+    count_inactive_entities: bool = False
+    """Permutation-invariant MLP: inactive slots enter the sum as all-zero entity rows, each adding the ReLU of
+    the multi-head layer's bias, as in Kinetix (needed to run its weights), instead of being left out; the
+    embedding then depends on the number of slots."""
 
     def __post_init__(self) -> None:
         if not self.full_attention_mask and self.num_heads % 4:

@@ -12,16 +12,23 @@ Torsos (`NetworkConfig.kind`):
   thruster) is encoded by its type's Dense layer and tagged with a type one-hot, passed through a multi-head
   Dense + ReLU, and summed over active entities: a set function, invariant to the order of slots.
 - "flat" (`FlatMLP`, symbolic flat observation vector): one Dense + ReLU layer.
+- "cnn" (`PixelCNN`, pixel observation): Kinetix's two convolutions + ReLU, flattened, plus global_info.
 Heads (`ActorCriticHeads`): `depth` x Dense(`width`) + activation for each of actor and critic (orthogonal init,
 scale sqrt 2); actor output Dense(num_outputs) at scale 0.01, critic Dense(1) at scale 1. With a Gaussian policy
 the actor adds a state-independent log-std parameter (initialised to 0), broadcast next to the means.
 
+Settings that exist to run Kinetix's weights exactly (`learner.kinetix_import`): `summary_token="ones"` (its
+constant dummy token), `sublayer_relu` (its ReLU before each gate), `shape_type_column` (its entity-id column)
+and, for the permutation-invariant MLP, `count_inactive_entities` (its sum over all slots); all off by default.
+
 Inactive entities (mask false) never influence the outputs: their rows are zeroed at the input, they are masked
-out as attention keys, send no messages and are left out of sums and means.
+out as attention keys, send no messages and are left out of sums and means (under `count_inactive_entities`
+each adds a constant to the sum that does not depend on its features).
 
 `ActorCritic(obs) -> (distribution params [..., P], value [...])` accepts observations with any leading
 dimensions, none included: an `EntityObservation` whose leaves are [..., slots, features] (leading dimensions
-read from `polygon_mask`), or a flat vector [..., F]. The distribution parameters are what the matching
+read from `polygon_mask`), a `PixelObservation` (image [..., W, H, 3], global_info [..., 1]), or a flat vector
+[..., F]. The distribution parameters are what the matching
 `learner.distributions` object takes. Use `make_network(config, distribution)`, then `params =
 network.init(key, obs)` and `network.apply(params, obs)` as the `apply_fn` of `learner.losses.ppo_loss`.
 """
@@ -37,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.env.observation_types import ATTENTION_CHANNELS, EntityObservation
+from engine.env.observation_types import ATTENTION_CHANNELS, EntityObservation, PixelObservation
 from learner.config import NetworkConfig
 from learner.distributions import DiagGaussian, Distribution
 
@@ -144,8 +151,10 @@ class TransformerLayer(nn.Module):
     ) -> Array:
         cfg = self.config
         d = tokens.shape[-1]
-        act = _ACTIVATIONS[cfg.activation]
+        act = nn.relu if cfg.sublayer_relu else _ACTIVATIONS[cfg.activation]
         attended = MaskedAttention(cfg.num_heads, cfg.transformer_size)(nn.LayerNorm()(tokens), attention_mask)
+        if cfg.sublayer_relu:
+            attended = nn.relu(attended)
         tokens = GatedResidual(name="attention_gate")(tokens, attended)
         fed = act(nn.Dense(d, name="feed_forward")(nn.LayerNorm()(tokens)))
         tokens = GatedResidual(name="feed_forward_gate")(tokens, fed)
@@ -186,21 +195,30 @@ class EntityTransformer(nn.Module):
         d = cfg.transformer_encoder_size
         act = _ACTIVATIONS[cfg.activation]
 
-        def encode(rows: Array, mask: Array, name: str) -> Array:
-            return _masked(act(_dense(d, name=name)(_masked(rows, mask))), mask)
+        def encode(rows: Array, mask: Array, name: str, type_value: float | None = None) -> Array:
+            if type_value is None:
+                return _masked(act(_dense(d, name=name)(_masked(rows, mask))), mask)
+            encoded = act(_dense(d - 1, name=name)(_masked(rows, mask)))
+            column = jnp.full(encoded.shape[:-1] + (1,), type_value, encoded.dtype)
+            return _masked(jnp.concatenate([encoded, column], axis=-1), mask)
 
+        polygon_type, circle_type = {"none": (None, None), "type": (1.0, 0.0), "zero": (0.0, 0.0)}[
+            cfg.shape_type_column]
         shape_mask = jnp.concatenate([obs.polygon_mask, obs.circle_mask], axis=1).astype(bool)
         joint_mask, thruster_mask = obs.joint_mask.astype(bool), obs.thruster_mask.astype(bool)
         shapes = jnp.concatenate(
             [
-                encode(obs.polygons, obs.polygon_mask, "polygon_encoder"),
-                encode(obs.circles, obs.circle_mask, "circle_encoder"),
+                encode(obs.polygons, obs.polygon_mask, "polygon_encoder", polygon_type),
+                encode(obs.circles, obs.circle_mask, "circle_encoder", circle_type),
             ],
             axis=1,
         )
         joints = encode(obs.joints, joint_mask, "joint_encoder")
         thrusters = encode(obs.thrusters, thruster_mask, "thruster_encoder")
-        summary = self.param("summary_token", nn.initializers.ones, (d,))
+        if cfg.summary_token == "ones":
+            summary = jnp.ones((d,), shapes.dtype)
+        else:
+            summary = self.param("summary_token", nn.initializers.ones, (d,))
         tokens = jnp.concatenate([jnp.broadcast_to(summary, (shapes.shape[0], 1, d)), shapes], axis=1)
         mask = _head_masks(obs.attention_mask, shape_mask, cfg.num_heads, cfg.full_attention_mask)
         joint_indexes = obs.joint_indexes.astype(jnp.int32)
@@ -239,6 +257,9 @@ class PermutationInvariantMLP(nn.Module):
             entities.append(jnp.concatenate([encoded, one_hot], axis=-1))
             masks.append(mask)
         entities, mask = jnp.concatenate(entities, axis=1), jnp.concatenate(masks, axis=1)
+        if cfg.count_inactive_entities:
+            heads = nn.relu(_dense(cfg.entity_heads * cfg.entity_head_size, name="multi_head")(_masked(entities, mask)))
+            return act(heads.sum(axis=1))
         heads = nn.relu(_dense(cfg.entity_heads * cfg.entity_head_size, name="multi_head")(entities))
         return act(_masked(heads, mask).sum(axis=1))
 
@@ -253,16 +274,33 @@ class FlatMLP(nn.Module):
         return nn.relu(_dense(self.config.flat_embedding_size, name="embed")(obs))
 
 
+class PixelCNN(nn.Module):
+    """Pixel observation (image [B, W, H, 3]) -> embedding [B, (W / 8) (H / 8) 32 + 1]: Kinetix's pixel torso,
+    Conv 16 (8x8, stride 4) + ReLU, Conv 32 (4x4, stride 2) + ReLU (flax defaults: SAME padding, LeCun init),
+    flattened, with global_info appended (gravity cannot be seen in the image)."""
+
+    config: NetworkConfig
+
+    @nn.compact
+    def __call__(self, obs: PixelObservation) -> Array:
+        x = nn.relu(nn.Conv(16, kernel_size=(8, 8), strides=(4, 4), name="conv_0")(obs.image))
+        x = nn.relu(nn.Conv(32, kernel_size=(4, 4), strides=(2, 2), name="conv_1")(x))
+        return jnp.concatenate([x.reshape(x.shape[0], -1), obs.global_info], axis=-1)
+
+
 _TORSOS: dict[str, type[nn.Module]] = {
     "transformer": EntityTransformer,
     "entity": PermutationInvariantMLP,
     "flat": FlatMLP,
+    "cnn": PixelCNN,
 }
 
 
-def _batch_shape(obs: EntityObservation | Array) -> tuple[int, ...]:
+def _batch_shape(obs: EntityObservation | PixelObservation | Array) -> tuple[int, ...]:
     if isinstance(obs, EntityObservation):
         return obs.polygon_mask.shape[:-1]
+    if isinstance(obs, PixelObservation):
+        return obs.global_info.shape[:-1]
     return obs.shape[:-1]
 
 
@@ -275,11 +313,14 @@ class ActorCritic(nn.Module):
     gaussian: bool = False
 
     @nn.compact
-    def __call__(self, obs: EntityObservation | Array) -> tuple[Array, Array]:
-        if self.config.kind == "flat" and isinstance(obs, EntityObservation):
-            raise TypeError('network kind "flat" takes the symbolic flat observation, not an EntityObservation')
-        if self.config.kind != "flat" and not isinstance(obs, EntityObservation):
-            raise TypeError(f'network kind "{self.config.kind}" takes an EntityObservation')
+    def __call__(self, obs: EntityObservation | PixelObservation | Array) -> tuple[Array, Array]:
+        given = type(obs).__name__ if isinstance(obs, EntityObservation | PixelObservation) else "flat vector"
+        if self.config.kind == "flat" and given != "flat vector":
+            raise TypeError(f'network kind "flat" takes the symbolic flat observation, got {given}')
+        if self.config.kind == "cnn" and given != "PixelObservation":
+            raise TypeError(f'network kind "cnn" takes a PixelObservation, got {given}')
+        if self.config.kind not in ("flat", "cnn") and given != "EntityObservation":
+            raise TypeError(f'network kind "{self.config.kind}" takes an EntityObservation, got {given}')
         batch = _batch_shape(obs)
         size = int(np.prod(batch, dtype=int))
         leading = len(batch)

@@ -26,7 +26,15 @@ class EnvConfig:
     dense_reward_scale: float = 0.2
     """Weight of the shaping term that rewards moving the goal shapes closer together (0.2 as in Kinetix's training
     configs; its level files and EnvParams carry 0.1)."""
-    observation: Literal["entity", "symbolic"] = "entity"
-    """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector."""
+    observation: Literal["entity", "symbolic", "pixels"] = "entity"
+    """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector; pixels: the
+    scene drawn as an RGB image (Kinetix's pixel observation, for the "cnn" network)."""
+    pixel_downscale: int = 4
+    """Pixel observation only: the 500 x 500 screen is drawn at 1 / this resolution (Kinetix's downscale; 4 gives
+    125 x 125 images, its default)."""
     action: Literal["multi_discrete", "continuous", "discrete"] = "multi_discrete"
     """How actions map to motors and thrusters; multi-discrete is Kinetix's default."""
+    solver: Literal["phased", "jax2d"] = "phased"
+    """Contact schedule of the physics step (`engine.physics.sizes.SceneSizes.solver`): "phased" (the fast
+    default) or "jax2d" (Jax2D's batch order with lever arms recomputed at every visit: closer to Jax2D's
+    trajectories on articulated levels, and slower; see docs/engine.md)."""

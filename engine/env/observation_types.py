@@ -35,3 +35,12 @@ class EntityObservation:
     joint_indexes: Array  # [2J, 2] int32 (from, to) body indices; (0, 0) for inactive joints
     thruster_indexes: Array  # [T] int32 body index
     attention_mask: Array  # [4, N, N] bool over bodies (polygons then circles)
+
+
+@pytree_dataclass
+class PixelObservation:
+    """Kinetix's pixel observation: the scene drawn as an image, plus what the image cannot show. Unbatched
+    shapes shown (125 = 500 / downscale at the default downscale 4)."""
+
+    image: Array  # [W, H, 3] float32 in [0, 1], indexed [x, y] with y up
+    global_info: Array  # [1] gravity_y / 10

@@ -1,5 +1,6 @@
-"""What the agent sees: Kinetix's entity observation (`EntityObservation`, for set/attention networks) and its flat
-symbolic vector, built from the simulation and the level's task data (roles, densities, bindings).
+"""What the agent sees: Kinetix's entity observation (`EntityObservation`, for set/attention networks), its flat
+symbolic vector and its pixel image (`PixelObservation`, drawn by `engine.env.pixels`), built from the simulation
+and the level's task data (roles, densities, bindings).
 
 Every feature is computed for all slots at once (no per-slot Python loops); the pair-to-matrix layouts of the
 attention mask are static numpy index tables. Layouts follow the Kinetix digest, section 7:
@@ -35,7 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.env.observation_types import EntityObservation
+from engine.env.observation_types import EntityObservation, PixelObservation
+from engine.env.pixels import pixel_observation
 from engine.env.spec import EnvSpec
 from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, level_from_scene
 from engine.physics.pairs import pair_tables
@@ -240,14 +242,16 @@ def symbolic_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Arra
     return jnp.nan_to_num(jnp.clip(flat, -SYMBOLIC_CLIP, SYMBOLIC_CLIP))
 
 
-def observe(spec: EnvSpec, sim: SimState, level: Level) -> EntityObservation | Array:
+def observe(spec: EnvSpec, sim: SimState, level: Level) -> EntityObservation | PixelObservation | Array:
     """The observation `spec.observation` names."""
     if spec.observation == "entity":
         return entity_observation(sim, level, spec.sizes)
+    if spec.observation == "pixels":
+        return pixel_observation(sim, level, spec.sizes, spec.pixel_downscale)
     return symbolic_observation(sim, level, spec.sizes)
 
 
-def observation_shape(spec: EnvSpec) -> EntityObservation | jax.ShapeDtypeStruct:
+def observation_shape(spec: EnvSpec) -> EntityObservation | PixelObservation | jax.ShapeDtypeStruct:
     """Shapes and dtypes of one environment's observation (for initialising networks), without running anything
     heavier than abstract evaluation."""
     level = level_from_scene(empty_scene(spec.sizes))

@@ -6,17 +6,18 @@ Both are built from the user-facing `EnvConfig` by `env_from_config`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from engine.env.config import EnvConfig
+from engine.env.pixels import pixel_geometry
 from engine.physics.params import SimParams
 from engine.physics.pytree import pytree_dataclass
 from engine.physics.sizes import SIZE_S, SceneSizes, size_preset
 
-ObservationKind = Literal["entity", "symbolic"]
+ObservationKind = Literal["entity", "symbolic", "pixels"]
 ActionKind = Literal["multi_discrete", "continuous", "discrete"]
-OBSERVATION_KINDS = ("entity", "symbolic")
+OBSERVATION_KINDS = ("entity", "symbolic", "pixels")
 ACTION_KINDS = ("multi_discrete", "continuous", "discrete")
 
 
@@ -31,6 +32,8 @@ class EnvSpec:
     """Agent steps after which an episode is cut off (done, `timed_out`)."""
     observation: ObservationKind = "entity"
     action: ActionKind = "multi_discrete"
+    pixel_downscale: int = 4
+    """Pixel observation: draw the 500 x 500 screen at 1 / this resolution (Kinetix's downscale)."""
 
     def __post_init__(self) -> None:
         if self.frame_skip < 1:
@@ -41,6 +44,7 @@ class EnvSpec:
             raise ValueError(f"unknown observation {self.observation!r}; choose one of {', '.join(OBSERVATION_KINDS)}")
         if self.action not in ACTION_KINDS:
             raise ValueError(f"unknown action {self.action!r}; choose one of {', '.join(ACTION_KINDS)}")
+        pixel_geometry(self.pixel_downscale)  # raises on a downscale that does not divide the screen
 
 
 @pytree_dataclass
@@ -56,11 +60,12 @@ class EnvParams:
 def env_from_config(config: EnvConfig, sim: SimParams | None = None) -> tuple[EnvSpec, EnvParams]:
     """The spec and params an `EnvConfig` describes (physics constants default to Jax2D's)."""
     spec = EnvSpec(
-        sizes=size_preset(config.size),
+        sizes=replace(size_preset(config.size), solver=config.solver),
         frame_skip=config.frame_skip,
         max_timesteps=config.max_timesteps,
         observation=config.observation,
         action=config.action,
+        pixel_downscale=config.pixel_downscale,
     )
     params = EnvParams(sim=sim if sim is not None else SimParams(), dense_reward_scale=config.dense_reward_scale)
     return spec, params

@@ -21,8 +21,14 @@ def test_env_from_config():
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"frame_skip": 0}, {"max_timesteps": 0}, {"observation": "pixels"}, {"action": "box"}],
+    [{"frame_skip": 0}, {"max_timesteps": 0}, {"observation": "blind"}, {"action": "box"}, {"pixel_downscale": 3}],
 )
 def test_bad_spec_is_refused(kwargs):
     with pytest.raises(ValueError):
         EnvSpec(**kwargs)
+
+
+def test_solver_setting_reaches_the_physics_sizes():
+    spec, _ = env_from_config(EnvConfig(size="m", solver="jax2d"))
+    assert spec.sizes.solver == "jax2d" and spec.sizes.num_polygons == SIZE_M.num_polygons
+    assert env_from_config(EnvConfig())[0].sizes.solver == "phased"
