@@ -13,8 +13,9 @@ order of one step and the auto-reset rule):
         spec, params, state, actions, levels)
 
 Modules: `config` (EnvConfig, plain settings), `spec` (EnvSpec, EnvParams, env_from_config), `state` (EnvState),
-`actions` (action types, action spaces, bindings), `observations` (entity and flat symbolic observations),
-`observation_types` (the EntityObservation layout), `reward` (sparse outcome and dense shaping), `env` (reset, step),
+`actions` (action types, action spaces, bindings), `observations` (entity, flat symbolic and pixel observations),
+`pixels` (drawing the scene as Kinetix's pixel observation), `observation_types` (the observation layouts),
+`reward` (sparse outcome and dense shaping), `env` (reset, step),
 `episodes` (the one episode loop: E environments stepped for T steps with caller-chosen actions, and the outcome of
 each one's first episode), `scripted` (playing the hand-made levels' scripted controllers).
 This package file imports nothing, so reading the configuration does not load JAX.
