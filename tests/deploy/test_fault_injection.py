@@ -35,8 +35,8 @@ from learner.update import TrainState, make_optimizer
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""
-INJECT_FOR_S = float(os.environ.get("IMPULSE_FAULT_SECONDS", "60"))
-"""A minute in CI (its time budget); `IMPULSE_FAULT_SECONDS=300` for the longer run docs/multi-host.md reports."""
+INJECT_FOR_S = float(os.environ.get("IMPULSE_FAULT_SECONDS", "45"))
+"""45 s in CI (its time budget); `IMPULSE_FAULT_SECONDS=300` for the longer run docs/multi-host.md reports."""
 PAUSE_S = (5.0, 11.0)
 """Seconds between kills, drawn uniformly."""
 SEED = int(os.environ.get("IMPULSE_FAULT_SEED", "7"))
