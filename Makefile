@@ -1,4 +1,5 @@
-# Two commands for a fresh machine: `make run` (the main job) and `make test` (lint, then the test suite).
+# Two commands for a fresh machine: `make run` (the main job) and `make test` (lint, then the test suite as two
+# parallel streams, see tests/conftest.py).
 # Both create .venv with python3 (3.11 or 3.12) and install the project into it; the install is redone only
 # when pyproject.toml changes (the stamp file below), so later runs start at once.
 
@@ -13,7 +14,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n 2 --dist loadgroup
 
 venv: $(STAMP)
 

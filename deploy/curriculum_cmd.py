@@ -149,7 +149,7 @@ def _render(config: TrainConfig, arrays: dict, report: dict, out: Path) -> None:
     from monitor.png import render_level, save_png
 
     spec, _ = env_from_config(config.env)
-    template = sample_random_level(jax.random.PRNGKey(0), spec.sizes)
+    template = jax.eval_shape(lambda key: sample_random_level(key, spec.sizes), jax.random.PRNGKey(0))  # no compile
     out.mkdir(parents=True, exist_ok=True)
     for i, row in enumerate(report["top"]):
         level = tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template)

@@ -7,6 +7,11 @@ any pytest import mode. Helper module names are unique across folders for that r
 JAX's persistent compilation cache lives under `<repo>/.cache/jax` (ignored by git), so a second `make test` on
 the same machine, or CI after a developer's run, skips recompiling the engine's jitted functions; only
 compilations slower than half a second are stored, which keeps the cache small.
+
+`make test` runs the suite as two streams side by side (pytest-xdist, `-n 2 --dist loadgroup`): tests marked
+`services` (they start real service processes: launches, Zenoh sessions, viewers) run one after another on one
+worker, every other test runs in order on the other. Neither stream compiles a program twice, and the CPU the
+service tests leave idle while their processes wait goes to the in-process tests.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import sys
 from pathlib import Path
 
 import jax
+import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 for _folder in [REPO_ROOT, *sorted(p for p in Path(__file__).resolve().parent.iterdir() if p.is_dir())]:
@@ -23,3 +29,14 @@ for _folder in [REPO_ROOT, *sorted(p for p in Path(__file__).resolve().parent.it
 
 jax.config.update("jax_compilation_cache_dir", str(REPO_ROOT / ".cache" / "jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "services: starts real service processes (run in the services stream)")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        stream = "services" if item.get_closest_marker("services") else "in-process"
+        item.add_marker(pytest.mark.xdist_group(stream))

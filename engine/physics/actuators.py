@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from engine.physics.contact_solver import sum_onto_bodies
 from engine.physics.geometry import cross, nonzero, rotate
 from engine.physics.joint_solver import JointRows
 from engine.physics.params import SimParams
+from engine.physics.slots import one_hot_rows, sum_onto_bodies
 from engine.physics.state import SimState
 
 Array = jnp.ndarray
@@ -57,7 +57,7 @@ def apply_thrusters(
     thrusters, bodies = state.thrusters, state.bodies
     num_bodies = bodies.active.shape[0]
     index = thrusters.body_index
-    one_hot_rows = (index[:, None] == jnp.arange(num_bodies)[None, :]).astype(jnp.float32)
+    to_body = one_hot_rows(index, num_bodies)
     on = thrusters.active & bodies.active[index]
     magnitude = thrusters.power * params.base_thruster_power * actions * params.dt * on
     body_rotation = bodies.rotation[index]
@@ -68,8 +68,8 @@ def apply_thrusters(
     dv = bodies.inverse_mass[index][:, None] * impulse
     dw = bodies.inverse_inertia[index] * cross(lever, impulse)
     return (
-        velocity + sum_onto_bodies(one_hot_rows, dv),
-        angular_velocity + sum_onto_bodies(one_hot_rows, dw),
+        velocity + sum_onto_bodies(to_body, dv),
+        angular_velocity + sum_onto_bodies(to_body, dw),
     )
 
 

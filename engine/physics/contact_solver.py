@@ -18,6 +18,7 @@ from engine.physics.geometry import cross, cross_scalar_vector, dot, nonzero
 from engine.physics.narrowphase import Contacts
 from engine.physics.pairs import PairTables
 from engine.physics.params import SimParams
+from engine.physics.slots import one_hot_rows, sum_onto_bodies, write_back
 from engine.physics.state import SimState
 
 Array = jnp.ndarray
@@ -89,20 +90,6 @@ def contact_rows(
     return rows, enabled
 
 
-def one_hot(indices: np.ndarray, num_bodies: int) -> np.ndarray:
-    """Constant [k, N] matrix that scatters per-contact values onto bodies by a fused multiply-sum."""
-    return (np.asarray(indices)[:, None] == np.arange(num_bodies)[None, :]).astype(np.float32)
-
-
-def sum_onto_bodies(one_hot_rows: Array, values: Array) -> Array:
-    """Sum per-item values onto bodies: [k, N] x [k, ...] -> [N, ...].
-
-    A multiply-sum rather than a matmul: it fuses with its neighbours and never runs in reduced precision (TF32).
-    """
-    expand = one_hot_rows.reshape(one_hot_rows.shape + (1,) * (values.ndim - 1))
-    return (expand * values[:, None]).sum(axis=0)
-
-
 def warm_start(
     velocity: Array,
     angular_velocity: Array,
@@ -114,7 +101,7 @@ def warm_start(
     """Apply last step's impulses of all contacts at once (they do not depend on velocity, so order is moot)."""
     impulse = normal_impulse[:, None] * rows.normal + tangent_impulse[:, None] * rows.tangent
     num_bodies = velocity.shape[0]
-    to_a, to_b = one_hot(tables.contact_a, num_bodies), one_hot(tables.contact_b, num_bodies)
+    to_a, to_b = one_hot_rows(tables.contact_a, num_bodies), one_hot_rows(tables.contact_b, num_bodies)
     dv = rows.inverse_mass_b[:, None] * impulse
     dv_a = -rows.inverse_mass_a[:, None] * impulse
     dw_a = -rows.inverse_inertia_a * cross(rows.lever_a, impulse)
@@ -122,14 +109,6 @@ def warm_start(
     velocity = velocity + sum_onto_bodies(to_a, dv_a) + sum_onto_bodies(to_b, dv)
     angular_velocity = angular_velocity + sum_onto_bodies(to_a, dw_a) + sum_onto_bodies(to_b, dw_b)
     return velocity, angular_velocity
-
-
-def _write_back_source(body_a: np.ndarray, body_b: np.ndarray, num_bodies: int) -> np.ndarray:
-    """Static gather indices into concat(old, new_a, new_b) that put each phase's results back on their bodies."""
-    source = np.arange(num_bodies)
-    source[body_a] = num_bodies + np.arange(len(body_a))
-    source[body_b] = num_bodies + len(body_a) + np.arange(len(body_b))
-    return source
 
 
 def solve_phase(
@@ -165,7 +144,6 @@ def solve_phase(
     new_tangent = jnp.clip(tangent_impulse - tangent_speed * rows.tangent_mass, -limit, limit)
     va, wa, vb, wb = apply((new_tangent - tangent_impulse)[:, None] * rows.tangent)
 
-    source = _write_back_source(body_a, body_b, velocity.shape[0])
-    velocity = jnp.concatenate([velocity, va, vb])[source]
-    angular_velocity = jnp.concatenate([angular_velocity, wa, wb])[source]
+    velocity = write_back(velocity, va, vb, body_a, body_b)
+    angular_velocity = write_back(angular_velocity, wa, wb, body_a, body_b)
     return velocity, angular_velocity, new_normal, new_tangent

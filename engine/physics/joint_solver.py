@@ -11,9 +11,9 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from engine.physics.contact_solver import sum_onto_bodies
 from engine.physics.geometry import cross, nonzero, rotate
 from engine.physics.params import SimParams
+from engine.physics.slots import one_hot_rows, read_body, spread_to_bodies, sum_onto_bodies
 from engine.physics.state import Joints, SimState
 
 Array = jnp.ndarray
@@ -37,8 +37,8 @@ class JointRows(NamedTuple):
 def joint_rows(state: SimState) -> JointRows:
     joints, bodies = state.joints, state.bodies
     num_bodies = bodies.active.shape[0]
-    one_hot_a = (joints.a_index[:, None] == jnp.arange(num_bodies)[None, :]).astype(jnp.float32)
-    one_hot_b = (joints.b_index[:, None] == jnp.arange(num_bodies)[None, :]).astype(jnp.float32)
+    one_hot_a = one_hot_rows(joints.a_index, num_bodies)
+    one_hot_b = one_hot_rows(joints.b_index, num_bodies)
     a, b = joints.a_index, joints.b_index
     ima, imb = bodies.inverse_mass[a], bodies.inverse_mass[b]
     enabled = joints.active & bodies.active[a] & bodies.active[b] & ~((ima == 0) & (imb == 0))
@@ -83,23 +83,15 @@ class JointSolverState(NamedTuple):
     anchor: Array  # [J, 2] world joint point
 
 
-def _read(values: Array, weights: Array) -> Array:
-    return (weights.reshape((-1,) + (1,) * (values.ndim - 1)) * values).sum(axis=0)
-
-
-def _spread(weights: Array, delta: Array) -> Array:
-    return weights.reshape((-1,) + (1,) * delta.ndim) * delta
-
-
 def solve_joint(
     s: JointSolverState, j: int, rows: JointRows, joints: Joints, params: SimParams
 ) -> JointSolverState:
     """One Gauss-Seidel visit of joint j. Disabled joints have zeroed inverse masses in `rows`, so they move
     nothing, and store zeros."""
     oa, ob = rows.one_hot_a[j], rows.one_hot_b[j]
-    xa, xb = _read(s.position, oa), _read(s.position, ob)
-    va, vb = _read(s.velocity, oa), _read(s.velocity, ob)
-    wa, wb = _read(s.angular_velocity, oa), _read(s.angular_velocity, ob)
+    xa, xb = read_body(s.position, oa), read_body(s.position, ob)
+    va, vb = read_body(s.velocity, oa), read_body(s.velocity, ob)
+    wa, wb = read_body(s.angular_velocity, oa), read_body(s.angular_velocity, ob)
     on = rows.enabled[j]
     ima, imb = rows.inverse_mass_a[j], rows.inverse_mass_b[j]
     iia, iib = rows.inverse_inertia_a[j], rows.inverse_inertia_b[j]
@@ -153,9 +145,11 @@ def solve_joint(
     acc_r = jnp.clip(s.acc_r_impulse[j] + angular_impulse, -r_cap, r_cap)
 
     return JointSolverState(
-        position=s.position + _spread(oa, dxa) + _spread(ob, dxb),
-        velocity=s.velocity + _spread(oa, dva) + _spread(ob, dvb),
-        angular_velocity=s.angular_velocity + _spread(oa, new_wa - wa) + _spread(ob, new_wb - wb),
+        position=s.position + spread_to_bodies(oa, dxa) + spread_to_bodies(ob, dxb),
+        velocity=s.velocity + spread_to_bodies(oa, dva) + spread_to_bodies(ob, dvb),
+        angular_velocity=(
+            s.angular_velocity + spread_to_bodies(oa, new_wa - wa) + spread_to_bodies(ob, new_wb - wb)
+        ),
         acc_impulse=s.acc_impulse.at[j].set(jnp.where(on, acc, 0.0)),
         acc_r_impulse=s.acc_r_impulse.at[j].set(jnp.where(on & fixed, acc_r, 0.0)),
         anchor=s.anchor.at[j].set(jnp.where(on, joint_point, 0.0)),

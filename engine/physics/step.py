@@ -1,10 +1,19 @@
 """One physics step of one scene: `step(state, params, actions, sizes)`; jit it with `sizes` static, vmap it over
 scenes.
 
-Order (Jax2D's): gravity; contact detection; motors; thrusters; warm start; `num_solver_iterations` sweeps of
-(joints in slot order, then contacts); symplectic Euler integration; clamping. `sizes.solver` picks how contacts
-are swept: phase by phase with per-step lever arms ("phased", the default, faster) or as Jax2D does, in sorted
-Jacobi batches with lever arms that follow the joints' position corrections ("jax2d", see docs/engine.md).
+The step is a sequence of named stages, in Jax2D's order:
+
+1. `apply_gravity`;
+2. `prepare_contacts`: detection, per-contact solver constants, last step's impulses where contacts persist;
+3. motors and thrusters (actuators.py);
+4. `warm_start_all`: last step's contact and joint impulses re-applied;
+5. `num_solver_iterations` sweeps of `solve_joints` (slot order) then the contacts;
+6. `integrate`: velocity clamps, symplectic Euler, position clamp;
+7. `store_impulses`: what the next step warm-starts from.
+
+`sizes.solver` picks how contacts are swept in stage 5: phase by phase with per-step lever arms (`iterate_phased`,
+the default, faster) or as Jax2D does, in sorted Jacobi batches with lever arms that follow the joints' position
+corrections (`iterate_jax2d`, see docs/engine.md). Which slot is which, and how values reach bodies, is slots.py's.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from engine.physics.narrowphase import Contacts, detect_contacts
 from engine.physics.pairs import PairTables, pair_tables
 from engine.physics.params import SimParams
 from engine.physics.sizes import SceneSizes
+from engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
 from engine.physics.state import ContactCache, Joints, SimState
 
 Array = jax.Array
@@ -44,6 +54,13 @@ def jit_step(state: SimState, params: SimParams, actions: Array, sizes: SceneSiz
     return step(state, params, actions, sizes)
 
 
+class Impulses(NamedTuple):
+    """Accumulated contact impulses, one entry per contact slot (or per slot of one phase)."""
+
+    normal: Array
+    tangent: Array
+
+
 def step(
     state: SimState, params: SimParams, actions: Array, sizes: SceneSizes
 ) -> tuple[SimState, StepContacts]:
@@ -53,132 +70,146 @@ def step(
     actions ([0, 1]).
     """
     tables = pair_tables(sizes)
-    bodies = state.bodies
-    num_joints = sizes.num_joints
     actions = jnp.asarray(actions, dtype=jnp.float32)
-    motor_actions, thruster_actions = actions[:num_joints], actions[num_joints:]
+    motor_actions, thruster_actions = actions[: sizes.num_joints], actions[sizes.num_joints :]
 
+    velocity = apply_gravity(state, params)
+    contacts, rows, enabled, carried = prepare_contacts(state, velocity, tables, params, sizes)
+    jrows = joint_rows(state)
+    angular_velocity = apply_motors(state.bodies.angular_velocity, state, jrows, motor_actions, params)
+    velocity, angular_velocity = apply_thrusters(velocity, angular_velocity, state, thruster_actions, params)
+    start = warm_start_all(velocity, angular_velocity, state, rows, carried, jrows, tables, sizes)
+    if sizes.solver == "jax2d":
+        solved, impulses = iterate_jax2d(start, carried, contacts, rows, enabled, jrows, state.joints, params,
+                                         sizes, tables)
+    else:
+        solved, impulses = iterate_phased(start, carried, rows, jrows, state.joints, params, sizes, tables)
+    new_state = integrate(state, solved, params)
+    cache = store_impulses(impulses, contacts, rows, params, tables)
+    first = point0_slots(tables)
+    step_contacts = StepContacts(
+        touching=contacts.touching[first],
+        normal=contacts.normal[first],
+        point=contacts.point[first],
+        normal_impulse=cache.normal_impulse[first],
+    )
+    return new_state.replace(contacts=cache), step_contacts
+
+
+def apply_gravity(state: SimState, params: SimParams) -> Array:
+    """Velocities after one step of gravity on every active dynamic body."""
+    bodies = state.bodies
     falls = (bodies.inverse_mass != 0) & bodies.active
-    velocity = bodies.velocity + jnp.where(falls[:, None], state.gravity * params.dt, 0.0)
-    angular_velocity = bodies.angular_velocity
+    return bodies.velocity + jnp.where(falls[:, None], state.gravity * params.dt, 0.0)
 
+
+def prepare_contacts(
+    state: SimState, velocity: Array, tables: PairTables, params: SimParams, sizes: SceneSizes
+) -> tuple[Contacts, ContactRows, Array, Impulses]:
+    """Detect every contact slot, compute its solver constants, and carry over last step's impulses where the
+    contact persists (and warm starting is on)."""
     contacts = detect_contacts(state, tables)
     rows, enabled = contact_rows(state, velocity, contacts, tables, params)
     carried = enabled & state.contacts.active & sizes.warm_starting
-    normal_impulse = jnp.where(carried, state.contacts.normal_impulse, 0.0)
-    tangent_impulse = jnp.where(carried, state.contacts.tangent_impulse, 0.0)
+    return contacts, rows, enabled, Impulses(
+        normal=jnp.where(carried, state.contacts.normal_impulse, 0.0),
+        tangent=jnp.where(carried, state.contacts.tangent_impulse, 0.0),
+    )
 
-    jrows = joint_rows(state)
-    angular_velocity = apply_motors(angular_velocity, state, jrows, motor_actions, params)
-    velocity, angular_velocity = apply_thrusters(velocity, angular_velocity, state, thruster_actions, params)
 
+def warm_start_all(
+    velocity: Array,
+    angular_velocity: Array,
+    state: SimState,
+    rows: ContactRows,
+    carried: Impulses,
+    jrows: JointRows,
+    tables: PairTables,
+    sizes: SceneSizes,
+) -> JointSolverState:
+    """Re-apply last step's contact and joint impulses; the solver's starting state."""
     joints = state.joints
     if sizes.warm_starting:
         velocity, angular_velocity = warm_start(
-            velocity, angular_velocity, rows, normal_impulse, tangent_impulse, tables
+            velocity, angular_velocity, rows, carried.normal, carried.tangent, tables
         )
         velocity, angular_velocity = warm_start_joints(velocity, angular_velocity, jrows, joints)
         acc_impulse, acc_r_impulse = joints.acc_impulse, joints.acc_r_impulse
     else:
         acc_impulse, acc_r_impulse = jnp.zeros_like(joints.acc_impulse), jnp.zeros_like(joints.acc_r_impulse)
-
-    start = JointSolverState(
-        position=bodies.position,
+    return JointSolverState(
+        position=state.bodies.position,
         velocity=velocity,
         angular_velocity=angular_velocity,
         acc_impulse=acc_impulse,
         acc_r_impulse=acc_r_impulse,
         anchor=joints.global_position,
     )
-    if sizes.solver == "jax2d":
-        solved, normal_impulse, tangent_impulse = _iterate_jax2d(
-            start, normal_impulse, tangent_impulse, contacts, rows, enabled, jrows, joints, params, sizes, tables
+
+
+def solve_joints(
+    joint_state: JointSolverState, jrows: JointRows, joints: Joints, params: SimParams, sizes: SceneSizes
+) -> JointSolverState:
+    """One Gauss-Seidel sweep over the joints in slot order."""
+    for j in range(sizes.num_joints):
+        joint_state = solve_joint(joint_state, j, jrows, joints, params)
+    return joint_state
+
+
+def solve_contacts_phased(
+    velocity: Array,
+    angular_velocity: Array,
+    phase_rows: list[ContactRows],
+    bodies_of_phase: list[tuple[np.ndarray, np.ndarray]],
+    impulses: list[Impulses],
+) -> tuple[Array, Array, list[Impulses]]:
+    """One Gauss-Seidel sweep over the contacts, phase after phase (the contacts of a phase side by side)."""
+    solved = []
+    for rows, (body_a, body_b), (normal, tangent) in zip(phase_rows, bodies_of_phase, impulses, strict=True):
+        velocity, angular_velocity, normal, tangent = solve_phase(
+            velocity, angular_velocity, rows, body_a, body_b, normal, tangent
         )
-    else:
-        solved, normal_impulse, tangent_impulse = _iterate_phased(
-            start, normal_impulse, tangent_impulse, rows, jrows, joints, params, sizes, tables
-        )
-
-    num_contacts = tables.num_contacts
-    velocity = jnp.clip(solved.velocity, -params.clip_velocity, params.clip_velocity)
-    angular_velocity = jnp.clip(solved.angular_velocity, -params.clip_angular_velocity, params.clip_angular_velocity)
-    # Integrate with the clamped velocities (Jax2D integrates first): a body pinned at the position clamp by a
-    # joint otherwise gains unbounded spin and ends in NaN.
-    position = solved.position + velocity * params.dt
-    rotation = bodies.rotation + angular_velocity * params.dt
-    position = jnp.clip(position, -params.clip_position, params.clip_position)
-
-    new_bodies = bodies.replace(
-        position=position, rotation=rotation, velocity=velocity, angular_velocity=angular_velocity
-    )
-    new_joints = joints.replace(
-        acc_impulse=solved.acc_impulse, acc_r_impulse=solved.acc_r_impulse, global_position=solved.anchor
-    )
-    new_thrusters = state.thrusters.replace(global_position=thruster_positions(state, position, rotation))
-    # Cap what is carried to the next step's warm start at the impulse that takes the contact across the whole
-    # velocity clamp: more can never be applied, and letting it accumulate (bodies pressed together on the
-    # position clamp) grows it geometrically into inf/NaN. Inactive in ordinary contact, where impulses are tiny.
-    if num_contacts:
-        reach = jnp.sqrt((rows.lever_a**2).sum(-1)) + jnp.sqrt((rows.lever_b**2).sum(-1))
-        cap = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
-        normal_impulse = jnp.minimum(normal_impulse, cap)
-        tangent_impulse = jnp.clip(tangent_impulse, -rows.friction * normal_impulse, rows.friction * normal_impulse)
-    cache = ContactCache(normal_impulse=normal_impulse, tangent_impulse=tangent_impulse, active=contacts.touching)
-    new_state = state.replace(bodies=new_bodies, joints=new_joints, thrusters=new_thrusters, contacts=cache)
-
-    first = np.concatenate([np.arange(tables.num_rr), np.arange(2 * tables.num_rr, num_contacts)]).astype(int)
-    step_contacts = StepContacts(
-        touching=contacts.touching[first],
-        normal=contacts.normal[first],
-        point=contacts.point[first],
-        normal_impulse=normal_impulse[first],
-    )
-    return new_state, step_contacts
+        solved.append(Impulses(normal, tangent))
+    return velocity, angular_velocity, solved
 
 
-def _iterate_phased(
+def iterate_phased(
     start: JointSolverState,
-    normal_impulse: Array,
-    tangent_impulse: Array,
+    carried: Impulses,
     rows: ContactRows,
     jrows: JointRows,
     joints: Joints,
     params: SimParams,
     sizes: SceneSizes,
     tables: PairTables,
-) -> tuple[JointSolverState, Array, Array]:
-    """The default schedule: joints in slot order, then contacts phase by phase, with lever arms and effective
-    masses fixed per step (cheaper; the joints' position projection does not reach them)."""
-    phase_rows = [ContactRows(*(field[phase] for field in rows)) for phase in tables.phases]
-    phase_a = [tables.contact_a[phase] for phase in tables.phases]
-    phase_b = [tables.contact_b[phase] for phase in tables.phases]
+) -> tuple[JointSolverState, Impulses]:
+    """The default schedule: per iteration, joints in slot order, then contacts phase by phase, with lever arms
+    and effective masses fixed per step (cheaper; the joints' position projection does not reach them)."""
+    phase_rows = [ContactRows(*fields) for fields in zip(*(by_phase(field, tables) for field in rows), strict=True)]
+    bodies_of_phase = phase_bodies(tables)
 
     def iteration(_, carry):
-        joint_state, normals, tangents = carry
-        for j in range(sizes.num_joints):
-            joint_state = solve_joint(joint_state, j, jrows, joints, params)
-        v, w = joint_state.velocity, joint_state.angular_velocity
-        new_normals, new_tangents = [], []
-        for p in range(len(tables.phases)):
-            v, w, n_imp, t_imp = solve_phase(v, w, phase_rows[p], phase_a[p], phase_b[p], normals[p], tangents[p])
-            new_normals.append(n_imp)
-            new_tangents.append(t_imp)
-        return joint_state._replace(velocity=v, angular_velocity=w), new_normals, new_tangents
+        joint_state, impulses = carry
+        joint_state = solve_joints(joint_state, jrows, joints, params, sizes)
+        v, w, impulses = solve_contacts_phased(
+            joint_state.velocity, joint_state.angular_velocity, phase_rows, bodies_of_phase, impulses
+        )
+        return joint_state._replace(velocity=v, angular_velocity=w), impulses
 
-    in_phases = lambda values: [values[phase] for phase in tables.phases]  # noqa: E731
-    carry = (start, in_phases(normal_impulse), in_phases(tangent_impulse))
-    solved, normals, tangents = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
-    if tables.num_contacts:
-        slot_order = np.argsort(np.concatenate(tables.phases))
-        normal_impulse = jnp.concatenate(normals)[slot_order]
-        tangent_impulse = jnp.concatenate(tangents)[slot_order]
-    return solved, normal_impulse, tangent_impulse
+    per_phase = [Impulses(*pair) for pair in zip(by_phase(carried.normal, tables), by_phase(carried.tangent, tables),
+                                                 strict=True)]
+    solved, per_phase = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, (start, per_phase))
+    if not tables.num_contacts:
+        return solved, carried
+    return solved, Impulses(
+        normal=in_slot_order([p.normal for p in per_phase], tables),
+        tangent=in_slot_order([p.tangent for p in per_phase], tables),
+    )
 
 
-def _iterate_jax2d(
+def iterate_jax2d(
     start: JointSolverState,
-    normal_impulse: Array,
-    tangent_impulse: Array,
+    carried: Impulses,
     contacts: Contacts,
     rows: ContactRows,
     enabled: Array,
@@ -187,9 +218,10 @@ def _iterate_jax2d(
     params: SimParams,
     sizes: SceneSizes,
     tables: PairTables,
-) -> tuple[JointSolverState, Array, Array]:
-    """Jax2D's schedule (batched_contacts.py): joints in slot order, then contacts in sorted Jacobi batches of
-    16, kind by kind, with lever arms and effective masses taken from the current positions at every visit."""
+) -> tuple[JointSolverState, Impulses]:
+    """Jax2D's schedule (batched_contacts.py): per iteration, joints in slot order, then contacts in sorted Jacobi
+    batches of 16, kind by kind, with lever arms and effective masses taken from the current positions at every
+    visit."""
     constants = ContactConstants(
         point=contacts.point,
         normal=rows.normal,
@@ -206,13 +238,52 @@ def _iterate_jax2d(
 
     def iteration(_, carry):
         joint_state, normals, tangents = carry
-        for j in range(sizes.num_joints):
-            joint_state = solve_joint(joint_state, j, jrows, joints, params)
+        joint_state = solve_joints(joint_state, jrows, joints, params, sizes)
         v, w, normals, tangents = solve_contacts(
             joint_state.position, joint_state.velocity, joint_state.angular_velocity, normals, tangents,
             batches, constants, tables,
         )
         return joint_state._replace(velocity=v, angular_velocity=w), normals, tangents
 
-    carry = (start, normal_impulse, tangent_impulse)
-    return jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
+    carry = (start, carried.normal, carried.tangent)
+    solved, normal, tangent = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
+    return solved, Impulses(normal, tangent)
+
+
+def integrate(state: SimState, solved: JointSolverState, params: SimParams) -> SimState:
+    """Clamp the solved velocities, move the bodies by them (symplectic Euler) and clamp positions; joints keep
+    their accumulated impulses and anchors, thrusters follow their bodies."""
+    bodies, joints = state.bodies, state.joints
+    velocity = jnp.clip(solved.velocity, -params.clip_velocity, params.clip_velocity)
+    angular_velocity = jnp.clip(solved.angular_velocity, -params.clip_angular_velocity, params.clip_angular_velocity)
+    # Integrate with the clamped velocities (Jax2D integrates first): a body pinned at the position clamp by a
+    # joint otherwise gains unbounded spin and ends in NaN.
+    position = solved.position + velocity * params.dt
+    rotation = bodies.rotation + angular_velocity * params.dt
+    position = jnp.clip(position, -params.clip_position, params.clip_position)
+    return state.replace(
+        bodies=bodies.replace(
+            position=position, rotation=rotation, velocity=velocity, angular_velocity=angular_velocity
+        ),
+        joints=joints.replace(
+            acc_impulse=solved.acc_impulse, acc_r_impulse=solved.acc_r_impulse, global_position=solved.anchor
+        ),
+        thrusters=state.thrusters.replace(global_position=thruster_positions(state, position, rotation)),
+    )
+
+
+def store_impulses(
+    impulses: Impulses, contacts: Contacts, rows: ContactRows, params: SimParams, tables: PairTables
+) -> ContactCache:
+    """What the next step's warm start reads: the accumulated impulses and which contacts touched.
+
+    What is carried is capped at the impulse that takes the contact across the whole velocity clamp: more can
+    never be applied, and letting it accumulate (bodies pressed together on the position clamp) grows it
+    geometrically into inf/NaN. Inactive in ordinary contact, where impulses are tiny."""
+    normal, tangent = impulses
+    if tables.num_contacts:
+        reach = jnp.sqrt((rows.lever_a**2).sum(-1)) + jnp.sqrt((rows.lever_b**2).sum(-1))
+        cap = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
+        normal = jnp.minimum(normal, cap)
+        tangent = jnp.clip(tangent, -rows.friction * normal, rows.friction * normal)
+    return ContactCache(normal_impulse=normal, tangent_impulse=tangent, active=contacts.touching)

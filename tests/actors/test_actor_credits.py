@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import jax
+import pytest
 from launch_procs import QUICK_LAUNCH, free_port
 
 from actors.levels import LocalLevels
@@ -19,6 +20,8 @@ from engine.env.spec import env_from_config
 from engine.physics.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import TrainConfig
+
+pytestmark = pytest.mark.services
 
 RUN = "credit-test"
 TIMEOUT_S = 1.5

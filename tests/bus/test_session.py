@@ -20,6 +20,8 @@ from bus.codec import Kind, decode, encode
 from bus.inbox import AliveWatcher
 from bus.session import PEER_LISTEN, Bus, BusConfig, Hub, zenoh_config
 
+pytestmark = pytest.mark.services
+
 STOP_WITHIN_S = 5.0
 
 

@@ -28,6 +28,8 @@ from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import level_id_values, level_id_words
 from learner.checkpoint import CURRICULUM, Checkpointer
 
+pytestmark = pytest.mark.services
+
 RUN = "curriculum-test"
 BATCH = 8
 SPEC = EnvSpec()

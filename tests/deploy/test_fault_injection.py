@@ -15,6 +15,7 @@ import time
 
 import jax
 import numpy as np
+import pytest
 from launch_procs import (
     StatusWatcher,
     free_port,
@@ -32,6 +33,8 @@ from learner.agent import make_agent
 from learner.checkpoint import TRAIN, Checkpointer
 from learner.config import TrainConfig
 from learner.update import TrainState, make_optimizer
+
+pytestmark = pytest.mark.services
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""

@@ -21,6 +21,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from launch_procs import (
     REPO,
     StatusWatcher,
@@ -42,6 +43,8 @@ from deploy.config import resolve_config
 from engine.env.spec import EnvSpec
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
+
+pytestmark = pytest.mark.services
 
 WATCH_S = 24.0
 SAMPLE_S = 2.0

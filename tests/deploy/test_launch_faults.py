@@ -11,6 +11,7 @@ import sys
 
 import jax
 import numpy as np
+import pytest
 from launch_procs import (
     QUICK_LAUNCH,
     StatusWatcher,
@@ -32,6 +33,8 @@ from learner.agent import make_agent
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 from learner.service import batch_template
+
+pytestmark = pytest.mark.services
 
 UPDATES = 40
 EVERY = 4

@@ -29,6 +29,8 @@ from bus.codec import Kind, decode, encode
 from bus.keys import Keys
 from bus.session import BusConfig, zenoh_config
 
+pytestmark = pytest.mark.services
+
 RUN = "multihost"
 FORGED_VERSION = 1_000_000
 PARTITION_S = 8.0
