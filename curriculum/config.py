@@ -61,6 +61,10 @@ class CurriculumConfig:
     """No-op filter: candidates generated per level kept."""
     filter_steps: int = 64
     """No-op filter: env steps of the all-zero policy per candidate."""
+    devices: tuple[int, ...] = ()
+    """The GPU the curriculum service runs on, as a one-item list of its position among the GPUs the process may
+    see (it then sees only that one); empty: every GPU is visible and JAX uses the first. Fused training ignores
+    it (the curriculum runs inside the training step)."""
 
     # Live knobs (LIVE_KNOBS).
     score: ScoreFunction = "maxmc"
@@ -94,6 +98,8 @@ class CurriculumConfig:
 
     def __post_init__(self) -> None:
         problems = knob_problems(self)
+        if len(self.devices) > 1 or any(isinstance(d, bool) or not isinstance(d, int) or d < 0 for d in self.devices):
+            problems.append(f"curriculum.devices must be empty or one device number >= 0, got {list(self.devices)}")
         if self.buffer_size < 1:
             problems.append(f"curriculum.buffer_size must be >= 1, got {self.buffer_size}")
         if self.staging_factor < 2:

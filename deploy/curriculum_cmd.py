@@ -193,6 +193,10 @@ def format_report(report: dict[str, Any]) -> str:
 
 
 def serve(args: argparse.Namespace) -> int:
+    if args.run is not None and args.config is not None:
+        print("impulse curriculum serve: --run reads RUN_DIR/config.toml; give either --run or --config, not both",
+              file=sys.stderr)
+        return EXIT_USAGE
     try:
         if args.run is not None:
             config = load_run_config(TrainConfig, args.run, args.overrides)
@@ -205,6 +209,13 @@ def serve(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.connect:
         config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, connect=(args.connect,)))
+    from deploy.devices import restrict_gpus
+
+    try:
+        restrict_gpus(config.curriculum.devices)
+    except ValueError as err:
+        print(f"impulse curriculum serve: curriculum.devices: {err}", file=sys.stderr)
+        return EXIT_USAGE
     from deploy.train_cmd import enable_compile_cache
 
     enable_compile_cache()

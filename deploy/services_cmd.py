@@ -51,6 +51,10 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _resolve(args: argparse.Namespace, config: TrainConfig, command: str) -> tuple[TrainConfig, Path] | None:
+    if args.run is not None and getattr(args, "config", None) is not None:
+        print(f"impulse {command}: --run reads RUN_DIR/config.toml; give either --run or --config, not both",
+              file=sys.stderr)
+        return None
     if args.run is not None:
         try:
             config = load_run_config(TrainConfig, args.run, args.overrides)

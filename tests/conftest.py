@@ -35,8 +35,7 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "services: starts real service processes (run in the services stream)")
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        stream = "services" if item.get_closest_marker("services") else "in-process"
-        item.add_marker(pytest.mark.xdist_group(stream))
+def pytest_itemcollected(item: pytest.Item) -> None:
+    """Each test joins its stream as it is collected, before xdist reads the groups."""
+    stream = "services" if item.get_closest_marker("services") else "in-process"
+    item.add_marker(pytest.mark.xdist_group(stream))

@@ -150,3 +150,15 @@ def test_distributed_commands_without_a_run_directory_are_usage_errors(tmp_path:
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert "has no config.toml" in err and err.startswith(f"impulse {argv[0]}:"), err
+
+
+def test_run_and_config_together_are_a_usage_error(tmp_path: Path, capsys) -> None:
+    """`--run` reads the run's own config.toml; a --config beside it would be silently ignored, so it is refused."""
+    config = tmp_path / "c.toml"
+    config.write_text('name = "x"\n')
+    for argv in (["learner", "--run", str(tmp_path), "--config", str(config)],
+                 ["actor", "--run", str(tmp_path), "--config", str(config)],
+                 ["curriculum", "serve", "--run", str(tmp_path), "--config", str(config)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "either --run or --config, not both" in err, err

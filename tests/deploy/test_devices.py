@@ -27,12 +27,14 @@ def test_restrict_sets_the_variable_only_when_asked() -> None:
     assert restrict_gpus([1], environ) == "2" and environ[VISIBLE] == "2"
 
 
-@pytest.mark.parametrize("override", ["learner.devices=[0,0]", "actors.devices=[-1]", "learner.devices=[true]"])
+@pytest.mark.parametrize("override", ["learner.devices=[0,0]", "actors.devices=[-1]", "learner.devices=[true]",
+                                      "curriculum.devices=[0,1]", "curriculum.devices=[-2]"])
 def test_bad_device_lists_are_named(override: str) -> None:
     with pytest.raises(ConfigError, match=override.split("=")[0]):
         resolve_config(TrainConfig, None, [override])
 
 
 def test_device_lists_load() -> None:
-    config = resolve_config(TrainConfig, None, ["learner.devices=[0,1]", "actors.devices=[2,3]"])
-    assert config.learner.devices == (0, 1) and config.actors.devices == (2, 3)
+    config = resolve_config(TrainConfig, None, ["learner.devices=[0,1]", "actors.devices=[2,3]",
+                                                "curriculum.devices=[1]"])
+    assert config.learner.devices == (0, 1) and config.actors.devices == (2, 3) and config.curriculum.devices == (1,)
