@@ -25,7 +25,7 @@ log = logging.getLogger("impulse.curriculum")
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
-ANSWER_TIMEOUT_S = 10.0
+ANSWER_TIMEOUT_S = 30.0
 CURRICULUM_SECTION = "curriculum."
 
 

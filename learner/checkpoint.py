@@ -89,6 +89,14 @@ class Checkpointer:
     def all_steps(self) -> list[int]:
         return list(self._manager.all_steps())
 
+    def items_at(self, step: int | None = None) -> set[str]:
+        """The array items (of `ARRAY_ITEMS`) checkpoint `step` (default: the newest) holds."""
+        self.wait()
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise CheckpointError(f"no complete checkpoint in {self.directory}")
+        return {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()} & set(ARRAY_ITEMS)
+
     def restore(
         self, templates: Mapping[str, Any], step: int | None = None
     ) -> tuple[dict[str, Any], dict[str, Any], str]:

@@ -150,14 +150,27 @@ class FusedRun:
             self.target = min(self.target, self.update + stop_after_updates)
 
     def _restore(self) -> None:
+        """Resume exactly from a fused checkpoint; or, from a checkpoint that holds only a policy (`train`: one
+        written by `impulse import-kinetix` or by a distributed run's learner), go on training that policy on
+        freshly reset environments (and a fresh curriculum)."""
         if self.checkpoints.latest_step() is None:
             raise RunError(f"nothing to resume: no complete checkpoint in {self.checkpoints.directory}")
+        templates = fused_checkpoint_items(self.carry)
         try:
-            items, counters, _ = self.checkpoints.restore(fused_checkpoint_items(self.carry))
+            policy_only = self.checkpoints.items_at() == {TRAIN}
+            if policy_only:
+                templates = {TRAIN: templates[TRAIN]}
+            items, counters, _ = self.checkpoints.restore(templates)
         except CheckpointError as err:
             raise RunError(str(err)) from err
-        self.carry = fused_carry_from_items(items)
         self.update = int(counters["update"])
+        if policy_only:
+            self.carry = self.carry._replace(train=items[TRAIN])
+            source = counters.get("imported_from", "a distributed run's learner")
+            log.info("started from the policy of checkpoint %d (update %d, from %s) on fresh environments: the "
+                     "checkpoint holds no environment state", self.checkpoints.latest_step(), self.update, source)
+            return
+        self.carry = fused_carry_from_items(items)
         log.info("resumed from checkpoint %d (update %d, %s env steps)", self.checkpoints.latest_step(),
                  self.update, f"{counters['env_steps']:,}")
 

@@ -9,9 +9,10 @@ the same machine, or CI after a developer's run, skips recompiling the engine's 
 compilations slower than half a second are stored, which keeps the cache small.
 
 `make test` runs the suite as two streams side by side (pytest-xdist, `-n 2 --dist loadgroup`): tests marked
-`services` (they start real service processes: launches, Zenoh sessions, viewers) run one after another on one
-worker, every other test runs in order on the other. Neither stream compiles a program twice, and the CPU the
-service tests leave idle while their processes wait goes to the in-process tests.
+`heavy` (they start processes of their own: launches, Zenoh sessions, viewers, training subprocesses; or train
+for a while) run one after another on one worker, every other test runs in order on the other. Neither stream
+compiles a program twice, and the CPU the heavy tests leave idle while their processes wait goes to the rest.
+The marks balance the two streams (each about half of the suite's time on a 2-core machine).
 """
 
 from __future__ import annotations
@@ -32,10 +33,10 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "services: starts real service processes (run in the services stream)")
+    config.addinivalue_line("markers", "heavy: starts processes of its own or trains for a while (own stream)")
 
 
 def pytest_itemcollected(item: pytest.Item) -> None:
     """Each test joins its stream as it is collected, before xdist reads the groups."""
-    stream = "services" if item.get_closest_marker("services") else "in-process"
+    stream = "heavy" if item.get_closest_marker("heavy") else "light"
     item.add_marker(pytest.mark.xdist_group(stream))

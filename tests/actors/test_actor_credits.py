@@ -21,7 +21,7 @@ from engine.physics.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import TrainConfig
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 RUN = "credit-test"
 TIMEOUT_S = 1.5

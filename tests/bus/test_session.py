@@ -20,7 +20,7 @@ from bus.codec import Kind, decode, encode
 from bus.inbox import AliveWatcher
 from bus.session import PEER_LISTEN, Bus, BusConfig, Hub, zenoh_config
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 STOP_WITHIN_S = 5.0
 

@@ -28,7 +28,7 @@ from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import level_id_values, level_id_words
 from learner.checkpoint import CURRICULUM, Checkpointer
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 RUN = "curriculum-test"
 BATCH = 8

@@ -20,6 +20,10 @@ from bus.status import read_status
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"
+SMALL_BATCH = ("ppo.num_envs=32", "ppo.num_steps=32", "ppo.num_minibatches=2")
+"""Overrides for tests of the runtime rather than of learning: a quarter of quick-launch's batch, so that the
+steady state of a run (actors rolling out, the learner updating) costs a quarter of the CPU. Those tests share
+the programs compiled for it through the compilation cache."""
 
 
 def free_port() -> int:

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 import pytest
 from launch_procs import (
+    SMALL_BATCH,
     StatusWatcher,
     free_port,
     last_update,
@@ -34,7 +35,7 @@ from learner.checkpoint import TRAIN, Checkpointer
 from learner.config import TrainConfig
 from learner.update import TrainState, make_optimizer
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""
@@ -72,7 +73,8 @@ def learner_checkpoints_restore(run_dir) -> list[int]:
 def test_random_kills_over_minutes(tmp_path):
     run_dir = tmp_path / "chaos"
     port = free_port()
-    launch, log = start_launch(run_dir, port, "total_env_steps=40960000", f"checkpoint.every_updates={EVERY}",
+    launch, log = start_launch(run_dir, port, *SMALL_BATCH, "total_env_steps=40960000",
+                               f"checkpoint.every_updates={EVERY}",
                                "env.levels=random", "curriculum=plr", "curriculum.buffer_size=32",
                                "curriculum.noop_filter=false", "actors.credit_timeout_s=10")
     watcher = StatusWatcher(run_dir.name, port)

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from launch_procs import (
     REPO,
+    SMALL_BATCH,
     StatusWatcher,
     free_port,
     last_update,
@@ -44,14 +45,14 @@ from engine.env.spec import EnvSpec
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 WATCH_S = 24.0
 SAMPLE_S = 2.0
 TREND_LIMIT_MIB = 48.0
 """The learner's resident memory swings by about 80 MiB within each update (one batch in flight, update
 temporaries), so flatness is judged on peaks: the later half's peak may not exceed the earlier half's by more."""
-ENVS = 64  # configs/quick-launch.toml's batch
+ENVS = 32  # the batch of SMALL_BATCH
 
 
 def curriculum_cli(run_dir, *words: str) -> subprocess.CompletedProcess:
@@ -133,7 +134,8 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     run_dir = tmp_path / "slow"
     port = free_port()
     recording = tmp_path / "run.rrd"
-    launch, log = start_launch(run_dir, port, "learner.slow_down_s=1.5", "actors.when_no_credit=drop_oldest",
+    launch, log = start_launch(run_dir, port, *SMALL_BATCH, "learner.slow_down_s=1.5",
+                               "actors.when_no_credit=drop_oldest",
                                "actors.credits=1", "total_env_steps=40960000", "checkpoint.every_updates=1000",
                                "env.levels=random", "curriculum=sfl", "curriculum.buffer_size=32",
                                "curriculum.candidate_episodes=1", "curriculum.noop_filter=false",

@@ -34,9 +34,9 @@ from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 from learner.service import batch_template
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
-UPDATES = 40
+UPDATES = 32
 EVERY = 4
 STEPS_PER_UPDATE = 64 * 64
 

@@ -22,14 +22,14 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from launch_procs import QUICK_LAUNCH, REPO, StatusWatcher, free_port, tail, wait_for
+from launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
 from namespaces import Hosts, why_not
 
 from bus.codec import Kind, decode, encode
 from bus.keys import Keys
 from bus.session import BusConfig, zenoh_config
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 RUN = "multihost"
 FORGED_VERSION = 1_000_000
@@ -65,7 +65,7 @@ class Cluster:
         command = [*self.prefixes.get(name, []), sys.executable, "-m", "deploy.cli", role, "--config",
                    str(QUICK_LAUNCH), f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
                    f"router.credentials={self.credentials}", "total_env_steps=100000000",
-                   "checkpoint.every_updates=1000", *extra]
+                   "checkpoint.every_updates=1000", *SMALL_BATCH, *extra]
         with log_path.open("ab") as out:
             self.processes[name] = subprocess.Popen(command, cwd=REPO, env=env, stdout=out,
                                                     stderr=subprocess.STDOUT)

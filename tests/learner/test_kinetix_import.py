@@ -191,12 +191,12 @@ def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     from deploy.config import resolve_config
     from learner.checkpoint import TRAIN, Checkpointer
     from learner.config import TrainConfig
-    from learner.run import build
+    from learner.run import FusedRun, build
 
     out = tmp_path / "run"
     level = Path(__file__).resolve().parents[2] / "engine" / "levels" / "handmade" / "s_lander.json"
     assert main(["import-kinetix", str(FIXTURES / "flat"), "--out", str(out), "ppo.num_envs=8",
-                 "ppo.num_minibatches=2", f"env.levels={level}"]) == 0
+                 "ppo.num_minibatches=2", "ppo.num_steps=8", f"env.levels={level}"]) == 0
     config = resolve_config(TrainConfig, out / "config.toml")
     assert (config.network.kind, config.env.observation, config.env.size) == ("flat", "symbolic", "s")
     assert json.loads((out / "kinetix_import.json").read_text())["source"].endswith("params.safetensors")
@@ -210,3 +210,15 @@ def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
                                   expected["params"]["torso"]["embed"]["kernel"])
     assert counters["update"] == 0
     assert main(["import-kinetix", str(FIXTURES / "flat"), "--out", str(out)]) == 1  # never overwrites a run
+
+    # `impulse train --resume` fine-tunes the imported policy on fresh environments (the import holds no envs).
+    run = FusedRun(config, out, (out / "config.toml").read_text(), resume=True, stop_after_updates=1)
+    try:
+        start = np.asarray(run.carry.train.params["params"]["torso"]["embed"]["kernel"])
+        np.testing.assert_array_equal(start, expected["params"]["torso"]["embed"]["kernel"])
+        run.cycle()
+        assert run.update == 1 and run.finished()
+        tuned = np.asarray(run.carry.train.params["params"]["torso"]["embed"]["kernel"])
+        assert np.isfinite(tuned).all() and not np.array_equal(tuned, start)
+    finally:
+        run.close()

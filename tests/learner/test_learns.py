@@ -7,12 +7,15 @@ import json
 from pathlib import Path
 
 import jax
+import pytest
 
 from deploy.config import config_to_toml, resolve_config
 from deploy.train_cmd import train_run
 from learner.config import TrainConfig
 from learner.evaluate import evaluate
 from learner.run import build
+
+pytestmark = pytest.mark.heavy
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"

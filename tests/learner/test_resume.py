@@ -14,11 +14,14 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 
 from deploy.config import resolve_config
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig
 from learner.run import build, fused_checkpoint_items
+
+pytestmark = pytest.mark.heavy
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"

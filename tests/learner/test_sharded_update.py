@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.heavy
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 PARAM_TOLERANCE = 1e-6

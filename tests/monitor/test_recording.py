@@ -31,7 +31,7 @@ from monitor.png import render_scene, world_to_pixel
 from monitor.rollouts import RolloutFrames, contact_points, log_rollout
 from monitor.stream import Monitor, open_recording
 
-pytestmark = pytest.mark.services
+pytestmark = pytest.mark.heavy
 
 SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=4)  # an episode ends within the rollout
 STEPS = 6
