@@ -16,10 +16,13 @@ import sys
 import time
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from deploy.config import ConfigError, apply_overrides, config_to_toml, load_run_config, resolve_config
 from learner.config import TrainConfig
+
+if TYPE_CHECKING:
+    from bus.session import Bus
 
 log = logging.getLogger("impulse.curriculum")
 
@@ -85,6 +88,14 @@ def run(args: argparse.Namespace, _config: object) -> int:
     return 0
 
 
+def _ask(bus: Bus, key: str, payload: bytes) -> list[bytes]:
+    """The service's replies to one query. Waits first until this new session knows the service's queryable: a
+    query sent before that finds nobody and returns at once, which happens on a busy machine."""
+    if not bus.wait_queryable(key, ANSWER_TIMEOUT_S):
+        return []
+    return bus.get(key, payload=payload, timeout_s=ANSWER_TIMEOUT_S)
+
+
 def _client(config: TrainConfig):
     from bus.session import Bus
 
@@ -101,7 +112,7 @@ def _ask_knobs(config: TrainConfig, request: dict[str, Any]) -> dict[str, Any] |
     from curriculum.wire import control_reply, control_request
 
     with _client(config) as bus:
-        replies = bus.get(bus.keys.curriculum_knobs, payload=control_request(**request), timeout_s=ANSWER_TIMEOUT_S)
+        replies = _ask(bus, bus.keys.curriculum_knobs, control_request(**request))
         if not replies:
             _no_answer(config, bus.keys.curriculum_knobs)
             return None
@@ -113,8 +124,7 @@ def inspect(args: argparse.Namespace, config: TrainConfig) -> int:
     from curriculum.wire import control_request
 
     with _client(config) as bus:
-        replies = bus.get(bus.keys.curriculum_inspect, payload=control_request(top=args.top, levels=bool(args.render)),
-                          timeout_s=ANSWER_TIMEOUT_S)
+        replies = _ask(bus, bus.keys.curriculum_inspect, control_request(top=args.top, levels=bool(args.render)))
         if not replies:
             _no_answer(config, bus.keys.curriculum_inspect)
             return EXIT_FAILED

@@ -40,3 +40,12 @@ def pytest_itemcollected(item: pytest.Item) -> None:
     """Each test joins its stream as it is collected, before xdist reads the groups."""
     stream = "heavy" if item.get_closest_marker("heavy") else "light"
     item.add_marker(pytest.mark.xdist_group(stream))
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under `--dist loadgroup` every test must carry its stream in its node id by now; if xdist could not tag them
+    (it cannot under pytest 9), the streams would mix and the heavy tests run side by side, so stop instead."""
+    if config.getoption("loadgroup", default=False) and any("@" not in item.nodeid for item in items):
+        raise pytest.UsageError("pytest-xdist did not group the tests into their streams (pytest "
+                                f"{pytest.__version__}); install the versions pyproject.toml's dev extra names")
