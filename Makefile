@@ -20,10 +20,12 @@ venv: $(STAMP)
 
 # `make bench-gpu`: every GPU benchmark at GPU sizes in one go, against Jax2D (engine) and Kinetix (env) measured in
 # the same run, on a machine whose JAX sees a GPU. Sized for under 25 minutes on one H100 in the usual case (the
-# limits add up to 27): each benchmark has a time limit (GPU_LIMIT seconds), so a slow one loses its last lines
-# rather than the others. The profile (benchmarks/profile.py) splits an S training iteration into its parts. JSON lines are appended to
-# GPU_RESULTS (one start line per run names the commit), progress goes to the terminal. Building the reference
-# venv (benchmarks/reference_env.py, needs the package index) is not counted; without it, engine and env run alone.
+# limits add up to 27.5): each benchmark has a time limit (GPU_LIMIT seconds), so a slow one loses its last lines
+# rather than the others. The fused physics kernel (env.physics_backend = "pallas") is timed beside the XLA step
+# (engine, S training) and checked against it (kernel_check). The profile (benchmarks/profile.py) splits an S
+# training iteration into its parts. JSON lines are appended to GPU_RESULTS (one start line per run names the
+# commit), progress goes to the terminal. Building the reference venv (benchmarks/reference_env.py, needs the
+# package index) is not counted; without it, engine and env run alone.
 # Distributed: train.py's network and settings (2,048 envs x 64 steps, entity network 128 x 5, all S levels); a
 # 2,048 x 64 batch is a ~157 MB frame, so the shared-memory pool is raised to 512 MiB (>= 2x, see bus/session.py).
 GPU_RESULTS := benchmarks/results/gpu-$(shell date +%Y-%m-%d).jsonl
@@ -37,11 +39,13 @@ bench-gpu: $(STAMP)
 	status=0; ref=; \
 	$(VENV)/bin/python benchmarks/reference_env.py > /dev/null \
 		|| { echo "bench-gpu: no reference venv: engine and env run without Jax2D and Kinetix" >&2; ref=--no-reference; status=1; }; \
-	$(call GPU_LIMIT,390) benchmarks.engine --num-envs 1,32768 $$ref >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,210) benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,390) benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,180) benchmarks.profile --sizes s --kinetix-settings >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,450) benchmarks.distributed --parts runs costs --size s --kinetix-settings \
+	$(call GPU_LIMIT,420) benchmarks.engine --num-envs 1,32768 --backend xla,pallas $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,180) benchmarks.kernel_check --random 1000 --steps 120 >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,180) benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,300) benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,120) benchmarks.train --sizes s --kinetix-settings --physics-backend pallas >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,120) benchmarks.profile --sizes s --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,330) benchmarks.distributed --parts runs costs --size s --kinetix-settings \
 		--set network.width=128 --set network.depth=5 --set bus.shm_pool_mib=512 \
 		--actors 1 2 4 --updates 20 --no-fused-after --timeout 200 >> $(GPU_RESULTS) || status=1; \
 	echo "bench-gpu: JSON lines appended to $(GPU_RESULTS)"; exit $$status

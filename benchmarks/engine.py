@@ -8,6 +8,7 @@ interpreter's JAX version) because Kinetix pins an old JAX.
     impulse bench engine --quick              # our engine only, small batches: a smoke run
     impulse bench engine --sizes s --num-envs 4096 --no-reference
     impulse bench engine --quick --solver phased,jax2d   # both contact schedules (SceneSizes.solver)
+    impulse bench engine --backend xla,pallas            # the XLA solver stage and the fused kernel (on a GPU)
 """
 
 from __future__ import annotations
@@ -24,9 +25,11 @@ from engine.physics.sizes import SOLVERS
 from engine.physics.step import step
 
 
-def measure_ours(level_path: str, num_envs: int, num_steps: int, repeats: int, solver: str = "phased") -> dict:
+def measure_ours(
+    level_path: str, num_envs: int, num_steps: int, repeats: int, solver: str = "phased", backend: str = "xla"
+) -> dict:
     level = load_kinetix_level(level_path)
-    sizes, params = dataclasses.replace(level.sizes, solver=solver), level.params
+    sizes, params = dataclasses.replace(level.sizes, solver=solver, backend=backend), level.params
     batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_envs,) + x.shape), level.state)
     actions = jnp.ones((num_envs, sizes.num_joints + sizes.num_thrusters), jnp.float32)
     step_batch = jax.vmap(lambda s, a: step(s, params, a, sizes)[0])
@@ -49,10 +52,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--quick", action="store_true", help="our engine only, 1 and 256 envs, 50 steps")
     parser.add_argument("--solver", default="phased",
                         help=f"comma-separated among {','.join(SOLVERS)}: our contact schedule(s) (default phased)")
+    parser.add_argument("--backend", default="xla",
+                        help="comma-separated among xla,pallas: how the phased solver runs (pallas: the fused kernel, "
+                        "a GPU only; with --solver phased)")
     args = parser.parse_args(argv)
     solvers = [m.strip() for m in args.solver.split(",") if m.strip()]
     if not solvers or any(m not in SOLVERS for m in solvers):
         parser.error(f"--solver: expected some of {', '.join(SOLVERS)}, got {args.solver!r}")
+    backends = [b.strip() for b in args.backend.split(",") if b.strip()]
+    if not backends or any(b not in ("xla", "pallas") for b in backends):
+        parser.error(f"--backend: expected some of xla,pallas, got {args.backend!r}")
+    if "pallas" in backends and (solvers != ["phased"] or jax.default_backend() != "gpu"):
+        parser.error("--backend pallas: the fused kernel runs the phased solver, on a GPU")
 
     on_gpu = jax.default_backend() == "gpu"
     if args.quick:
@@ -73,7 +84,7 @@ def main(argv: list[str] | None = None) -> None:
         for num_envs in env_counts:
             progress(f"engine: size {size}, {num_envs} envs ...")
             measured = {}
-            for solver in solvers:
+            for solver in solvers if "xla" in backends else []:
                 measured[solver] = measure_ours(level, num_envs, args.steps, args.repeats, solver)
                 emit({"system": "impulse", "solver": solver, "size": size, "level": DEFAULT_LEVELS[size],
                       "num_envs": num_envs, "steps": args.steps, **measured[solver], **env_info})
@@ -81,9 +92,16 @@ def main(argv: list[str] | None = None) -> None:
                 emit({"comparison": "jax2d/phased", "size": size, "num_envs": num_envs,
                       "speed_ratio": measured["jax2d"]["steps_per_s"] / measured["phased"]["steps_per_s"],
                       **env_info})
+            if "pallas" in backends:
+                fused = measure_ours(level, num_envs, args.steps, args.repeats, "phased", "pallas")
+                emit({"system": "impulse", "solver": "phased", "backend": "pallas", "size": size,
+                      "level": DEFAULT_LEVELS[size], "num_envs": num_envs, "steps": args.steps, **fused, **env_info})
+                if "xla" in backends:
+                    emit({"comparison": "pallas/xla", "size": size, "num_envs": num_envs,
+                          "speed_ratio": fused["steps_per_s"] / measured["phased"]["steps_per_s"], **env_info})
+                measured["pallas"] = fused
             if reference is None:
                 continue
-            ours = measured[solvers[0]]
             (ref,) = [
                 r for r in reference(
                     ["engine-speed", "--level", level, "--num-envs", str(num_envs), "--steps", str(args.steps),
@@ -92,9 +110,11 @@ def main(argv: list[str] | None = None) -> None:
                 ) if r.get("system") == "jax2d"
             ]
             emit({**ref, "size": size})
-            emit({"comparison": "impulse/jax2d", "solver": solvers[0], "size": size, "num_envs": num_envs,
-                  "speedup": ours["steps_per_s"] / ref["steps_per_s"],
-                  "compile_ratio": ours["compile_s"] / ref["compile_s"], **env_info})
+            for variant, ours in measured.items():
+                emit({"comparison": "impulse/jax2d", "solver": "phased" if variant == "pallas" else variant,
+                      "backend": "pallas" if variant == "pallas" else "xla", "size": size, "num_envs": num_envs,
+                      "speedup": ours["steps_per_s"] / ref["steps_per_s"],
+                      "compile_ratio": ours["compile_s"] / ref["compile_s"], **env_info})
 
 
 if __name__ == "__main__":

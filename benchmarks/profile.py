@@ -57,8 +57,9 @@ def nbytes(tree: Any) -> int:
     return sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(tree))
 
 
-def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, trace: str | None) -> dict:
-    spec, agent, trainer, levels, carry, num_levels = fused_setup(size, ppo, network)
+def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, trace: str | None,
+            physics_backend: str = "xla") -> dict:
+    spec, agent, trainer, levels, carry, num_levels = fused_setup(size, ppo, network, physics_backend)
     envs, params, env_params = carry.envs, carry.train.params, trainer.env_params
     state = envs.env_state
     sims = state.sim
@@ -128,6 +129,7 @@ def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, tra
     steps = ppo.num_envs * ppo.num_steps
     return {
         "benchmark": "profile",
+        "physics_backend": physics_backend,
         "size": size,
         "network": network.kind,
         "num_envs": ppo.num_envs,
@@ -153,7 +155,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     sizes, ppo, network = training_settings(args)
     for size in sizes:
-        emit(profile(size, ppo, network, args.repeats, f"{args.trace}/{size}" if args.trace else None))
+        emit(profile(size, ppo, network, args.repeats, f"{args.trace}/{size}" if args.trace else None,
+                     args.physics_backend))
 
 
 if __name__ == "__main__":

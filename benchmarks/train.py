@@ -17,6 +17,7 @@ the cheaper `entity` kind; `--network transformer` is the paper's model class).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from typing import NamedTuple
 
@@ -46,9 +47,9 @@ class FusedSetup(NamedTuple):
     num_levels: int
 
 
-def fused_setup(size: str, ppo: PPOConfig, network: NetworkConfig) -> FusedSetup:
+def fused_setup(size: str, ppo: PPOConfig, network: NetworkConfig, physics_backend: str = "xla") -> FusedSetup:
     """Build and initialise the fused trainer `impulse train` would run on the shared levels of `size`."""
-    sizes = size_preset(size)
+    sizes = dataclasses.replace(size_preset(size), backend=physics_backend)
     paths = sorted((require_levels() / size).glob("*.json"))
     levels = stack_levels([load_kinetix_level(path, sizes).level for path in paths])
     spec = EnvSpec(sizes=sizes, observation="symbolic" if network.kind == "flat" else "entity")
@@ -59,8 +60,8 @@ def fused_setup(size: str, ppo: PPOConfig, network: NetworkConfig) -> FusedSetup
     return FusedSetup(spec, agent, trainer, levels, carry, len(paths))
 
 
-def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> dict:
-    spec, agent, trainer, levels, carry, num_levels = fused_setup(size, ppo, network)
+def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, physics_backend: str = "xla") -> dict:
+    spec, agent, trainer, levels, carry, num_levels = fused_setup(size, ppo, network, physics_backend)
 
     iterate = jax.jit(trainer.iterate)
     start = time.perf_counter()
@@ -87,6 +88,7 @@ def measure(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int) -> 
     steps = ppo.num_envs * ppo.num_steps
     return {
         "system": "impulse-fused-ppo",
+        "physics_backend": physics_backend,
         "size": size,
         "network": network.kind,
         "parameters": sum(x.size for x in jax.tree.leaves(carry.train.params)),
@@ -117,6 +119,8 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
                         help="2,048 envs x 64 steps, 8 epochs, 32 minibatches (Kinetix's PPO benchmark)")
     parser.add_argument("--quick", action="store_true", help="S only, 64 envs, 16 steps, 2 epochs")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--physics-backend", default="xla", choices=["xla", "pallas"],
+                        help="the physics solver stage: XLA, or the fused Pallas kernel (on a GPU)")
 
 
 def training_settings(args: argparse.Namespace) -> tuple[list[str], PPOConfig, NetworkConfig]:
@@ -139,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     sizes, ppo, network = training_settings(args)
     for size in sizes:
         progress(f"fused PPO, size {size}: compiling and timing ...")
-        emit(measure(size, ppo, network, args.repeats))
+        emit(measure(size, ppo, network, args.repeats, args.physics_backend))
 
 
 if __name__ == "__main__":

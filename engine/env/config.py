@@ -38,3 +38,6 @@ class EnvConfig:
     """Contact schedule of the physics step (`engine.physics.sizes.SceneSizes.solver`): "phased" (the fast
     default) or "jax2d" (Jax2D's batch order with lever arms recomputed at every visit: closer to Jax2D's
     trajectories on articulated levels, and slower; see docs/engine.md)."""
+    physics_backend: Literal["xla", "pallas"] = "xla"
+    """How the phased solver's iterations run (`SceneSizes.backend`): "xla" (the pure-JAX stages) or "pallas" (one
+    fused Triton kernel per block of scenes on a CUDA GPU; the XLA stages on any other platform)."""

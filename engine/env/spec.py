@@ -60,7 +60,7 @@ class EnvParams:
 def env_from_config(config: EnvConfig, sim: SimParams | None = None) -> tuple[EnvSpec, EnvParams]:
     """The spec and params an `EnvConfig` describes (physics constants default to Jax2D's)."""
     spec = EnvSpec(
-        sizes=replace(size_preset(config.size), solver=config.solver),
+        sizes=replace(size_preset(config.size), solver=config.solver, backend=config.physics_backend),
         frame_skip=config.frame_skip,
         max_timesteps=config.max_timesteps,
         observation=config.observation,

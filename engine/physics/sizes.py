@@ -7,6 +7,8 @@ from typing import Literal
 
 Solver = Literal["phased", "jax2d"]
 SOLVERS: tuple[str, ...] = ("phased", "jax2d")
+Backend = Literal["xla", "pallas", "pallas_interpret"]
+BACKENDS: tuple[str, ...] = ("xla", "pallas", "pallas_interpret")
 
 
 @dataclass(frozen=True)
@@ -17,6 +19,9 @@ class SceneSizes:
     Polygons carry up to `max_polygon_vertices` vertices; raising it is a size change, not a code change.
     `solver` picks the contact schedule (static, so it is compiled in): "phased" (default, fastest) or "jax2d"
     (Jax2D's batch order, for trajectories that follow Jax2D's closely; see docs/engine.md).
+    `backend` picks how the phased solver iterations run: "xla" (the pure-JAX stages) or "pallas" (one fused
+    kernel per block of scenes on a GPU, solver_kernel.py; the XLA stages on other platforms);
+    "pallas_interpret" runs that kernel through Pallas's interpreter on any platform, to test it without a GPU.
     """
 
     num_polygons: int = 5
@@ -28,6 +33,7 @@ class SceneSizes:
     num_solver_iterations: int = 10
     warm_starting: bool = True
     solver: Solver = "phased"
+    backend: Backend = "xla"
 
     def __post_init__(self) -> None:
         if self.num_polygons < self.num_static_polygons:
@@ -42,6 +48,10 @@ class SceneSizes:
             raise ValueError(f"max_polygon_vertices must be >= 3, got {self.max_polygon_vertices}")
         if self.solver not in SOLVERS:
             raise ValueError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown physics backend {self.backend!r}; choose one of {', '.join(BACKENDS)}")
+        if self.backend != "xla" and self.solver != "phased":
+            raise ValueError(f"physics backend {self.backend!r} runs the phased solver only, not {self.solver!r}")
         if self.num_solver_iterations < 1:
             raise ValueError(f"num_solver_iterations must be >= 1, got {self.num_solver_iterations}")
 

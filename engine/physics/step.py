@@ -13,7 +13,9 @@ The step is a sequence of named stages, in Jax2D's order:
 
 `sizes.solver` picks how contacts are swept in stage 5: phase by phase with per-step lever arms (`iterate_phased`,
 the default, faster) or as Jax2D does, in sorted Jacobi batches with lever arms that follow the joints' position
-corrections (`iterate_jax2d`, see docs/engine.md). Which slot is which, and how values reach bodies, is slots.py's.
+corrections (`iterate_jax2d`, see docs/engine.md). `sizes.backend="pallas"` runs the phased iterations as one
+fused GPU kernel (`iterate_fused`, solver_kernel.py). Which slot is which, and how values reach bodies, is
+slots.py's.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from engine.physics.pairs import PairTables, pair_tables
 from engine.physics.params import SimParams
 from engine.physics.sizes import SceneSizes
 from engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
+from engine.physics.solver_kernel import iterate_kernel
 from engine.physics.state import ContactCache, Joints, SimState
 
 Array = jax.Array
@@ -82,8 +85,10 @@ def step(
     if sizes.solver == "jax2d":
         solved, impulses = iterate_jax2d(start, carried, contacts, rows, enabled, jrows, state.joints, params,
                                          sizes, tables)
-    else:
+    elif sizes.backend == "xla":
         solved, impulses = iterate_phased(start, carried, rows, jrows, state.joints, params, sizes, tables)
+    else:
+        solved, impulses = iterate_fused(start, carried, rows, jrows, state.joints, params, sizes, tables)
     new_state = integrate(state, solved, params)
     cache = store_impulses(impulses, contacts, rows, params, tables)
     first = point0_slots(tables)
@@ -205,6 +210,38 @@ def iterate_phased(
         normal=in_slot_order([p.normal for p in per_phase], tables),
         tangent=in_slot_order([p.tangent for p in per_phase], tables),
     )
+
+
+def iterate_fused(
+    start: JointSolverState,
+    carried: Impulses,
+    rows: ContactRows,
+    jrows: JointRows,
+    joints: Joints,
+    params: SimParams,
+    sizes: SceneSizes,
+    tables: PairTables,
+) -> tuple[JointSolverState, Impulses]:
+    """`iterate_phased` as the fused Pallas kernel where the step is compiled for a CUDA GPU, and as itself on
+    every other platform (the kernel is written for Triton); with `backend="pallas_interpret"`, the kernel through
+    Pallas's interpreter everywhere."""
+
+    def kernel(interpret: bool):
+        def run(start, carried, rows, jrows, joints, params):
+            solved, normal, tangent = iterate_kernel(
+                start, carried.normal, carried.tangent, rows, jrows, joints, params, sizes, interpret
+            )
+            return solved, Impulses(normal, tangent)
+
+        return run
+
+    def xla(start, carried, rows, jrows, joints, params):
+        return iterate_phased(start, carried, rows, jrows, joints, params, sizes, tables)
+
+    args = (start, carried, rows, jrows, joints, params)
+    if sizes.backend == "pallas_interpret":
+        return kernel(interpret=True)(*args)
+    return jax.lax.platform_dependent(*args, cuda=kernel(interpret=False), default=xla)
 
 
 def iterate_jax2d(

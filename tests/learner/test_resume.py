@@ -26,9 +26,10 @@ pytestmark = pytest.mark.heavy
 REPO = Path(__file__).resolve().parents[2]
 QUICK = REPO / "configs" / "quick-cpu.toml"
 UPDATES = 8
-# The README's quick learner on random levels with a small SFL curriculum, stopped after 8 updates,
-# checkpointing every 2, without the final evaluation.
-SETTINGS = ["--config", str(QUICK), f"total_env_steps={UPDATES * 64 * 64}", "checkpoint.every_updates=2",
+# The README's quick learner on random levels with a small SFL curriculum, at a quarter of its batch (32 envs x
+# 32 steps), stopped after 8 updates, checkpointing every 2, without the final evaluation.
+SETTINGS = ["--config", str(QUICK), f"total_env_steps={UPDATES * 32 * 32}", "ppo.num_envs=32", "ppo.num_steps=32",
+            "ppo.num_minibatches=2", "checkpoint.every_updates=2",
             "checkpoint.keep_last=2", "eval.attempts=0", "env.levels=random", "curriculum=sfl",
             "curriculum.buffer_size=32", "curriculum.candidate_episodes=2", "curriculum.min_fill=0",
             "curriculum.noop_filter=false"]
