@@ -28,16 +28,19 @@ venv: $(STAMP)
 # package index) is not counted; without it, engine and env run alone.
 # Distributed: train.py's network and settings (2,048 envs x 64 steps, entity network 128 x 5, all S levels); a
 # 2,048 x 64 batch is a ~157 MB frame, so the shared-memory pool is raised to 512 MiB (>= 2x, see bus/session.py).
+# BENCH_PYTHON: the interpreter that runs them; on a lent GPU machine, whose own Python holds JAX with CUDA and
+# which cannot reach a package index, `make bench-gpu BENCH_PYTHON=python3` skips the venv (docs/gpu.md).
 GPU_RESULTS := benchmarks/results/gpu-$(shell date +%Y-%m-%d).jsonl
-GPU_LIMIT = timeout --kill-after=30 $(1) $(VENV)/bin/python -m
+BENCH_PYTHON ?= $(VENV)/bin/python
+GPU_LIMIT = timeout --kill-after=30 $(1) $(BENCH_PYTHON) -m
 
-bench-gpu: $(STAMP)
-	@$(VENV)/bin/python -c "import sys, jax; b = jax.default_backend(); sys.exit(b != 'gpu' and f'bench-gpu: JAX backend is {b}, not gpu')"
+bench-gpu: $(if $(filter $(VENV)/bin/python,$(BENCH_PYTHON)),$(STAMP))
+	@$(BENCH_PYTHON) -c "import sys, jax; b = jax.default_backend(); sys.exit(b != 'gpu' and f'bench-gpu: JAX backend is {b}, not gpu')"
 	mkdir -p benchmarks/results
 	printf '{"bench_gpu": "start", "utc": "%s", "commit": "%s"}\n' "$$(date -u +%Y-%m-%dT%H:%M:%SZ)" \
 		"$$(git rev-parse --short HEAD 2>/dev/null)" >> $(GPU_RESULTS)
 	status=0; ref=; \
-	$(VENV)/bin/python benchmarks/reference_env.py > /dev/null \
+	$(BENCH_PYTHON) benchmarks/reference_env.py > /dev/null \
 		|| { echo "bench-gpu: no reference venv: engine and env run without Jax2D and Kinetix" >&2; ref=--no-reference; status=1; }; \
 	$(call GPU_LIMIT,420) benchmarks.engine --num-envs 1,32768 --backend xla,pallas $$ref >> $(GPU_RESULTS) || status=1; \
 	$(call GPU_LIMIT,180) benchmarks.kernel_check --random 1000 --steps 120 >> $(GPU_RESULTS) || status=1; \

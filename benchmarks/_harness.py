@@ -4,6 +4,7 @@ of repeats. The reference runner (run in Jax2D's own virtualenv) follows the sam
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -14,7 +15,9 @@ import jax
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-LEVELS_DIR = REPO.parent / "shared" / "kinetix-levels"
+# Kinetix's level files: the shared folder beside the checkout, or where $IMPULSE_KINETIX_LEVELS says (as for
+# `impulse eval --levels kinetix:...`; on a lent GPU machine the shared folder does not travel, see docs/gpu.md).
+LEVELS_DIR = Path(os.environ.get("IMPULSE_KINETIX_LEVELS") or REPO.parent / "shared" / "kinetix-levels")
 DEFAULT_LEVELS = {"s": "s/h4_thrust_aim.json", "m": "m/h0_unicycle.json", "l": "l/h4_cartpole.json"}
 
 

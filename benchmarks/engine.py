@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
                       **env_info})
             if "pallas" in backends:
                 fused = measure_ours(level, num_envs, args.steps, args.repeats, "phased", "pallas")
-                emit({"system": "impulse", "solver": "phased", "backend": "pallas", "size": size,
+                emit({"system": "impulse", "solver": "phased", "physics_backend": "pallas", "size": size,
                       "level": DEFAULT_LEVELS[size], "num_envs": num_envs, "steps": args.steps, **fused, **env_info})
                 if "xla" in backends:
                     emit({"comparison": "pallas/xla", "size": size, "num_envs": num_envs,
@@ -112,7 +112,8 @@ def main(argv: list[str] | None = None) -> None:
             emit({**ref, "size": size})
             for variant, ours in measured.items():
                 emit({"comparison": "impulse/jax2d", "solver": "phased" if variant == "pallas" else variant,
-                      "backend": "pallas" if variant == "pallas" else "xla", "size": size, "num_envs": num_envs,
+                      "physics_backend": "pallas" if variant == "pallas" else "xla", "size": size,
+                      "num_envs": num_envs,
                       "speedup": ours["steps_per_s"] / ref["steps_per_s"],
                       "compile_ratio": ours["compile_s"] / ref["compile_s"], **env_info})
 

@@ -16,6 +16,11 @@ Stdlib only, so it imports from our project and also runs as a script::
 
 Extra pip arguments (for an offline machine, e.g. ``--no-index --find-links /path/to/wheels``) can be given in
 the environment variable ``IMPULSE_REFERENCE_PIP_ARGS``.
+
+Where a venv cannot see the machine's JAX (a lent GPU machine, whose JAX with CUDA lives in a venv of its own and
+cannot be fetched again), ``IMPULSE_REFERENCE_SITE`` names a folder into which Jax2D, Kinetix and what they need
+beyond that machine's packages were installed with ``pip install --target`` (``deploy/gpu_bundle.py`` prepares
+the wheels). The runner then runs on the calling interpreter, with that folder on its path and no venv.
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ REFERENCE_PACKAGES = ["jax2d==1.0.2", "kinetix-env==3.0.2"]
 MIRRORED_PREFIXES = ("jax-cuda", "jax-rocm", "nvidia-")
 PIP_TAIL_LINES = 40
 PIP_NOISE = "WARNING: Location 'file:"
+SITE_ENV = "IMPULSE_REFERENCE_SITE"
 
 
 class ReferenceEnvError(RuntimeError):
@@ -170,13 +176,29 @@ def _build(venv: Path, stamp: dict[str, Any]) -> None:
     _progress(f"reference venv ready in {elapsed:.0f}s: jax, jax2d, kinetix-env = {found}")
 
 
+def reference_site() -> Path | None:
+    """The ``IMPULSE_REFERENCE_SITE`` folder, checked, or None when the reference runs in its venv."""
+    site = os.environ.get(SITE_ENV)
+    if not site:
+        return None
+    path = Path(site).expanduser()
+    missing = [package for package in ("jax2d", "kinetix") if not (path / package).is_dir()]
+    if missing:
+        raise ReferenceEnvError(f"{SITE_ENV}={site} holds no {' and no '.join(missing)} package: install the "
+                                "reference wheels there with pip install --target (see docs/gpu.md)")
+    return path
+
+
 def ensure_reference_env(jax_version: str | None = None, force: bool = False) -> Path:
     """Return the reference venv's python, building the venv first if it is missing, incomplete (no stamp) or
-    was built for another JAX version, recipe or base interpreter.
+    was built for another JAX version, recipe or base interpreter; with ``IMPULSE_REFERENCE_SITE`` set, the
+    calling interpreter (the reference then runs on the very same JAX).
 
     ``jax_version`` defaults to the JAX installed beside the calling interpreter, which is the point: the
     reference must run on the same JAX as our engine for same-run ratios to mean anything.
     """
+    if reference_site() is not None:
+        return Path(sys.executable)
     caller_jax = _caller_version("jax")
     jax_version = jax_version or caller_jax
     if jax_version is None:
@@ -195,8 +217,12 @@ def ensure_reference_env(jax_version: str | None = None, force: bool = False) ->
 
 
 def _clean_environment() -> dict[str, str]:
-    """The caller's environment minus anything that would put our project's packages on the runner's path."""
+    """The caller's environment minus anything that would put our project's packages on the runner's path
+    (with ``IMPULSE_REFERENCE_SITE``, the path is that folder alone)."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    site = reference_site()
+    if site is not None:
+        env["PYTHONPATH"] = str(site)
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
@@ -209,7 +235,9 @@ def run_reference(args: list[str], timeout: float, script: Path = RUNNER) -> lis
     timeout, with the tail of its stderr.
     """
     python = ensure_reference_env()
-    command = [str(python), "-I", str(script), *args]
+    # -I keeps the runner's interpreter from seeing anything of ours; in site mode only PYTHONPATH must stay.
+    isolation = "-s" if reference_site() is not None else "-I"
+    command = [str(python), isolation, str(script), *args]
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
         env=_clean_environment(), cwd=str(RUNNER.parent),

@@ -1,17 +1,18 @@
 """The fused solver kernel (`SceneSizes.backend="pallas"`, engine/physics/solver_kernel.py) against the XLA step.
 
-Its numbers are checked through Pallas's interpreter on CPU (`backend="pallas_interpret"`); that it is a kernel
-Triton accepts is checked by lowering the step for a CUDA GPU, which needs no GPU. The full check on every shared
+Its numbers are checked through Pallas's interpreter on CPU (`backend="pallas_interpret"`, on a vmapped batch);
+that it is a kernel Triton accepts, batched and for one scene, is checked by lowering the step for a CUDA GPU,
+which needs no GPU. The full check on every shared
 level and 1,000 random levels per size is `impulse bench kernel_check` on a GPU (benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 from benchmarks._harness import LEVELS_DIR
@@ -19,7 +20,7 @@ from benchmarks.kernel_check import compare, shared_levels
 from engine.env.config import EnvConfig
 from engine.env.spec import env_from_config
 from engine.levels.generator import sample_random_levels
-from engine.physics import SimParams, step
+from engine.physics import step
 from engine.physics.sizes import SIZE_S, SceneSizes
 
 # Measured: 1.3e-5 m on the shared S levels after 120 steps, 3e-6 m on random S levels after 60 (float rounding,
@@ -27,11 +28,14 @@ from engine.physics.sizes import SIZE_S, SceneSizes
 TOLERANCE_M = 1e-4
 
 
+@functools.cache
 def _levels_of_size_s():
+    """The shared S levels and 6 random ones, from the same 4,000-level batch the level tests draw (one compile
+    of the generator for both)."""
     if not (LEVELS_DIR / "s").is_dir():
         pytest.skip(f"Kinetix level files not found at {LEVELS_DIR.resolve()} (the shared folder beside the checkout)")
     shared, params, sizes = shared_levels("s")
-    randoms = sample_random_levels(jax.random.key(7), 6, SIZE_S).state
+    randoms = jax.tree.map(lambda x: x[:6], sample_random_levels(jax.random.key(0), 4000, SIZE_S).state)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), shared, randoms), params, sizes
 
 
@@ -43,27 +47,22 @@ def test_kernel_follows_the_xla_step_for_120_steps_on_shared_and_random_levels()
     assert result["max_apart_any_step_m"] <= TOLERANCE_M, result
 
 
-def test_one_scene_without_vmap_runs_the_kernel_too() -> None:
-    states, params, sizes = _levels_of_size_s()
-    scene = jax.tree.map(lambda x: x[1], states)
-    actions = jnp.ones(sizes.num_joints + sizes.num_thrusters)
-    one = jax.jit(step, static_argnames="sizes")
-    want, _ = one(scene, params, actions, sizes)
-    got, contacts = one(scene, params, actions, dataclasses.replace(sizes, backend="pallas_interpret"))
-    np.testing.assert_allclose(got.bodies.velocity, want.bodies.velocity, atol=1e-5)
-    np.testing.assert_allclose(got.contacts.normal_impulse, want.contacts.normal_impulse, atol=1e-5)
-    assert float(jnp.abs(got.contacts.normal_impulse).max()) > 0  # something touched, so contacts were solved
-
-
-def test_the_step_lowers_to_one_triton_kernel_for_cuda_and_to_plain_xla_for_cpu() -> None:
-    sizes = dataclasses.replace(SIZE_S, backend="pallas")
-    scenes = sample_random_levels(jax.random.key(0), 4, SIZE_S).state
+def test_the_step_lowers_to_one_triton_kernel_for_cuda_batched_or_not_and_to_plain_xla_for_cpu() -> None:
+    states, params, level_sizes = _levels_of_size_s()
+    sizes = dataclasses.replace(level_sizes, backend="pallas")
+    scenes = jax.tree.map(lambda x: x[:4], states)
     actions = jnp.zeros((4, sizes.num_joints + sizes.num_thrusters))
-    batched = jax.jit(jax.vmap(lambda s, a: step(s, SimParams(), a, sizes)[0]))
-    cuda = batched.trace(scenes, actions).lower(lowering_platforms=("cuda",)).as_text()
-    cpu = batched.trace(scenes, actions).lower(lowering_platforms=("cpu",)).as_text()
-    assert cuda.count("__gpu$xla.gpu.triton") == 1
-    assert "triton" not in cpu
+    batched = jax.jit(jax.vmap(lambda s, a: step(s, params, a, sizes)[0]))
+    one = jax.jit(lambda s, a: step(s, params, a, sizes)[0])
+    lowered = {
+        "batched for cuda": batched.trace(scenes, actions).lower(lowering_platforms=("cuda",)).as_text(),
+        "one scene for cuda": one.trace(jax.tree.map(lambda x: x[0], scenes), actions[0]).lower(
+            lowering_platforms=("cuda",)).as_text(),
+        "batched for cpu": batched.trace(scenes, actions).lower(lowering_platforms=("cpu",)).as_text(),
+    }
+    assert lowered["batched for cuda"].count("__gpu$xla.gpu.triton") == 1
+    assert lowered["one scene for cuda"].count("__gpu$xla.gpu.triton") == 1
+    assert "triton" not in lowered["batched for cpu"]
 
 
 def test_backend_setting_is_checked_and_reaches_the_physics_sizes() -> None:
