@@ -30,7 +30,7 @@ import math
 import secrets
 import time
 from collections import deque
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
@@ -52,8 +52,10 @@ from learner.agent import Agent
 from learner.config import TrainConfig
 from learner.curriculum_inputs import batch_level_results
 from learner.progress import CycleReport
-from monitor.rollouts import RolloutStream
-from monitor.stream import Monitor
+
+if TYPE_CHECKING:
+    from monitor.rollouts import RolloutStream
+    from monitor.stream import Monitor
 
 log = logging.getLogger("impulse.actor")
 
@@ -132,8 +134,11 @@ class Actor:
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
                        "weights_by_query": 0}
         self._steps_done = 0
-        self._stream = (RolloutStream(monitor, self.name, self.watch, self.num_steps, config.monitor.contacts)
-                        if monitor is not None and self.watch else None)
+        self._stream: RolloutStream | None = None
+        if monitor is not None and self.watch:
+            from monitor.rollouts import RolloutStream  # rerun only with a monitor (deploy/monitoring.py)
+
+            self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps, config.monitor.contacts)
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
         self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)

@@ -8,8 +8,8 @@ that machine and copies the levels:
     python -m deploy.gpu_bundle          # writes .device/wheels and .device/kinetix-levels, prints the command
 
 The bundle must stay under the 64 MiB a call may carry, working tree included, so only what the machine lacks is
-fetched (`DEVICE_HAS`, read from the machine's package list) and rerun-sdk (170 MB) is left out: the distributed
-benchmark, whose actors import it, cannot run there (docs/gpu.md says what to do instead).
+fetched (`DEVICE_HAS`, read from the machine's package list) and rerun-sdk (170 MB) is left out: runs there have
+monitoring off, which imports no rerun (docs/gpu.md).
 
 Stdlib only: it runs before anything is installed.
 """

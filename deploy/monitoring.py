@@ -4,19 +4,22 @@ Every process of a run with `monitor.enabled` opens one `Monitor` on `monitor.ur
 recording id and the run's default blueprint. The learner and the actors log their per-cycle metrics and their
 status numbers (`MetricsLogger`); actors also stream rollouts (`actors.process`); the curriculum service logs its
 statistics, histograms, top-level gallery and knob changes (`CurriculumLogger`).
+
+Rerun is imported only once monitoring is on, so a run with it off needs no rerun-sdk (a lent GPU machine, whose
+package set cannot take its 170 MB wheel, runs the distributed benchmark that way: docs/gpu.md).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from deploy.launch_cmd import uses_curriculum_service
 from learner.config import TrainConfig
-from monitor.blueprint import default_blueprint
-from monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_knobs, log_process_metrics, log_scalars
-from monitor.stream import Monitor
+
+if TYPE_CHECKING:
+    from monitor.stream import Monitor
 
 STATUS_EVERY_S = 2.0
 OnCycle = Callable[[dict[str, Any], dict[str, float]], None]
@@ -25,6 +28,7 @@ OnCycle = Callable[[dict[str, Any], dict[str, float]], None]
 def run_blueprint(config: TrainConfig) -> Any:
     """The default layout for this run's processes (its actors, whether it has a curriculum service)."""
     from actors.process import actor_name
+    from monitor.blueprint import default_blueprint
 
     return default_blueprint([actor_name(i) for i in range(config.actors.num_actors)],
                              config.monitor.watch_envs, config.monitor.gallery, uses_curriculum_service(config))
@@ -34,6 +38,8 @@ def open_monitor(config: TrainConfig) -> Monitor | None:
     """This process's monitor, or None when monitoring is off."""
     if not config.monitor.enabled:
         return None
+    from monitor.stream import Monitor
+
     return Monitor(config.name, url=config.monitor.url, blueprint=run_blueprint(config),
                    frames_per_s=config.monitor.frames_per_s, frame_queue=config.monitor.queue_rollouts)
 
@@ -50,6 +56,8 @@ class MetricsLogger:
         self._status_at = -float("inf")
 
     def __call__(self, record: dict[str, Any], window: dict[str, float]) -> None:
+        from monitor.metrics import log_process_metrics
+
         if self.then is not None:
             self.then(record, window)
         step = (self.step_timeline, int(record["update"])) if self.step_timeline else None
@@ -72,6 +80,8 @@ class CurriculumLogger:
         self._knobs: dict[str, Any] = {}
 
     def poll(self) -> None:
+        from monitor.metrics import log_knobs
+
         knobs = self.service.live_knobs()
         if knobs != self._knobs:
             changed = {name: [self._knobs[name], value] for name, value in knobs.items()
@@ -87,6 +97,7 @@ class CurriculumLogger:
         import jax
 
         from engine.levels.scene import scene_drawing
+        from monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars
 
         report = self.service.inspect(self.gallery)
         levels = self.service.top_levels(self.gallery)

@@ -186,6 +186,7 @@ def test_pickles_cannot_run_code(tmp_path):
     np.testing.assert_array_equal(obj["params"]["params"]["Dense_0"]["kernel"], np.ones((2, 2)))
 
 
+@pytest.mark.heavy  # a CLI process of its own
 def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     from deploy.cli import main
     from deploy.config import resolve_config
