@@ -20,10 +20,11 @@ deliberate difference); and the label ``chaotic`` when the positions agree withi
 start touching and part by more than 1 mm within 15 steps of that start. Bodies are named by global index:
 polygons first (the four static arena polygons are 0-3), then circles.
 
-Our side runs once per ``--solver`` (the ``SceneSizes.solver`` schedule: ``phased``, the default, and
-``jax2d``, Jax2D's batch order); every record and summary names its solver, and Jax2D runs once per action mode.
+Our side runs once per ``--solver`` (the ``SceneSizes.solver`` schedule: ``phased``, the default; ``jax2d``,
+Jax2D's batch order; ``jax2d_wipe``, that order plus Jax2D's padding bug B1); every record and summary names its
+solver, and Jax2D runs once per action mode.
 
-    impulse bench compat_jax2d                                   # all 42 levels, zero and scripted, both solvers
+    impulse bench compat_jax2d                                   # all 42 levels, zero and scripted, all solvers
     impulse bench compat_jax2d --levels 's/*' --actions zero
     impulse bench compat_jax2d --levels m/h0_unicycle,h4_cartpole --steps 60 --threshold 0.01
     impulse bench compat_jax2d --solver jax2d --actions scripted
@@ -362,7 +363,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threshold", type=float, default=0.05, help="metres (default 0.05)")
     parser.add_argument("--actions", default=",".join(ACTION_MODES), help="comma-separated among zero,scripted")
     parser.add_argument("--solver", default=",".join(SOLVERS),
-                        help=f"comma-separated among {','.join(SOLVERS)}: our engine's schedule (default: both)")
+                        help=f"comma-separated among {','.join(SOLVERS)}: our engine's schedule (default: all)")
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error("--steps must be at least 1")

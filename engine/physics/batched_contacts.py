@@ -14,8 +14,10 @@ matched where that matters:
 - lever arms and effective masses are recomputed at every visit from the current positions, which the joint
   pass moves during the iterations.
 
-Padding slots do nothing here: Jax2D's padding also overwrites the accumulated impulse of each kind's last pair
-(bug B1 of the Jax2D digest), which we do not copy.
+Padding slots do nothing here by default. Jax2D's padding also overwrites the accumulated impulse of each kind's
+last pair (bug B1 of the Jax2D digest): its padded slots carry index -1, which wraps onto that pair, and write it a
+zero in every batch that holds padding. We do not copy that into "jax2d"; `solver="jax2d_wipe"` reproduces it, off
+the default path, so that trajectories can be compared with Jax2D's and Kinetix's on the levels it changes.
 """
 
 from __future__ import annotations
@@ -49,9 +51,17 @@ class ContactConstants(NamedTuple):
     enabled: Array  # [K] bool: may exchange impulses
 
 
-def batch_slots(tables: PairTables, touching: Array) -> list[Array]:
-    """Per kind, the [num_batches, BATCH] contact slots to visit in Jax2D's order; padding is the out-of-range
-    slot K (its reads are clamped and masked, its writes dropped)."""
+class KindBatches(NamedTuple):
+    """One contact kind's visits in Jax2D's order."""
+
+    slots: Array  # [num_batches, BATCH] contact slots; padding is the out-of-range slot K
+    wiped: Array  # [num_batches] the slot whose impulses Jax2D's padding zeroes after the batch, or K for none
+
+
+def batch_slots(tables: PairTables, touching: Array, wipe: bool = False) -> list[KindBatches]:
+    """Per kind, the contact slots to visit in Jax2D's order; padding reads are clamped and masked, its writes
+    dropped. With `wipe`, each batch that holds padding also names the kind's last slot, whose impulses the
+    batch then zeroes (bug B1); which batches hold padding depends on the counts only, so it is static."""
     num_contacts = tables.num_contacts
     kinds = []
     rr, cr, cc = tables.num_rr, tables.num_cr, tables.num_cc
@@ -67,7 +77,11 @@ def batch_slots(tables: PairTables, touching: Array) -> list[Array]:
         num_batches = math.ceil(count / BATCH)
         order = jnp.argsort(active, stable=True).astype(jnp.int32) + first
         padded = jnp.concatenate([order, jnp.full(num_batches * BATCH - count, num_contacts, jnp.int32)])
-        out.append(padded.reshape(BATCH, num_batches).T)
+        slots = padded.reshape(BATCH, num_batches).T
+        padded_batches = [(BATCH - 1) * num_batches + j >= count for j in range(num_batches)]
+        last = first + count - 1
+        wiped = [last if wipe and has_padding else num_contacts for has_padding in padded_batches]
+        out.append(KindBatches(slots, jnp.asarray(wiped, jnp.int32)))
     return out
 
 
@@ -135,21 +149,28 @@ def solve_contacts(
     angular_velocity: Array,
     normal_impulse: Array,
     tangent_impulse: Array,
-    batches: list[Array],
+    batches: list[KindBatches],
     constants: ContactConstants,
     tables: PairTables,
+    wipe: bool = False,
 ) -> tuple[Array, Array, Array, Array]:
-    """One iteration's contact sweep, kind after kind, batch after batch."""
-    for slots_of_kind in batches:
-        def visit(carry: tuple[Array, Array, Array, Array], slots: Array) -> tuple:
-            return solve_batch(position, *carry, slots, constants, tables), None
+    """One iteration's contact sweep, kind after kind, batch after batch; with `wipe`, each batch ends with
+    Jax2D's padding write onto its `wiped` slot."""
+    for kind in batches:
+        def visit(carry: tuple[Array, Array, Array, Array], batch: KindBatches) -> tuple:
+            velocity, angular_velocity, normal_impulse, tangent_impulse = solve_batch(
+                position, *carry, batch.slots, constants, tables
+            )
+            if wipe:
+                normal_impulse = normal_impulse.at[batch.wiped].set(0.0, mode="drop")
+                tangent_impulse = tangent_impulse.at[batch.wiped].set(0.0, mode="drop")
+            return (velocity, angular_velocity, normal_impulse, tangent_impulse), None
 
         carry = (velocity, angular_velocity, normal_impulse, tangent_impulse)
-        if slots_of_kind.shape[0] == 1:
-            velocity, angular_velocity, normal_impulse, tangent_impulse = visit(carry, slots_of_kind[0])[0]
+        if kind.slots.shape[0] == 1:
+            carry = visit(carry, KindBatches(kind.slots[0], kind.wiped[0]))[0]
         else:
-            (velocity, angular_velocity, normal_impulse, tangent_impulse), _ = jax.lax.scan(
-                visit, carry, slots_of_kind
-            )
+            carry, _ = jax.lax.scan(visit, carry, kind)
+        velocity, angular_velocity, normal_impulse, tangent_impulse = carry
     return velocity, angular_velocity, normal_impulse, tangent_impulse
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-Solver = Literal["phased", "jax2d"]
-SOLVERS: tuple[str, ...] = ("phased", "jax2d")
+Solver = Literal["phased", "jax2d", "jax2d_wipe"]
+SOLVERS: tuple[str, ...] = ("phased", "jax2d", "jax2d_wipe")
 Backend = Literal["xla", "pallas", "pallas_interpret"]
 BACKENDS: tuple[str, ...] = ("xla", "pallas", "pallas_interpret")
 
@@ -18,7 +18,9 @@ class SceneSizes:
     The first `num_static_polygons` polygons are the arena (floor, left wall, right wall, ceiling) by convention.
     Polygons carry up to `max_polygon_vertices` vertices; raising it is a size change, not a code change.
     `solver` picks the contact schedule (static, so it is compiled in): "phased" (default, fastest) or "jax2d"
-    (Jax2D's batch order, for trajectories that follow Jax2D's closely; see docs/engine.md).
+    (Jax2D's batch order, for trajectories that follow Jax2D's closely; see docs/engine.md) or "jax2d_wipe" (the
+    same plus Jax2D's padding bug, which zeroes the last contact pair's impulses; only to compare trajectories
+    with Jax2D and Kinetix, never to train with).
     `backend` picks how the phased solver iterations run: "xla" (the pure-JAX stages) or "pallas" (one fused
     kernel per block of scenes on a GPU, solver_kernel.py; the XLA stages on other platforms);
     "pallas_interpret" runs that kernel through Pallas's interpreter on any platform, to test it without a GPU.

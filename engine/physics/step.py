@@ -13,7 +13,8 @@ The step is a sequence of named stages, in Jax2D's order:
 
 `sizes.solver` picks how contacts are swept in stage 5: phase by phase with per-step lever arms (`iterate_phased`,
 the default, faster) or as Jax2D does, in sorted Jacobi batches with lever arms that follow the joints' position
-corrections (`iterate_jax2d`, see docs/engine.md). `sizes.backend="pallas"` runs the phased iterations as one
+corrections (`iterate_jax2d`, see docs/engine.md; "jax2d_wipe" adds Jax2D's padding bug, for comparisons
+only). `sizes.backend="pallas"` runs the phased iterations as one
 fused GPU kernel (`iterate_fused`, solver_kernel.py). Which slot is which, and how values reach bodies, is
 slots.py's.
 """
@@ -82,7 +83,7 @@ def step(
     angular_velocity = apply_motors(state.bodies.angular_velocity, state, jrows, motor_actions, params)
     velocity, angular_velocity = apply_thrusters(velocity, angular_velocity, state, thruster_actions, params)
     start = warm_start_all(velocity, angular_velocity, state, rows, carried, jrows, tables, sizes)
-    if sizes.solver == "jax2d":
+    if sizes.solver in ("jax2d", "jax2d_wipe"):
         solved, impulses = iterate_jax2d(start, carried, contacts, rows, enabled, jrows, state.joints, params,
                                          sizes, tables)
     elif sizes.backend == "xla":
@@ -271,14 +272,15 @@ def iterate_jax2d(
         target_velocity=rows.target_velocity,
         enabled=enabled,
     )
-    batches = batch_slots(tables, contacts.touching) if tables.num_contacts else []
+    wipe = sizes.solver == "jax2d_wipe"
+    batches = batch_slots(tables, contacts.touching, wipe) if tables.num_contacts else []
 
     def iteration(_, carry):
         joint_state, normals, tangents = carry
         joint_state = solve_joints(joint_state, jrows, joints, params, sizes)
         v, w, normals, tangents = solve_contacts(
             joint_state.position, joint_state.velocity, joint_state.angular_velocity, normals, tangents,
-            batches, constants, tables,
+            batches, constants, tables, wipe,
         )
         return joint_state._replace(velocity=v, angular_velocity=w), normals, tangents
 

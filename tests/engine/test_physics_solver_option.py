@@ -1,5 +1,6 @@
 """The `solver="jax2d"` schedule (SceneSizes.solver): its batch layout, conservation, and agreement with the
-default schedule where the visiting order cannot matter."""
+default schedule where the visiting order cannot matter; and `solver="jax2d_wipe"`, which adds Jax2D's padding
+bug B1."""
 
 from __future__ import annotations
 
@@ -8,13 +9,28 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from physics_sim import CHUNK, NUM_ACTIONS, PARAMS, SIZES, arena_scene, open_scene, run, zero_gravity
+from physics_sim import (
+    CHUNK,
+    DT,
+    FLOOR_TOP,
+    NUM_ACTIONS,
+    PARAMS,
+    SIZES,
+    G,
+    arena_scene,
+    mass,
+    open_scene,
+    pair_index,
+    run,
+    zero_gravity,
+)
 
 from engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint
 from engine.physics.batched_contacts import BATCH, batch_slots
 from engine.physics.pairs import pair_tables
 
 JAX2D = dataclasses.replace(SIZES, solver="jax2d")
+JAX2D_WIPE = dataclasses.replace(SIZES, solver="jax2d_wipe")
 
 
 def _positions(state, sizes: SceneSizes, chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -38,7 +54,7 @@ def test_batches_put_touching_pairs_last_and_deal_them_round_robin() -> None:
     first_cr = 2 * tables.num_rr
     touching[[first_cr + 1, first_cr + 5, first_cr + 20]] = True
     touching[tables.num_rr + 2] = True  # point 1 of polygon pair 2 marks the whole pair touching
-    batches = [np.asarray(b) for b in batch_slots(tables, jnp.asarray(touching))]
+    batches = [np.asarray(b.slots) for b in batch_slots(tables, jnp.asarray(touching))]
     rr0, rr1, cr, cc = batches
     assert cr.shape == (-(-tables.num_cr // BATCH), BATCH)
     # The list is the stable touching-last order plus padding (slot K), dealt out column by column.
@@ -80,3 +96,44 @@ def test_without_joints_or_shared_bodies_the_two_schedules_agree() -> None:
     jax2d, _ = _positions(state, JAX2D)
     assert phased[-1, int(box), 1] < 0.8 - 0.1, "the box did not fall onto the floor"
     np.testing.assert_allclose(jax2d[:, [int(box), int(ball)]], phased[:, [int(box), int(ball)]], atol=1e-4)
+
+
+def test_the_wipe_names_each_kinds_last_slot_in_the_batches_that_hold_padding() -> None:
+    tables = pair_tables(SIZES)
+    touching = jnp.zeros(tables.num_contacts, bool)
+    first = {"rr0": 0, "rr1": tables.num_rr, "cr": 2 * tables.num_rr, "cc": 2 * tables.num_rr + tables.num_cr}
+    counts = {"rr0": tables.num_rr, "rr1": tables.num_rr, "cr": tables.num_cr, "cc": tables.num_cc}
+    plain = batch_slots(tables, touching)
+    wiped = batch_slots(tables, touching, wipe=True)
+    for name, kind, bugged in zip(counts, plain, wiped):
+        slots = np.asarray(bugged.slots)
+        np.testing.assert_array_equal(slots, np.asarray(kind.slots))
+        assert (np.asarray(kind.wiped) == tables.num_contacts).all(), "without the wipe no batch names a slot"
+        holds_padding = (slots == tables.num_contacts).any(axis=1)
+        last = first[name] + counts[name] - 1
+        expected = np.where(holds_padding, last, tables.num_contacts)
+        np.testing.assert_array_equal(np.asarray(bugged.wiped), expected, err_msg=name)
+
+
+def test_the_wipe_drops_the_last_pairs_resting_impulse() -> None:
+    # Three circles: the last circle-circle pair is (second, third). The third rests on the second, which rests
+    # on the floor. Without the bug the pair's accumulated impulse per step is the top circle's weight times dt;
+    # Jax2D's padding write zeroes it after every batch, so it is stored as 0 (Jax2D digest, bug B1).
+    radius = 0.2
+    state = arena_scene()
+    state, _ = add_circle(state, (1.0, FLOOR_TOP + radius), radius)
+    state, lower = add_circle(state, (3.0, FLOOR_TOP + radius), radius)
+    state, upper = add_circle(state, (3.0, FLOOR_TOP + 3 * radius), radius)
+    pair = pair_index(lower, upper)
+    actions = jnp.zeros((CHUNK, NUM_ACTIONS), jnp.float32)
+    stored = {}
+    for sizes in (JAX2D, JAX2D_WIPE):
+        s = state
+        for _ in range(3):
+            s, record = run(s, PARAMS, actions, sizes)
+        touching, impulse = np.asarray(record[4])[:, pair], np.asarray(record[5])[:, pair]
+        assert touching.all(), f"{sizes.solver}: the stack came apart"
+        stored[sizes.solver] = impulse
+    weight_impulse = mass(state, int(upper)) * G * DT
+    np.testing.assert_allclose(stored["jax2d"], weight_impulse, rtol=0.1)
+    np.testing.assert_array_equal(stored["jax2d_wipe"], 0.0)
