@@ -41,9 +41,10 @@ class LevelSource(Protocol):
     waiting: bool
     """Whether the last `next_batch` is still waiting for levels (shown on the status line)."""
 
-    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
-        """The level batch (leading axis K, K fixed for the source) for the next rollout; `while_waiting` is
-        called now and then if the levels are slow to come (the actor keeps its status line fresh with it)."""
+    def next_batch(self, key: Array, while_waiting: Callable[[], bool] | None = None) -> LevelBatch | None:
+        """The level batch (leading axis K, K fixed for the source) for the next rollout. `while_waiting` is
+        called now and then if the levels are slow to come (the actor keeps its status line fresh with it); when
+        it returns False the source stops waiting and returns None (the actor was asked to stop)."""
 
 
 def fixed_batch(levels: Level) -> LevelBatch:
@@ -66,7 +67,7 @@ class LocalLevels:
         count = len(self.names)
         self.description = f"{env.levels} ({count} level{'s' if count != 1 else ''})"
 
-    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
+    def next_batch(self, key: Array, while_waiting: Callable[[], bool] | None = None) -> LevelBatch:
         return self._batch
 
 
@@ -87,7 +88,7 @@ class CurriculumLevels:
         self.description = f"curriculum {method} ({self.size} per rollout)"
         self.waiting = False
 
-    def next_batch(self, key: Array, while_waiting: Callable[[], None] | None = None) -> LevelBatch:
+    def next_batch(self, key: Array, while_waiting: Callable[[], bool] | None = None) -> LevelBatch | None:
         del key  # the service draws the levels
         key_expr = self.bus.keys.levels_sample
         started = last_log = time.monotonic()
@@ -102,8 +103,8 @@ class CurriculumLevels:
                 self.waiting = False
                 return jax.tree.map(jnp.asarray, batch)
             self.waiting = True
-            if while_waiting is not None:
-                while_waiting()
+            if while_waiting is not None and not while_waiting():
+                return None
             time.sleep(0.2)  # nobody answered (no service yet): a get with no queryable returns at once
             if time.monotonic() - last_log >= WAIT_LOG_EVERY_S:
                 last_log = time.monotonic()

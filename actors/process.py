@@ -93,11 +93,14 @@ class Actor:
         self.agent = agent
         self.levels = levels
         self.incarnation = secrets.randbits(31)
+        self._stop_requested = False
         self.num_envs, self.num_steps = config.ppo.num_envs, config.ppo.num_steps
         # Seeded by the run, the actor and the incarnation: a restarted actor does not replay its predecessor.
         seed = (config.seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
         self.key, level_key, rollout_key = jax.random.split(jax.random.PRNGKey(seed), 3)
         first = levels.next_batch(level_key)
+        if first is None:  # only a `while_waiting` that gives up ends a wait without levels
+            raise RuntimeError("the level source returned no first batch")
         self.carry = start_rollout(agent.spec, env_params, first.levels, self.num_envs, rollout_key, first.train)
         spec, steps = agent.spec, self.num_steps
         self.watch = min(config.monitor.watch_envs, self.num_envs) if monitor is not None else 0
@@ -292,6 +295,15 @@ class Actor:
         if self._status.due():
             self._status.publish(self.status())
 
+    def request_stop(self) -> None:
+        """The run loop's stop signal: a cycle waiting for levels gives up instead of waiting on, since the
+        curriculum service it waits for may be stopping too."""
+        self._stop_requested = True
+
+    def _keep_waiting_for_levels(self) -> bool:
+        self._publish_status_if_due()
+        return not self._stop_requested
+
     def cycle(self) -> CycleReport | None:
         self._publish_status_if_due()
         self._receive_weights()
@@ -306,7 +318,9 @@ class Actor:
             return None
         start, started_at = time.monotonic(), time.time()
         self.key, level_key = jax.random.split(self.key)
-        levels = self.levels.next_batch(level_key, self._publish_status_if_due)
+        levels = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
+        if levels is None:
+            return None
         self.carry, steps, train_mask, stats, watched = self._rollout(self.params, self.carry, levels)
         batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask)
         results = self._level_results(self.params, batch) if self.levels.reports_results else None

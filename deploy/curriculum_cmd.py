@@ -260,7 +260,7 @@ def serve(args: argparse.Namespace) -> int:
         watcher = CurriculumLogger(monitor, service, config) if monitor is not None else None
         save_every = max(config.checkpoint.every_updates, 1)
         last_saved = service.result_messages
-        with StopFlag() as stop:
+        with StopFlag("stopping after this cycle (checkpointing first)") as stop:
             while not stop.stop:
                 if service.poll() is None:
                     time.sleep(0.002)

@@ -139,7 +139,7 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                                                                                   config.monitor.web_port)
             log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
-        with StopFlag() as stop:
+        with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
             while not stop.stop:
                 for received in statuses_inbox.poll():
                     _read_status(received, bus, statuses)

@@ -39,7 +39,7 @@ def run_router_command(args: argparse.Namespace, config: TrainConfig) -> int:
     warning = open_listeners_warning(router)
     if warning:
         log.warning(warning)
-    with StopFlag() as stop:
+    with StopFlag("stopping the router") as stop:
         try:
             run_router(router, lambda: stop.stop, lease_ms=config.bus.lease_ms)
         except CredentialsError as err:

@@ -32,7 +32,8 @@ log = logging.getLogger("impulse.run")
 
 
 class Service(Protocol):
-    """One process's work as the run loop drives it."""
+    """One process's work as the run loop drives it. A service may also define `request_stop()`, which the loop
+    calls as soon as a stop signal arrives (the actor uses it to stop waiting for levels mid-cycle)."""
 
     def cycle(self) -> CycleReport | None:
         """Do one unit of work; None when there was nothing to do (the loop then waits briefly)."""
@@ -45,9 +46,13 @@ class Service(Protocol):
 
 
 class StopFlag:
-    """SIGINT/SIGTERM ask the loop to checkpoint and stop after the current cycle; a second signal aborts."""
+    """SIGINT/SIGTERM ask the loop to stop after the current cycle (checkpointing first, where it has state); a
+    second signal aborts. `says` is the warning logged at the first signal: what the process does next;
+    `on_signal` is told at once, for work that would otherwise wait long inside a cycle."""
 
-    def __init__(self) -> None:
+    def __init__(self, says: str = "stopping after this cycle", on_signal: Callable[[], None] | None = None) -> None:
+        self.says = says
+        self.on_signal = on_signal
         self.stop = False
         self._previous: dict[int, Any] = {}
 
@@ -59,8 +64,10 @@ class StopFlag:
     def _handle(self, signum: int, frame: Any) -> None:
         if self.stop:
             raise KeyboardInterrupt
-        log.warning("stopping after this cycle (checkpointing first); send again to abort")
+        log.warning("%s; send again to abort", self.says)
         self.stop = True
+        if self.on_signal is not None:
+            self.on_signal()
 
     def __exit__(self, *exc: Any) -> None:
         for sig, handler in self._previous.items():
@@ -133,7 +140,8 @@ def run_loop(
     steps_here = 0
     stopped = False
     try:
-        with StopFlag() as stop:
+        says = "stopping after this cycle" + (" (checkpointing first)" if checkpoint_every > 0 else "")
+        with StopFlag(says, getattr(service, "request_stop", None)) as stop:
             while not service.finished():
                 if stop.stop or (should_stop is not None and should_stop()):
                     stopped = True

@@ -124,6 +124,9 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
     if finished:
         final_evaluation(config, agent, env_params, params, run_dir)
         log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
+    else:
+        log.info("learner stopped at update %d of %d, checkpointed; --resume continues from there", service.update,
+                 service.num_updates)
     return 0
 
 

@@ -82,7 +82,7 @@ def run_view(args: argparse.Namespace, config: TrainConfig) -> int:
     logs = args.run / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     processes: list[subprocess.Popen[bytes]] = []
-    with StopFlag() as stop, open(logs / "viewer.log", "ab") as output:
+    with StopFlag("stopping the viewer") as stop, open(logs / "viewer.log", "ab") as output:
         try:
             for command in plan.commands:
                 processes.append(subprocess.Popen(command, stdout=output, stderr=subprocess.STDOUT,

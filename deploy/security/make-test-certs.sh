@@ -25,6 +25,8 @@ done
 roles=(learner curriculum actor operator)
 days=365
 mkdir -p "$dir"
+# Only this user may list or read the directory: it holds every role's private keys and passwords.
+chmod 700 "$dir"
 cd "$dir"
 
 # The certificate authority every party trusts.

@@ -31,8 +31,9 @@ def copy_without(source: Path, target: Path, *names: str) -> Path:
     return target
 
 
-def test_make_test_certs_leaves_no_authority_key(credentials: Path) -> None:
+def test_make_test_certs_leaves_no_authority_key_and_a_private_directory(credentials: Path) -> None:
     assert not (credentials / "ca.key").exists()
+    assert credentials.stat().st_mode & 0o777 == 0o700
     users = dict(line.split(":") for line in (credentials / "users.txt").read_text().split())
     assert set(users) == {"router", "learner", "curriculum", "actor", "operator"}
     assert users["router"] == (credentials / "router.password").read_text().strip()

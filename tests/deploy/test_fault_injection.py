@@ -1,9 +1,10 @@
 """Fault injection: `impulse launch` on random levels with a curriculum service, while the test kills a random one of
-its processes (learner, curriculum, an actor) with SIGKILL at random times for a minute. The launcher restarts
-each. At the end the run must still be training, every learner checkpoint must restore, every restarted
-curriculum service must have resumed from its own checkpoint, and the policy version must never have gone back by
-more than one checkpoint interval. The counters of what was dropped and refused on the way are the test's figure
-(printed, visible with `pytest -s`)."""
+its processes (learner, curriculum, an actor) with SIGKILL at random times for minutes, from the moment the
+launcher starts them (so kills also land while a process compiles or resumes). The launcher restarts each. At the
+end the run must still be training, every learner checkpoint must restore, every restarted curriculum service
+must have resumed from its own checkpoint, and the policy version must never have gone back by more than one
+checkpoint interval. The counters of what was dropped and refused on the way are the test's figure (printed,
+visible with `pytest -s`)."""
 
 from __future__ import annotations
 
@@ -39,8 +40,9 @@ pytestmark = pytest.mark.heavy
 
 EVERY = 3
 """Learner checkpoint interval (updates): the most a learner kill may cost."""
-INJECT_FOR_S = float(os.environ.get("IMPULSE_FAULT_SECONDS", "45"))
-"""45 s in CI (its time budget); `IMPULSE_FAULT_SECONDS=300` for the longer run docs/multi-host.md reports."""
+INJECT_FOR_S = float(os.environ.get("IMPULSE_FAULT_SECONDS", "150"))
+"""How long the kills go on, counted from the launch; `IMPULSE_FAULT_SECONDS=300` for the longer run
+docs/multi-host.md reports."""
 PAUSE_S = (5.0, 11.0)
 """Seconds between kills, drawn uniformly."""
 SEED = int(os.environ.get("IMPULSE_FAULT_SEED", "7"))
@@ -97,7 +99,6 @@ def test_random_kills_over_minutes(tmp_path):
                 seen[key] = max(seen.get(key, 0), value)  # a restarted process counts from zero again
 
     try:
-        wait_for(lambda: last_update(run_dir) >= 2, 400, "the first updates", launch, log)
         started = time.monotonic()
         while time.monotonic() - started < INJECT_FOR_S:
             pause_until = time.monotonic() + rng.uniform(*PAUSE_S)
@@ -118,8 +119,8 @@ def test_random_kills_over_minutes(tmp_path):
         # Still training: every process back and the learner making updates again.
         wait_for(lambda: all(pids_of(run_dir, v) for v in VICTIMS), 120, "every process restarted", launch, log)
         at_end = last_update(run_dir)
-        wait_for(lambda: (observe(), last_update(run_dir) >= at_end + 2)[1], 240, "training after the last kill",
-                 launch, log)
+        wait_for(lambda: (observe(), last_update(run_dir) >= max(at_end + 2, EVERY))[1], 240,
+                 "training after the last kill", launch, log)
         observe()
     finally:
         watcher.close()

@@ -164,6 +164,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     assert not any(service_pids(run_dir, role) for role in ("learner", "actor", "curriculum"))
     assert "stopping the learner" in log.read_text()
     assert "curriculum stopped" in (run_dir / "logs" / "curriculum.log").read_text()
+    assert f"learner stopped at update {last_update(run_dir)} of" in (run_dir / "logs" / "learner.log").read_text()
     assert any((run_dir / "curriculum" / "checkpoints").iterdir()), "the service checkpointed its buffer"
     assert "Rerun viewer: http://127.0.0.1:" in log.read_text()
     check_recording(recording, run_dir.name)
