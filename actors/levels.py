@@ -15,8 +15,7 @@ from typing import Protocol
 import jax
 import jax.numpy as jnp
 
-from bus.codec import Kind, Rejected, decode, expect_sender
-from bus.keys import CURRICULUM
+from bus.codec import Kind, Rejected, decode
 from bus.session import Bus
 from curriculum.state import ORIGIN_NEW, LevelBatch
 from curriculum.wire import level_batch_from_message, level_batch_schema
@@ -95,7 +94,7 @@ class CurriculumLevels:
         while True:
             for payload in self.bus.get(key_expr, parameters=f"n={self.size}", timeout_s=self.timeout_s):
                 try:
-                    message = expect_sender(decode(payload, run=self.bus.keys.run, kinds=Kind.LEVELS), CURRICULUM)
+                    message = decode(payload, run=self.bus.keys.run, kinds=Kind.LEVELS)
                     batch = level_batch_from_message(message, self.schema, self.template)
                 except Rejected as err:
                     self.bus.rejects.record(err.reason, key_expr, err.detail)

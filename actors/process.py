@@ -13,6 +13,12 @@ One cycle (driven by the shared run loop):
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
 
+Weights. A weights frame is adopted only when its digest matches (`bus.codec`), it fits the network, and its
+(learner epoch, policy version) is strictly newer than the weights held; a replayed older frame is refused as stale
+and one equal to the weights held is ignored. The one exception is a restarted learner: once the learner's
+liveliness token has gone and come back, weights of another epoch are adopted even if that epoch is lower (a run
+directory started afresh). Who sent them is what the key says: only the learner may publish there.
+
 Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
 `credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
 that. Acknowledgements name the actor's incarnation (a random number drawn at start), so a restarted actor is not
@@ -21,6 +27,11 @@ learner (new epoch) appears, whatever was in flight to the old one is written of
 learner's liveliness token goes and comes back (the link to it broke: a router restart, a network partition). If
 no acknowledgement arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written
 off too.
+
+Stopping. The actor stops by itself when the learner's latest status (heard on the learner's own status key)
+says the run is finished and the learner's liveliness token is gone: a finished learner publishes that status
+and leaves. A forged "finished" while the learner is still there changes nothing, and the learner's next status
+overwrites it.
 """
 
 from __future__ import annotations
@@ -39,7 +50,7 @@ from actors.levels import LevelSource
 from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
 from actors.wire import PUBLISHED_AT, weights_schema
-from bus.codec import Kind, Message, Rejected, decode, encode, expect_sender
+from bus.codec import Kind, Message, Rejected, decode, encode
 from bus.keys import ACTOR, LEARNER
 from bus.schema import check
 from bus.session import Bus
@@ -121,9 +132,11 @@ class Actor:
         self._weights = bus.inbox(keys.weights_policy, 1, drop_oldest=True, latest=True)
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
         self._learner_presence = bus.watch_alive(keys.alive_pattern(LEARNER))
-        self._learner_away = False
-        self._learner_status = bus.inbox(keys.metrics(LEARNER, LEARNER), 4, drop_oldest=True)
-        self._learner_finished = False
+        self._learner_present = False
+        self._learner_away = False  # the learner's token went after it was seen: batches in flight may be lost
+        self._learner_returned = False  # ... and came back: weights of a new epoch may be adopted
+        self._learner_status = bus.inbox(keys.status_pattern(LEARNER), 4, drop_oldest=True)
+        self._learner_says_finished = False
         self._status = StatusPublisher(bus, config.actors.status_every_s)
 
         self.params: Any = None
@@ -135,7 +148,7 @@ class Actor:
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
         self._last_query = -float("inf")
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
-                       "weights_by_query": 0}
+                       "weights_by_query": 0, "weights_repeated": 0}
         self._steps_done = 0
         self._stream: RolloutStream | None = None
         if monitor is not None and self.watch:
@@ -149,9 +162,17 @@ class Actor:
     # -- weights ------------------------------------------------------------------------------------------
 
     def _adopt(self, message: Message) -> None:
+        """Adopt checked weights if they are newer than those held (see the module docstring); raises Rejected."""
         check(message, self._weights_schema)
-        if (message.learner_epoch, message.policy_version) == (self.epoch, self.version):
+        held, offered = (self.epoch, self.version), (message.learner_epoch, message.policy_version)
+        if offered == held:
+            self.counts["weights_repeated"] += 1  # the cached broadcast again (a reconnection), or a copy
             return
+        restarted = self._learner_returned and message.learner_epoch != self.epoch
+        if offered < held and not restarted:
+            raise Rejected("stale", f"weights of epoch {offered[0]} version {offered[1]}, older than the epoch "
+                           f"{held[0]} version {held[1]} held (a replay?)")
+        self._learner_returned = False
         self.params = jax.device_put(tree_from_arrays(message.arrays, self._params_template))
         if message.learner_epoch != self.epoch and self.epoch >= 0:
             log.info("learner restarted (epoch %d -> %d): batches in flight written off", self.epoch,
@@ -175,7 +196,7 @@ class Actor:
         for payload in payloads[-1:]:
             first = self.params is None
             try:
-                self._adopt(expect_sender(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS), LEARNER))
+                self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "weights", err.detail)
                 continue
@@ -195,31 +216,32 @@ class Actor:
     def _watch_learner(self) -> None:
         """The learner gone and back (a broken link, a restarted router, a restarted learner): what was in flight
         may have been lost on the way, so it is written off now rather than after the credit timeout. A batch
-        that did arrive is still trained on; its late acknowledgement is ignored."""
+        that did arrive is still trained on; its late acknowledgement is ignored. Also notes whether the learner's
+        latest status says the run is finished."""
         for _, alive in self._learner_presence.poll():
+            self._learner_present = alive
             if not alive:
                 self._learner_away = True
             elif self._learner_away:
                 self._learner_away = False
+                self._learner_returned = True
                 if self.in_flight:
                     log.info("the learner is back after an interruption: %d batches in flight written off",
                              self.in_flight)
                     self._write_off()
         for received in self._learner_status.poll():
             try:
-                sender, status = read_status(received, self.bus.keys.run)
+                status = read_status(received, self.bus.keys).status
             except Rejected as err:
-                self.bus.rejects.record(err.reason, "learner status", err.detail)
+                self.bus.rejects.record(err.reason, received.key, err.detail)
                 continue
-            if sender == f"{LEARNER}/{LEARNER}" and status.get("finished") is True and not self._learner_finished:
-                log.info("the learner finished the run: %s stops", self.name)
-                self._learner_finished = True
+            self._learner_says_finished = status.get("finished") is True
 
     def _receive_acks(self) -> None:
         self._watch_learner()
         for received in self._credits.poll():
             try:
-                message = expect_sender(decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT), LEARNER)
+                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT)
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "credit", err.detail)
                 continue
@@ -258,7 +280,7 @@ class Actor:
         self.seq += 1
         batch = batch._replace(seq=np.int32(self.seq))
         frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=self.bus.keys.run, policy_version=self.version,
-                       learner_epoch=self.epoch, seq=self.seq, sender=self.name,
+                       learner_epoch=self.epoch, seq=self.seq,
                        meta={"incarnation": self.incarnation, "actor": self.index})
         self._traj.put(frame)
         self.counts["sent"] += 1
@@ -267,7 +289,7 @@ class Actor:
         arrays = results_arrays(results)
         if arrays["episodes"].size:
             frame = encode(Kind.LEVEL_RESULTS, arrays, run=self.bus.keys.run, policy_version=self.version,
-                           learner_epoch=self.epoch, seq=self.seq, sender=self.name)
+                           learner_epoch=self.epoch, seq=self.seq)
             self._results.put(frame)
 
     # -- the cycle ----------------------------------------------------------------------------------------
@@ -277,6 +299,7 @@ class Actor:
         return {
             "role": ACTOR_ROLE,
             "name": self.name,
+            "incarnation": self.incarnation,
             "steps_per_s": self._steps_done / elapsed if elapsed > 0 else 0.0,
             "last_cycle_s": self._last_cycle_s,
             "policy_version": self.version,
@@ -285,7 +308,7 @@ class Actor:
             "levels": self.levels.description,
             "waiting": "weights" if self.params is None else "levels" if self.levels.waiting else (
                 "credit" if self.in_flight >= self.config.actors.credits else ""),
-            "rejected": self.bus.rejects.total,
+            "rejected": self.bus.rejects.counts(),
             "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,
             **({"monitor": self.monitor.status()} if self.monitor is not None else {}),
@@ -348,6 +371,10 @@ class Actor:
         """An actor keeps no state worth a checkpoint: the learner and the curriculum own the run."""
 
     def finished(self) -> bool:
-        """When the learner says the run is finished: on one machine the launcher stops the actors anyway, but
-        actors on other hosts would otherwise wait for weights that never come."""
-        return self._learner_finished
+        """When the learner's latest status says the run is finished and the learner has left (see the module
+        docstring): on one machine the launcher stops the actors anyway, but actors on other hosts would otherwise
+        wait for weights that never come."""
+        if self._learner_says_finished and not self._learner_present:
+            log.info("the learner finished the run: %s stops", self.name)
+            return True
+        return False

@@ -236,7 +236,7 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int) -
     shapes = {path_name(path): (tuple(leaf.shape), np.dtype(leaf.dtype)) for path, leaf in leaves}
     arrays = {name: np.zeros(shape, dtype) for name, (shape, dtype) in shapes.items()}
     frame = encode(Kind.TRAJECTORY, arrays, run="bench", policy_version=1, learner_epoch=1, seq=1,
-                   sender="actor-0", meta={"incarnation": 1, "actor": 0})
+                   meta={"incarnation": 1, "actor": 0})
     steps = num_envs * num_steps
     obs_bytes = sum(a.nbytes for n, a in arrays.items() if n.startswith("steps/obs"))
     active = active_slots(size)
@@ -378,6 +378,7 @@ def run_distributed(config_path: Path, overrides: list[str], work: Path, updates
     """`impulse launch` with `num_actors` actors as a child process, on a free loopback port, while this process
     watches every status line on the run's bus (kept with the time it arrived)."""
     from bus.codec import Rejected
+    from bus.keys import OPERATOR
     from bus.session import Bus
     from bus.status import read_status
 
@@ -395,16 +396,16 @@ def run_distributed(config_path: Path, overrides: list[str], work: Path, updates
     env = child_env(memory)
     statuses: list[tuple[float, str, dict[str, Any]]] = []
     load = os.getloadavg()[0]
-    with Bus(config.bus, config.name, "bench", "watcher") as bus:
-        inbox = bus.inbox(bus.keys.metrics_all, 256, drop_oldest=True)
+    with Bus(config.bus, config.name, OPERATOR, "bench-watcher") as bus:
+        inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
 
         def collect() -> None:
             for received in inbox.poll():
                 try:
-                    sender, status = read_status(received, bus.keys.run)
+                    heard = read_status(received, bus.keys)
                 except Rejected:
                     continue
-                statuses.append((time.time(), sender, status))
+                statuses.append((time.time(), f"{heard.role}/{heard.ident}", heard.status))
 
         code, wall = run_process(argv, work / f"{label}.log", timeout_s, env, collect)
     return RunResult("impulse-distributed", num_actors, _read_metrics(run_dir / "metrics.jsonl"), statuses, wall,
@@ -590,7 +591,7 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     rollout_s = _median_s(one_rollout, repeats)
     batch = jax.device_get(make_batch(held["steps"], held["carry"].obs, 0, train_mask=held["train_mask"]))
 
-    weights = encode(Kind.WEIGHTS, tree_arrays(params), run="bench", sender="learner")  # before donation
+    weights = encode(Kind.WEIGHTS, tree_arrays(params), run="bench")  # before donation
     optimizer = make_optimizer(ppo, 1000)
     update = jax.jit(lambda state, b, k: ppo_update(state, b, k, apply_fn=agent.apply,
                                                     distribution=agent.distribution, optimizer=optimizer,
@@ -613,7 +614,7 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
 
     def actor_encode() -> bytearray:
         return encode(Kind.TRAJECTORY, tree_arrays(batch), run=run, policy_version=1, learner_epoch=1, seq=1,
-                      sender="actor-0", meta={"incarnation": 1, "actor": 0})
+                      meta={"incarnation": 1, "actor": 0})
 
     frame = bytes(actor_encode())
     message = decode(frame, run=run, kinds=Kind.TRAJECTORY)

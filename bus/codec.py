@@ -7,20 +7,32 @@ one decoder validates everything that arrives from the network before any other 
     0       4     magic            4s     b"IMPZ"
     4       2     schema_version   u16    SCHEMA_MAJOR of the sender
     6       2     kind             u16    a Kind
-    8       4     flags            u32    reserved, written as 0 and ignored on receipt
+    8       4     flags            u32    bit 0 (FLAG_DIGEST): a digest trailer follows the body; other bits 0
     12      8     run_hash         u64    first 8 bytes of blake2b(run id): a message of another run is refused
     20      8     policy_version   u64    version of the policy that produced the data (or of the weights)
     28      4     learner_epoch    u32    how many times the learner has restarted (versions restart with it)
     32      8     seq              u64    per-sender sequence number (gaps = loss, repeats = replays)
     40      4     table_len        u32    length of the JSON table
     44      8     body_len         u64    length of the body
-    52      ...   table            JSON   {"arrays": [[name, dtype, shape, offset, nbytes], ...], "meta": {...},
-                                           "sender": "..."}; UTF-8, at most MAX_TABLE_BYTES
+    52      ...   table            JSON   {"arrays": [[name, dtype, shape, offset, nbytes], ...], "meta": {...}};
+                                           UTF-8, at most MAX_TABLE_BYTES
     ...     pad   zeros up to the next multiple of 64 bytes
     B       ...   body             the arrays' bytes, C order, little-endian, each starting at a multiple of 64
                                    bytes from B; an array's `offset` is relative to B
 
-All integers are little-endian. The frame's total length is exactly B + body_len.
+    B+body  32    digest           bytes  with FLAG_DIGEST only: BLAKE2b-256 of every byte before it
+
+All integers are little-endian. The frame's total length is exactly B + body_len (+ DIGEST_SIZE with a digest).
+
+A frame names no sender: who sent it is what the key it arrived on says (each role publishes only under its own
+prefix, `bus.keys`), which a router with access control guarantees; a name inside a payload would prove nothing.
+
+Control frames (`DIGESTED_KINDS`: weights, credits, level batches, status, control replies) carry a digest of the
+whole frame, header and array bytes included, and `decode` refuses one without it or whose bytes do not match it
+("digest"): a flipped bit anywhere in a weights frame is caught before the weights are adopted. A digest is not a
+signature (anyone can compute one); who may publish is the router's business. Data frames (trajectories, level
+results) carry none: hashing a 150 MB trajectory would cost more than the rest of its journey, and their arrays
+are checked against the schema and for NaN/Inf on arrival.
 
 Copies (measured by benchmarks/bus_copies.py on the 2-core machine, a 17.7 MB trajectory; a plain memcpy of it
 takes 1.4 ms): `encode` copies each array once into one fresh bytearray (2.0 ms in all) and returns that
@@ -58,6 +70,9 @@ ALIGN = 64
 MAX_TABLE_BYTES = 1 << 20
 """Largest array table accepted: a table this big would describe tens of thousands of arrays."""
 MAX_NDIM = 32
+FLAG_DIGEST = 1
+"""Header flag: the frame ends with a DIGEST_SIZE-byte BLAKE2b digest of everything before it."""
+DIGEST_SIZE = 32
 TREE_HASH_META = "tree_hash"
 """Meta key carrying `tree_hash` of the arrays (weights carry it so that an actor refuses a foreign network)."""
 
@@ -77,11 +92,11 @@ REASONS = (
     "tree_hash",
     "stale",
     "duplicate",
-    "foreign_sender",
+    "digest",
 )
-"""Why a message was refused. `decode` uses the first ten; `schema.check` adds non_finite, schema, tree_hash (and
-bad_dtype, bad_shape); stale and duplicate are for consumers that track policy versions and sequence numbers;
-foreign_sender is `expect_sender`'s."""
+"""Why a message was refused. `decode` uses the first ten and digest; `schema.check` adds non_finite, schema,
+tree_hash (and bad_dtype, bad_shape); stale and duplicate are for consumers that track policy versions and
+sequence numbers (an older version than one already held, a sequence number or version seen before)."""
 
 _U32_MAX = (1 << 32) - 1
 _U64_MAX = (1 << 64) - 1
@@ -121,6 +136,10 @@ class Kind(enum.IntEnum):
     CONTROL = 7
 
 
+DIGESTED_KINDS = frozenset({Kind.WEIGHTS, Kind.CREDIT, Kind.LEVELS, Kind.METRICS, Kind.CONTROL})
+"""Kinds that travel with a digest of the whole frame (see the module docstring)."""
+
+
 class Header(NamedTuple):
     """The fixed header fields, in wire order."""
 
@@ -155,18 +174,9 @@ class Message:
     policy_version: int
     learner_epoch: int
     seq: int
-    sender: str
     meta: dict[str, Any]
     arrays: dict[str, np.ndarray]
 
-
-def expect_sender(message: Message, sender: str) -> Message:
-    """`message` if it declares `sender` as its sender, else Rejected("foreign_sender"): weights and credits come
-    from the learner only, level batches from the curriculum only. Routers with access control stop other
-    publishers on the way (`bus.router`); this check also holds on an open bus against a misconfigured process."""
-    if message.sender != sender:
-        raise Rejected("foreign_sender", f"{message.kind.name} frame from {message.sender!r}, expected {sender!r}")
-    return message
 
 
 @lru_cache(maxsize=64)
@@ -202,10 +212,10 @@ def encode(
     policy_version: int = 0,
     learner_epoch: int = 0,
     seq: int = 0,
-    sender: str = "",
     meta: Mapping[str, Any] | None = None,
 ) -> bytearray:
-    """One frame holding `arrays` (a flat mapping; see `flatten`), ready to `put`.
+    """One frame holding `arrays` (a flat mapping; see `flatten`), ready to `put`; kinds of DIGESTED_KINDS end
+    with the digest of the frame.
 
     Each array is copied exactly once, into the frame (non-contiguous or big-endian inputs are converted during
     that copy). Returns the bytearray itself: zenoh accepts it and copies it anyway, so `bytes()` would be waste.
@@ -227,17 +237,18 @@ def encode(
         entries.append([name, dtype.str, list(array.shape), offset, nbytes])
         copies.append((array, dtype, offset))
         body_len = offset + nbytes
-    table = json.dumps({"arrays": entries, "meta": dict(meta or {}), "sender": sender}, separators=(",", ":"))
+    table = json.dumps({"arrays": entries, "meta": dict(meta or {})}, separators=(",", ":"))
     table_bytes = table.encode("utf-8")
     if len(table_bytes) > MAX_TABLE_BYTES:
         raise ValueError(f"array table of {len(table_bytes)} bytes exceeds {MAX_TABLE_BYTES}; send fewer arrays")
     body_start = _aligned(HEADER_SIZE + len(table_bytes))
-    frame = bytearray(body_start + body_len)
+    digested = kind in DIGESTED_KINDS
+    frame = bytearray(body_start + body_len + (DIGEST_SIZE if digested else 0))
     header = Header(
         magic=MAGIC,
         schema_version=SCHEMA_MAJOR,
         kind=kind,
-        flags=0,
+        flags=FLAG_DIGEST if digested else 0,
         run_hash=run_hash(run),
         policy_version=policy_version,
         learner_epoch=learner_epoch,
@@ -250,7 +261,14 @@ def encode(
     for array, dtype, offset in copies:
         if array.size:
             np.ndarray(array.shape, dtype, buffer=frame, offset=body_start + offset)[...] = array
+    if digested:
+        end = body_start + body_len
+        frame[end:] = _digest(memoryview(frame)[:end])
     return frame
+
+
+def _digest(data: memoryview) -> bytes:
+    return hashlib.blake2b(data, digest_size=DIGEST_SIZE).digest()
 
 
 def _byte_view(data: bytes | bytearray | memoryview) -> memoryview:
@@ -273,7 +291,7 @@ def _is_count(value: object) -> bool:
     return type(value) is int and value >= 0
 
 
-def _parse_table(raw: bytes) -> tuple[list[Any], dict[str, Any], str]:
+def _parse_table(raw: bytes) -> tuple[list[Any], dict[str, Any]]:
     try:
         table = json.loads(raw.decode("utf-8"))
     except (ValueError, RecursionError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
@@ -282,14 +300,11 @@ def _parse_table(raw: bytes) -> tuple[list[Any], dict[str, Any], str]:
         raise Rejected("bad_table", f"array table is a JSON {type(table).__name__}, expected an object")
     entries = table.get("arrays")
     meta = table.get("meta", {})
-    sender = table.get("sender", "")
     if not isinstance(entries, list):
         raise Rejected("bad_table", "array table has no 'arrays' list")
     if not isinstance(meta, dict):
         raise Rejected("bad_table", f"'meta' is a JSON {type(meta).__name__}, expected an object")
-    if not isinstance(sender, str):
-        raise Rejected("bad_table", f"'sender' is a JSON {type(sender).__name__}, expected a string")
-    return entries, meta, sender
+    return entries, meta
 
 
 def _array_view(
@@ -336,7 +351,8 @@ def decode(
     """Validate a frame and return its Message, or raise `Rejected` (never anything else for any byte string).
 
     `kinds` limits the accepted kinds (a trajectory arriving on the weights key is refused); `max_bytes` bounds
-    the frame. Nothing is allocated from a declared size: lengths are compared with `len(data)` first.
+    the frame. Nothing is allocated from a declared size: lengths are compared with `len(data)` first. A frame
+    of DIGESTED_KINDS must carry its digest, and any digest carried must match the frame's bytes.
     """
     buf = _byte_view(data)
     size = len(buf)
@@ -362,12 +378,18 @@ def decode(
     if header.table_len > MAX_TABLE_BYTES:
         raise Rejected("bad_table", f"array table of {header.table_len} bytes exceeds {MAX_TABLE_BYTES}")
     body_start = _aligned(HEADER_SIZE + header.table_len)
-    declared = body_start + header.body_len
+    digested = bool(header.flags & FLAG_DIGEST)
+    if kind in DIGESTED_KINDS and not digested:
+        raise Rejected("digest", f"a {kind.name} frame without the digest every {kind.name} frame carries")
+    end = body_start + header.body_len
+    declared = end + (DIGEST_SIZE if digested else 0)
     if declared > size:
         raise Rejected("truncated", f"header declares a {declared}-byte frame, payload has {size} bytes")
     if declared < size:
         raise Rejected("bad_size", f"header declares a {declared}-byte frame, payload has {size} bytes")
-    entries, meta, sender = _parse_table(bytes(buf[HEADER_SIZE : HEADER_SIZE + header.table_len]))
+    if digested and _digest(buf[:end]) != bytes(buf[end:]):
+        raise Rejected("digest", f"the {kind.name} frame's bytes do not match its digest (corrupted or altered)")
+    entries, meta = _parse_table(bytes(buf[HEADER_SIZE : HEADER_SIZE + header.table_len]))
     seen: set[str] = set()
     arrays = dict(_array_view(entry, buf, body_start, header.body_len, seen) for entry in entries)
     return Message(
@@ -375,7 +397,6 @@ def decode(
         policy_version=header.policy_version,
         learner_epoch=header.learner_epoch,
         seq=header.seq,
-        sender=sender,
         meta=meta,
         arrays=arrays,
     )

@@ -1,15 +1,19 @@
-"""Receiving handles: bounded zenoh channels drained in the caller's own thread.
+"""Receiving handles: bounded queues drained in the caller's own thread.
 
 Zenoh can hand each sample to a Python callback, but a slow callback is an unbounded queue (the reference measured
-a 124 MB backlog) and work done inside it runs on zenoh's threads. Here every subscription, queryable and
-liveliness watcher feeds a bounded zenoh channel, and the owner drains it with `poll` or `wait` wherever it decodes
-anyway: a FIFO channel that fills up stalls the sender (real backpressure), a ring channel drops the oldest.
+a 124 MB backlog) and work done inside it runs on zenoh's threads. Here nothing is done in a callback but queueing:
+every subscription feeds a bounded `Mailbox` (a callback that only appends the sample, and counts what it has to
+drop when full, so no drop goes uncounted), queryables and liveliness watchers feed bounded zenoh channels, and the
+owner drains them with `poll` or `wait` wherever it decodes anyway. Back-pressure is the protocol's business
+(credits), never a full queue's: zenoh's blocking gives up silently after a while.
 Zenoh channels have no receive-with-timeout, so `wait` polls with a short sleep (at most WAIT_SLEEP_MAX_S).
 """
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -69,16 +73,54 @@ def _received(sample: zenoh.Sample) -> Received | None:
     )
 
 
-class Inbox:
-    """Samples of one subscription, waiting in a bounded zenoh channel until the owner takes them."""
+class Mailbox:
+    """A bounded queue of samples that zenoh's callback fills and the owner's thread empties.
 
-    def __init__(self, subscriber: Any, key: str) -> None:
+    When full it drops the newest sample (`drop_oldest=False`: what is queued is kept in order) or the oldest
+    (`drop_oldest=True`: only the newest matter), and counts each drop in `dropped`. The callback does nothing else:
+    no decoding, no copy, no device work on zenoh's threads.
+    """
+
+    def __init__(self, capacity: int, drop_oldest: bool) -> None:
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+            raise ValueError(f"a mailbox needs a capacity >= 1, got {capacity!r}")
+        self.capacity = capacity
+        self.drop_oldest = drop_oldest
+        self.dropped = 0
+        self._samples: deque[zenoh.Sample] = deque()
+        self._lock = threading.Lock()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            if len(self._samples) >= self.capacity:
+                self.dropped += 1
+                if not self.drop_oldest:
+                    return
+                self._samples.popleft()
+            self._samples.append(sample)
+
+    def try_recv(self) -> zenoh.Sample | None:
+        """The oldest queued sample, or None."""
+        with self._lock:
+            return self._samples.popleft() if self._samples else None
+
+
+class Inbox:
+    """Samples of one subscription, waiting in a `Mailbox` until the owner takes them."""
+
+    def __init__(self, subscriber: Any, key: str, mailbox: Mailbox) -> None:
         self.subscriber = subscriber
         self.key = key
+        self.mailbox = mailbox
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped so far because the mailbox was full (see `Mailbox`)."""
+        return self.mailbox.dropped
 
     def poll(self, max_items: int | None = None) -> list[Received]:
         """Every sample waiting now (at most `max_items`), without blocking."""
-        return _drain(self.subscriber.try_recv, _received, max_items)
+        return _drain(self.mailbox.try_recv, _received, max_items)
 
     def wait(self, timeout_s: float) -> Received | None:
         """The next sample, waiting up to `timeout_s` seconds for it; None if none came."""

@@ -1,16 +1,36 @@
-"""Key expressions of one run: every message of the system is published under `impulse/<run>/v1/...`.
+"""Key expressions of one run: every message of the system is published under `impulse/<run>/v2/<role>/...`.
 
 The run id and the wire-schema major version sit in the key, so two runs sharing a hub, or a process built
 against an incompatible wire format, never even match each other's subscriptions. Building the keys in one place
 keeps publishers and subscribers from drifting apart by a typo.
+
+**Each role publishes only under its own prefix** `impulse/<run>/v2/<role>/`: the learner its weights, credits
+and status; the curriculum its answers to level and knob queries and its status; an actor its trajectories, level
+results and status; the operator (command-line tools, the launcher, status watchers) only its status and
+liveliness. A router with access control (`bus.router.access_rules`) lets each role's credentials publish there and
+nowhere else, so a receiver knows who sent a message from the key it arrived on, which the router guarantees, and
+never from a name the message gives itself. The `<actor>` chunk of an actor's keys is not guaranteed (all actors
+share one credential): it tells actors apart, it does not authenticate one.
+
+    <root>/learner/weights/policy       weights broadcast (cached for late joiners under .../@adv/pub/...)
+    <root>/learner/weights/latest       weights queryable (fallback)
+    <root>/learner/credit/<actor>       acknowledgements (credits) for one actor
+    <root>/curriculum/levels/sample     level-batch queryable
+    <root>/curriculum/knobs             live knobs queryable (`impulse curriculum get|set`)
+    <root>/curriculum/inspect           buffer report queryable (`impulse curriculum inspect`)
+    <root>/actor/traj/<actor>           trajectory batches
+    <root>/actor/results/<actor>        per-level results
+    <root>/<role>/status/<id>           status lines (every process)
+    <root>/<role>/alive/<id>            liveliness tokens (every process)
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_MAJOR = 1
-"""Major version of the wire format. Incompatible changes bump it, which changes every key (`v1` -> `v2`)."""
+SCHEMA_MAJOR = 2
+"""Major version of the wire format. Incompatible changes bump it, which changes every key (`v1` -> `v2`).
+2: keys under each role's own prefix, no sender name in frames, digests on control frames."""
 
 PREFIX = "impulse"
 """First chunk of every key the system uses."""
@@ -20,18 +40,21 @@ CURRICULUM = "curriculum"
 ACTOR = "actor"
 OPERATOR = "operator"
 ROLES = (LEARNER, CURRICULUM, ACTOR, OPERATOR)
-"""The roles of a run's processes (the `<role>` chunk of their keys); the operator is any command-line tool.
-Across machines each role has credentials of its own (`bus.router`)."""
+"""The roles of a run's processes (the `<role>` chunk of their keys); the operator is any command-line tool, the
+launcher or a watcher. Across machines each role has credentials of its own (`bus.router`)."""
 
-_FORBIDDEN = frozenset("/*$#?")
+STATUS = "status"
+ALIVE = "alive"
+
+_FORBIDDEN = frozenset("/*$#?@")
 
 
 def check_name(name: str, what: str) -> str:
     """Return `name` if it can be one chunk of a key expression, else raise ValueError naming the problem.
 
     Run ids, actor ids and role names become single key chunks; a `/` would split them, `*` and `$` would turn
-    them into wildcards that match other processes' keys, and `#`, `?` and whitespace are not allowed in keys.
-    `what` says which name it is ("run id", "actor id", ...) for the error message.
+    them into wildcards that match other processes' keys, `@` starts zenoh's reserved chunks, and `#`, `?` and
+    whitespace are not allowed in keys. `what` says which name it is ("run id", "actor id", ...) for the error.
     """
     if not isinstance(name, str):
         raise ValueError(f"{what} must be a string, got {type(name).__name__}")
@@ -43,9 +66,17 @@ def check_name(name: str, what: str) -> str:
     return name
 
 
+def check_role(role: str) -> str:
+    """Return `role` if it is one of ROLES, else raise ValueError: a key under any other prefix would be refused
+    by a router with access control."""
+    if role not in ROLES:
+        raise ValueError(f"role {role!r} is not one of {', '.join(ROLES)}")
+    return role
+
+
 @dataclass(frozen=True)
 class Keys:
-    """The key expressions of one run, under `impulse/<run>/v1/`."""
+    """The key expressions of one run, under `impulse/<run>/v2/` (see the module docstring for the layout)."""
 
     run: str
 
@@ -54,89 +85,95 @@ class Keys:
 
     @property
     def root(self) -> str:
-        """`impulse/<run>/v1`: the common prefix of all keys of this run."""
+        """`impulse/<run>/v2`: the common prefix of all keys of this run."""
         return f"{PREFIX}/{self.run}/v{SCHEMA_MAJOR}"
 
-    def traj(self, actor: str) -> str:
-        """Trajectories published by one actor to the learner."""
-        return f"{self.root}/traj/{check_name(actor, 'actor id')}"
+    def own(self, role: str, *chunks: str) -> str:
+        """A key under `role`'s own prefix: only `role` may publish there (where a router enforces it)."""
+        return "/".join((self.root, check_role(role), *chunks))
 
-    @property
-    def traj_all(self) -> str:
-        """Pattern matching every actor's trajectories (the learner's subscription)."""
-        return f"{self.root}/traj/*"
-
-    def credit(self, actor: str) -> str:
-        """Credits the learner grants to one actor (how many trajectories it may have in flight)."""
-        return f"{self.root}/credit/{check_name(actor, 'actor id')}"
+    # -- the learner's --------------------------------------------------------------------------------------
 
     @property
     def weights_policy(self) -> str:
         """Policy weights broadcast by the learner, cached so that late joiners get the newest."""
-        return f"{self.root}/weights/policy"
+        return self.own(LEARNER, "weights", "policy")
 
     @property
     def weights_latest(self) -> str:
         """Queryable fallback for pulling the newest weights."""
-        return f"{self.root}/weights/latest"
+        return self.own(LEARNER, "weights", "latest")
+
+    def credit(self, actor: str) -> str:
+        """Credits the learner grants to one actor (how many trajectories it may have in flight)."""
+        return self.own(LEARNER, "credit", check_name(actor, "actor id"))
+
+    # -- the curriculum's -----------------------------------------------------------------------------------
 
     @property
     def levels_sample(self) -> str:
         """Queryable of the curriculum: actors pull batches of levels from it."""
-        return f"{self.root}/levels/sample"
-
-    def levels_results(self, actor: str) -> str:
-        """Per-level results published by one actor to the curriculum."""
-        return f"{self.root}/levels/results/{check_name(actor, 'actor id')}"
-
-    @property
-    def levels_results_all(self) -> str:
-        """Pattern matching every actor's level results (the curriculum's subscription)."""
-        return f"{self.root}/levels/results/*"
+        return self.own(CURRICULUM, "levels", "sample")
 
     @property
     def curriculum_knobs(self) -> str:
         """Queryable of the curriculum: read or change its live knobs (`impulse curriculum get|set`)."""
-        return f"{self.root}/curriculum/knobs"
+        return self.own(CURRICULUM, "knobs")
 
     @property
     def curriculum_inspect(self) -> str:
         """Queryable of the curriculum: its buffer statistics and levels (`impulse curriculum inspect`)."""
-        return f"{self.root}/curriculum/inspect"
+        return self.own(CURRICULUM, "inspect")
 
-    def ctrl(self, role: str, ident: str) -> str:
-        """Control messages (pause, resume, shutdown) addressed to one process."""
-        return f"{self.root}/ctrl/{check_name(role, 'role')}/{check_name(ident, 'id')}"
+    # -- the actors' ----------------------------------------------------------------------------------------
 
-    @property
-    def ctrl_all(self) -> str:
-        """Control messages addressed to every process of the run."""
-        return f"{self.root}/ctrl/all"
-
-    def metrics(self, role: str, ident: str) -> str:
-        """Metrics published by one process."""
-        return f"{self.root}/metrics/{check_name(role, 'role')}/{check_name(ident, 'id')}"
+    def traj(self, actor: str) -> str:
+        """Trajectories published by one actor to the learner."""
+        return self.own(ACTOR, "traj", check_name(actor, "actor id"))
 
     @property
-    def metrics_all(self) -> str:
-        """Pattern matching every process's metrics."""
-        return f"{self.root}/metrics/**"
+    def traj_all(self) -> str:
+        """Pattern matching every actor's trajectories (the learner's subscription)."""
+        return self.own(ACTOR, "traj", "*")
+
+    def levels_results(self, actor: str) -> str:
+        """Per-level results published by one actor to the curriculum."""
+        return self.own(ACTOR, "results", check_name(actor, "actor id"))
+
+    @property
+    def levels_results_all(self) -> str:
+        """Pattern matching every actor's level results (the curriculum's subscription)."""
+        return self.own(ACTOR, "results", "*")
+
+    # -- every process's ------------------------------------------------------------------------------------
+
+    def status(self, role: str, ident: str) -> str:
+        """Status lines published by one process."""
+        return self.own(role, STATUS, check_name(ident, "id"))
+
+    def status_pattern(self, role: str | None = None) -> str:
+        """Pattern matching the status lines of one role, or of every process when `role` is None."""
+        return f"{self.root}/{'*' if role is None else check_role(role)}/{STATUS}/*"
+
+    def parse_status(self, key: str) -> tuple[str, str]:
+        """(role, ident) of a status key of this run; ValueError if `key` is not one."""
+        return self._parse(key, STATUS, "status")
 
     def alive(self, role: str, ident: str) -> str:
         """Liveliness token of one process: present while its session is up."""
-        return f"{self.root}/alive/{check_name(role, 'role')}/{check_name(ident, 'id')}"
+        return self.own(role, ALIVE, check_name(ident, "id"))
 
     def alive_pattern(self, role: str | None = None) -> str:
         """Pattern matching the liveliness tokens of one role, or of every process when `role` is None."""
-        if role is None:
-            return f"{self.root}/alive/**"
-        return f"{self.root}/alive/{check_name(role, 'role')}/*"
+        return f"{self.root}/{'*' if role is None else check_role(role)}/{ALIVE}/*"
 
     def parse_alive(self, key: str) -> tuple[str, str]:
         """(role, ident) of a liveliness key of this run; ValueError if `key` is not one."""
-        prefix = f"{self.root}/alive/"
-        rest = key[len(prefix) :] if key.startswith(prefix) else ""
-        role, sep, ident = rest.partition("/")
-        if not sep or not role or not ident or "/" in ident:
-            raise ValueError(f"{key!r} is not a liveliness key of run {self.run!r} ({prefix}<role>/<id>)")
-        return role, ident
+        return self._parse(key, ALIVE, "liveliness")
+
+    def _parse(self, key: str, topic: str, what: str) -> tuple[str, str]:
+        rest = key[len(self.root) + 1 :] if key.startswith(self.root + "/") else ""
+        parts = rest.split("/")
+        if len(parts) != 3 or parts[0] not in ROLES or parts[1] != topic or not parts[2]:
+            raise ValueError(f"{key!r} is not a {what} key of run {self.run!r} ({self.root}/<role>/{topic}/<id>)")
+        return parts[0], parts[2]

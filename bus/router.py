@@ -17,10 +17,11 @@ A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`
 `actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect`, status watchers).
 
 With access control on, the router denies by default and allows each role only its part of the protocol
-(`access_rules`): only the learner may publish weights and credits, only the curriculum may answer level and
-knob queries, only actors may publish trajectories and level results, and trajectories reach only the learner;
-actors hear the learner's status, which tells them when the run is finished.
-Receivers also check each frame's declared sender, which catches a misconfigured process on an open bus.
+(`access_rules`): each role publishes only under its own key prefix (`bus.keys`), so only the learner can publish
+weights, credits and the learner's status, only the curriculum can answer level and knob queries, only actors can
+publish trajectories and level results, and only operators (and actors, for levels) may ask the curriculum;
+trajectories reach only the learner. Receivers tell who sent a message by the key it arrived on, which is what the
+router guarantees; a frame carries no sender name (docs/multi-host.md, "Threat model").
 
 Routers linked to each other (one per host, `router.connect`) trust each other: a router is recognised by its
 certificate (common name `router`; a router sees the certificate of one it connects to but not its user name, so
@@ -43,7 +44,7 @@ from typing import Any
 
 import zenoh
 
-from bus.keys import OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
+from bus.keys import ACTOR, CURRICULUM, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
 
 log = logging.getLogger("impulse.router")
 
@@ -162,37 +163,43 @@ def _allow(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dic
 def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
     """Zenoh access control for the router: deny by default, then each role's part of the protocol.
 
-    `ingress` rules say what a role may send into the router, `egress` what the router may deliver to it. Keys
-    cover every run (`impulse/*/v1/...`); the advanced publisher's cache for late joiners lives under
-    `weights/policy/@adv/**`, which `**` does not match (`@` chunks match only themselves), hence its own keys.
+    Each role may publish (put, reply, declare a queryable or a liveliness token) only under its own prefix
+    `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. `ingress` rules
+    say what a role may send into the router, `egress` what the router may deliver to it: trajectories reach only
+    the learner, level results only the curriculum, the learner's weights, credits and status reach actors, and
+    every process may hear status lines. Keys cover every run; the advanced publisher's cache for late joiners
+    lives under `learner/weights/policy/@adv/**`, which `**` does not match (`@` chunks match only themselves),
+    hence its own keys.
     """
     run = f"{PREFIX}/*/v{SCHEMA_MAJOR}"
-    weights = [f"{run}/weights/**", f"{run}/weights/policy/@adv/**"]
-    everything = [f"{PREFIX}/**", f"{run}/weights/policy/@adv/**"]
-    declarations = ["declare_subscriber", "declare_queryable", "liveliness_token", "liveliness_query",
-                    "declare_liveliness_subscriber"]
+    weights_cache = f"{run}/{LEARNER}/weights/policy/@adv/**"
+    everything = [f"{PREFIX}/**", weights_cache]
+
+    def own(role: str) -> list[str]:
+        return [f"{run}/{role}/**", *([weights_cache] if role == LEARNER else [])]
+
+    listening = ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"]
+    publishing = ["put", "reply", "declare_queryable", "liveliness_token"]
     rules = [
-        _allow("declare", "ingress", declarations, everything),
-        _allow("hear-declarations", "egress", [*declarations, "reply"], everything),
-        _allow("status", "ingress", ["put"], [f"{run}/metrics/**"]),
-        _allow("learner-sends", "ingress", ["put", "reply"], [*weights, f"{run}/credit/**"]),
-        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/traj/**", *weights, f"{run}/metrics/**"]),
-        _allow("actor-sends", "ingress", ["put"], [f"{run}/traj/**", f"{run}/levels/results/**"]),
-        _allow("actor-asks", "ingress", ["query"], [*weights, f"{run}/levels/sample"]),
-        _allow("actor-hears", "egress", ["put"], [*weights, f"{run}/credit/**", f"{run}/metrics/learner/**"]),
-        _allow("curriculum-sends", "ingress", ["reply"], [f"{run}/levels/sample", f"{run}/curriculum/**"]),
-        _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/levels/**", f"{run}/curriculum/**"]),
-        _allow("operator-asks", "ingress", ["query"], [f"{run}/curriculum/**"]),
-        _allow("operator-hears", "egress", ["put"], [f"{run}/metrics/**"]),
+        _allow("listen", "ingress", listening, everything),
+        _allow("hear-declarations", "egress", [*listening, "declare_queryable", "liveliness_token", "reply"],
+               everything),
+        _allow("hear-statuses", "egress", ["put"], [f"{run}/*/status/*"]),
+        *(_allow(f"{role}-publishes", "ingress", publishing, own(role)) for role in ROLES),
+        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/traj/*", *own(LEARNER)]),
+        _allow("actor-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache,
+                                                    f"{run}/{CURRICULUM}/levels/sample"]),
+        _allow("actor-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
+        _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
+        _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect"]),
         _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
         _allow("router-passes-out", "egress", ALL_MESSAGES, everything),
     ]
-    own = {
-        "learner": ["learner-sends", "learner-hears"],
-        "curriculum": ["curriculum-sends", "curriculum-hears"],
-        "actor": ["actor-sends", "actor-asks", "actor-hears"],
-        "operator": ["operator-asks", "operator-hears"],
-        ROUTER_ROLE: ["router-passes-in", "router-passes-out"],
+    own_rules = {
+        LEARNER: ["learner-hears"],
+        CURRICULUM: ["curriculum-hears"],
+        ACTOR: ["actor-asks", "actor-hears"],
+        OPERATOR: ["operator-asks"],
     }
     subjects, policies = [], []
     for role in ROLES:
@@ -202,12 +209,13 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         if by_password:
             subject["usernames"] = [role]
         subjects.append(subject)
-        policies.append({"id": role, "subjects": [role], "rules": ["declare", "hear-declarations", "status",
-                                                                   *own[role]]})
+        policies.append({"id": role, "subjects": [role], "rules": ["listen", "hear-declarations", "hear-statuses",
+                                                                   f"{role}-publishes", *own_rules[role]]})
     if by_certificate:
         # By certificate alone: a router sees the certificate of a router it connects to, but not its user name.
         subjects.append({"id": ROUTER_ROLE, "cert_common_names": [ROUTER_ROLE]})
-        policies.append({"id": ROUTER_ROLE, "subjects": [ROUTER_ROLE], "rules": own[ROUTER_ROLE]})
+        policies.append({"id": ROUTER_ROLE, "subjects": [ROUTER_ROLE], "rules": ["router-passes-in",
+                                                                                 "router-passes-out"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

@@ -51,10 +51,10 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
-from bus.inbox import AliveWatcher, Inbox, QueryInbox
-from bus.keys import Keys, check_name
+from bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
+from bus.keys import Keys, check_name, check_role
 from bus.rejects import RejectCounter
-from bus.router import client_security
+from bus.router import client_security, is_loopback
 
 log = logging.getLogger("impulse.bus")
 
@@ -91,7 +91,8 @@ class BusConfig:
     """How a process reaches the bus; a section of the run's TOML config, hence only simple types."""
 
     hub: str = "tcp/127.0.0.1:7447"
-    """Endpoint of the one-machine hub: the hub listens on it, every other process connects to it."""
+    """Endpoint of the one-machine hub: the hub listens on it, every other process connects to it. Loopback only:
+    the hub has no authentication (docs/multi-host.md, "The open one-machine bus")."""
     connect: tuple[str, ...] = ()
     """Several machines: the routers to connect to. When non-empty it replaces `hub` for connecting."""
     shared_memory: bool = True
@@ -111,6 +112,10 @@ class BusConfig:
 
     def __post_init__(self) -> None:
         _check_endpoint(self.hub, "bus.hub")
+        if not is_loopback(self.hub):
+            raise ValueError(f"bus.hub {self.hub!r} is not a loopback address: the one-machine hub has no "
+                             "authentication, so it listens on this machine only (127.0.0.1, ::1 or localhost); "
+                             "across machines run `impulse router` with credentials and set bus.connect")
         connect = self.connect
         if isinstance(connect, str) or not isinstance(connect, tuple | list):
             raise ValueError(f"bus.connect must be a list of endpoints, got {connect!r}")
@@ -162,6 +167,9 @@ def zenoh_config(config: BusConfig, *, listen: bool, role: str = "") -> zenoh.Co
 class Bus:
     """One process's zenoh session, its liveliness token, and every entity declared through it.
 
+    `role` is one of `bus.keys.ROLES` (the launcher, command-line tools and watchers are operators); the process
+    publishes under that role's prefix and, across machines, presents that role's credentials.
+
     `close()` (or leaving the `with` block) undeclares them all, advanced subscribers first, then closes the
     session; a session left open keeps the process from exiting.
     """
@@ -169,7 +177,7 @@ class Bus:
     def __init__(self, config: BusConfig, run: str, role: str, ident: str, *, listen: bool = False) -> None:
         self.config = config
         self.keys = Keys(run)
-        self.role = check_name(role, "role")
+        self.role = check_role(role)
         self.ident = check_name(ident, "id")
         self.rejects = RejectCounter()
         self._advanced_subscribers: list[Any] = []
@@ -257,21 +265,22 @@ class Bus:
         )
 
     def inbox(self, key: str, capacity: int, *, drop_oldest: bool = False, latest: bool = False) -> Inbox:
-        """Subscribe to `key` into a channel of `capacity` samples, drained with `Inbox.poll`/`wait`.
+        """Subscribe to `key` into a mailbox of `capacity` samples, drained with `Inbox.poll`/`wait`.
 
-        A full FIFO channel (the default) holds the senders back; `drop_oldest` keeps only the newest samples
-        instead. `latest=True` also fetches the newest sample cached by a `latest_publisher`, even one published
-        before this call.
+        A full mailbox drops the newest sample (the default: what waits is kept in order) or, with `drop_oldest`,
+        the oldest; either way it counts the drop (`Inbox.dropped`). `latest=True` also fetches the newest sample
+        cached by a `latest_publisher`, even one published before this call.
         """
         self._check_open()
         _check_positive("inbox capacity", capacity, int)
-        channel = zenoh.handlers.RingChannel(capacity) if drop_oldest else zenoh.handlers.FifoChannel(capacity)
+        mailbox = Mailbox(capacity, drop_oldest)
+        handler = zenoh.handlers.Callback(mailbox)
         if not latest:
-            return Inbox(self._remember(self.session.declare_subscriber(key, channel)), key)
+            return Inbox(self._remember(self.session.declare_subscriber(key, handler)), key, mailbox)
         history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1)
-        subscriber = zenoh.ext.declare_advanced_subscriber(self.session, key, channel, history=history)
+        subscriber = zenoh.ext.declare_advanced_subscriber(self.session, key, handler, history=history)
         self._advanced_subscribers.append(subscriber)
-        return Inbox(subscriber, key)
+        return Inbox(subscriber, key, mailbox)
 
     def queryable(self, key: str, capacity: int) -> QueryInbox:
         """Serve queries on `key`; they wait in a channel of `capacity` until `QueryInbox.poll` hands them out."""

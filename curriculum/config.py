@@ -106,9 +106,9 @@ class CurriculumConfig:
             problems.append(f"curriculum.staging_factor must be >= 2, got {self.staging_factor}")
         if self.max_edits < 0:
             problems.append(f"curriculum.max_edits must be >= 0, got {self.max_edits}")
-        if self.filter_ratio < 1 or self.filter_steps < 1:
-            problems.append(f"curriculum.filter_ratio and filter_steps must be >= 1, got {self.filter_ratio}, "
-                            f"{self.filter_steps}")
+        for name in ("filter_ratio", "filter_steps"):
+            if getattr(self, name) < 1:
+                problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
         if problems:
             raise ValueError("; ".join(problems))
 

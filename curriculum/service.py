@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import secrets
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -45,7 +46,7 @@ from engine.physics.pytree import tree_arrays
 log = logging.getLogger(__name__)
 
 CURRICULUM_ROLE = CURRICULUM
-CURRICULUM_ID = "0"
+CURRICULUM_ID = CURRICULUM
 RESULTS_PER_POLL = 64
 """Result messages applied per poll at most, so a flood of results never starves sample queries."""
 
@@ -53,12 +54,27 @@ KnobResolver = Callable[[CurriculumConfig, list[str]], CurriculumConfig]
 """Applies `key=value` assignments to a config, raising ValueError with the config system's message."""
 
 
+class RestoredCheckpoint(Protocol):
+    """What a checkpoint store's `restore` returns (`learner.checkpoint.Restored` fits)."""
+
+    @property
+    def items(self) -> dict[str, Any]: ...
+
+    @property
+    def counters(self) -> dict[str, Any]: ...
+
+    @property
+    def step(self) -> int: ...
+
+
 class CheckpointStore(Protocol):
     """What the service needs of a checkpointer (`learner.checkpoint.Checkpointer` fits)."""
 
     def save(self, step: int, items: dict[str, Any], counters: dict[str, Any], config_toml: str) -> None: ...
 
-    def restore(self, templates: dict[str, Any], step: int | None = None) -> tuple[dict, dict, str]: ...
+    def restore(self, templates: dict[str, Any], step: int | None = None) -> RestoredCheckpoint:
+        """The newest intact checkpoint (corrupt newer ones are moved aside) or checkpoint `step`."""
+        ...
 
     def latest_step(self) -> int | None: ...
 
@@ -97,6 +113,8 @@ class CurriculumService:
         self.result_messages = 0
         self.knob_changes = 0
         self.policy_version = 0
+        self.incarnation = secrets.randbits(31)
+        """Drawn at start: tells this process's status counters from a predecessor's (`bus.status.DropTotals`)."""
         self._saved_step: int | None = None
         if resume and checkpoints.latest_step() is not None:
             self._restore()
@@ -119,12 +137,13 @@ class CurriculumService:
 
     def _restore(self) -> None:
         template = jax.eval_shape(self.curriculum.init, self._key)
-        items, counters, _ = self.checkpoints.restore({self.item: template})
-        self.state = items[self.item]
+        restored = self.checkpoints.restore({self.item: template})
+        counters = restored.counters
+        self.state = restored.items[self.item]
         self.samples = int(counters.get("samples", 0))
         self.result_messages = int(counters.get("result_messages", 0))
         self.policy_version = int(counters.get("policy_version", 0))
-        self._saved_step = self.checkpoints.latest_step()
+        self._saved_step = restored.step
         log.info("curriculum resumed from checkpoint %s: %d levels buffered, %d staged, %d samples served",
                  self._saved_step, int(np.asarray(self.state.buffer.filled).sum()),
                  int(np.asarray(self.state.staging.staged).sum()), self.samples)
@@ -192,8 +211,7 @@ class CurriculumService:
         key = jax.random.fold_in(self._key, self.samples + 1)
         self.state, batch = self._sample(self.state, key)
         self.samples += 1
-        query.reply(encode(Kind.LEVELS, level_batch_arrays(batch), run=self.bus.keys.run, seq=self.samples,
-                           sender=CURRICULUM))
+        query.reply(encode(Kind.LEVELS, level_batch_arrays(batch), run=self.bus.keys.run, seq=self.samples))
         return 1
 
     # -- control -------------------------------------------------------------------------------------------------------
@@ -275,9 +293,10 @@ class CurriculumService:
         """The status line: counts and the buffer statistics (`curriculum.stats.buffer_summary`), which is how the
         service publishes them for monitoring."""
         summary = buffer_summary(self.state, self.curriculum.spec.sizes, self.policy_version)
-        return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "method": self.curriculum.method,
-                "samples": self.samples, "results": self.result_messages, "policy_version": self.policy_version,
-                "knob_changes": self.knob_changes, "rejected": self.bus.rejects.counts(),
+        return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "incarnation": self.incarnation,
+                "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
+                "policy_version": self.policy_version, "knob_changes": self.knob_changes,
+                "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
                 **{k: _plain(v) for k, v in summary.items()}}
 
 

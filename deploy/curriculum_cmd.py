@@ -97,9 +97,10 @@ def _ask(bus: Bus, key: str, payload: bytes) -> list[bytes]:
 
 
 def _client(config: TrainConfig):
+    from bus.keys import OPERATOR
     from bus.session import Bus
 
-    return Bus(config.bus, config.name, "cli", f"cli-{os.getpid()}")
+    return Bus(config.bus, config.name, OPERATOR, f"cli-{os.getpid()}")
 
 
 def _no_answer(config: TrainConfig, key: str) -> None:
@@ -235,7 +236,7 @@ def serve(args: argparse.Namespace) -> int:
     from deploy.monitoring import CurriculumLogger, open_monitor
     from deploy.runloop import StopFlag
     from engine.env.spec import env_from_config
-    from learner.checkpoint import CURRICULUM, Checkpointer
+    from learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
 
     spec, env_params = env_from_config(config.env)
     curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
@@ -251,9 +252,15 @@ def serve(args: argparse.Namespace) -> int:
     with Checkpointer(checkpoint_dir, checkpoint_config) as checkpoints, \
             Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus, \
             open_monitor(config) or nullcontext() as monitor:
-        service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
-                                    item=CURRICULUM, seed=config.seed, resume=args.resume,
-                                    status_every_s=config.actors.status_every_s)
+        if args.resume and checkpoints.latest_step() is None and checkpoints.set_aside():
+            log.warning("%s: the curriculum starts with an empty buffer", checkpoints.nothing_usable())
+        try:
+            service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
+                                        item=CURRICULUM, seed=config.seed, resume=args.resume,
+                                        status_every_s=config.actors.status_every_s)
+        except CheckpointError as err:
+            print(f"impulse curriculum serve: cannot resume: {err}", file=sys.stderr)
+            return EXIT_FAILED
         service.warm_up()
         log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
                  config.curriculum.buffer_size, curriculum.batch_size)

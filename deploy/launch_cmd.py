@@ -8,6 +8,12 @@ process that dies (the learner with `--resume`, from its newest checkpoint) afte
 learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first, then the curriculum and the learner,
 which write final checkpoints; a second Ctrl-C kills everything at once.
 
+Before it writes or starts anything, the launcher checks what every process will need (`deploy.preflight`: level
+sets, the checkpoints a resume restores, credentials) and exits 1 with one error if something is wrong. A process
+that fails the same way 3 times in a row at start-up is not restarted again (`deploy.supervisor`): if it is the
+learner, the curriculum service or the last actor, the run is stopped in order and the launcher exits 1 naming
+the process, its exit status and its error line; without some of its actors, the run goes on.
+
 `--view` turns monitoring on for every process (`monitor.enabled`) and starts `impulse view RUN_DIR` first, so
 the run streams its rollouts, curves and curriculum to a Rerun viewer from the start (`--record FILE.rrd` also
 writes them to a file); the viewer is stopped last.
@@ -25,12 +31,14 @@ from pathlib import Path
 
 from bus.codec import Rejected
 from bus.inbox import Received
+from bus.keys import OPERATOR
 from bus.session import Bus
 from bus.status import read_status
 from deploy.config import ConfigError, load_run_config, write_resolved_config
+from deploy.preflight import PreflightError, run_preflight
 from deploy.runloop import StopFlag
 from deploy.status_display import StatusDisplay, render
-from deploy.supervisor import Child, Supervisor, describe_exit
+from deploy.supervisor import Child, Supervisor, describe_failure
 from deploy.view_cmd import viewer_config
 from learner.config import TrainConfig
 
@@ -99,6 +107,12 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
         return EXIT_USAGE
     if args.view:
         config = viewer_config(config)
+    try:  # before anything is written or started: a problem every process would hit is one error, not a crash loop
+        run_preflight(config, run_dir, resume=args.resume is not None,
+                      curriculum_service=uses_curriculum_service(config), cpu_only=True)
+    except PreflightError as err:
+        print(f"impulse launch: {err}", file=sys.stderr)
+        return EXIT_FAILED
     run_dir.mkdir(parents=True, exist_ok=True)
     write_resolved_config(config, run_dir)
 
@@ -126,8 +140,8 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     log.info("run %s in %s: learner, %s%d actors; logs in %s", config.name, run_dir,
              f"curriculum ({config.curriculum.method}), " if uses_curriculum_service(config) else "",
              config.actors.num_actors, run_dir / "logs")
-    with Bus(config.bus, config.name, "launcher", "main", listen=True) as bus:
-        statuses_inbox = bus.inbox(bus.keys.metrics_all, 256, drop_oldest=True)
+    with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
+        statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
         presence = bus.watch_alive(bus.keys.alive_pattern())
         statuses: dict[str, dict] = {}
         for child in children:
@@ -139,13 +153,15 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                                                                                   config.monitor.web_port)
             log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
+        actors = [c for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
+        failed: list[Child] = []  # given up on, and the run cannot go on without them
         with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
             while not stop.stop:
                 for received in statuses_inbox.poll():
                     _read_status(received, bus, statuses)
                 for key, alive in presence.poll():
                     role, ident = bus.keys.parse_alive(key)
-                    if role != "launcher":
+                    if role != OPERATOR:  # command-line tools and watchers come and go
                         log.info("%s %s the bus", ident, "joined" if alive else "left")
                         display.forget()
                 for child, code in supervisor.exited():
@@ -155,10 +171,19 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                     if code == 0 and child.name not in (CURRICULUM, VIEWER):
                         log.info("%s ended: the learner finished the run", child.name)  # actors stop on their own
                         continue
-                    delay = supervisor.restart_later(child)
-                    log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_exit(code), delay,
-                                " with --resume" if child.name == LEARNER else "")
                     display.forget()
+                    if child.gave_up:
+                        failed = _gave_up(child, actors)
+                        if failed:
+                            break
+                        continue
+                    delay = supervisor.restart_later(child)
+                    log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_failure(child), delay,
+                                " with --resume" if child.name == LEARNER else "")
+                if failed:
+                    log.error("stopping the run: %s", f"the {failed[0].name} gave up"
+                              if failed[0].name in (LEARNER, CURRICULUM) else "every actor gave up")
+                    break
                 if finished:
                     log.info("the learner finished the run; stopping the actors")
                     display.forget()
@@ -180,6 +205,9 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
                 supervisor.stop([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
             display.forget()
             display.show(render(statuses, children, LEARNER))
+    if failed:
+        print(_failure_message(failed), file=sys.stderr)
+        return EXIT_FAILED
     scores = run_dir / "eval.json"
     if finished and scores.is_file():
         from learner.run import format_scores  # JAX loads here only, for the table's helper
@@ -188,16 +216,45 @@ def run_launch(args: argparse.Namespace, config: TrainConfig) -> int:
     return 0 if finished or interrupted else EXIT_FAILED
 
 
+def _gave_up(child: Child, actors: list[Child]) -> list[Child]:
+    """Say that the launcher gave up on `child`; returns the children without which the run cannot go on (the
+    learner, the curriculum service, or every actor once all have given up), or [] when it goes on without it."""
+    log.error("%s failed %d times in a row the same way (%s): not restarting it; its log: %s", child.name,
+              child.streak, describe_failure(child), child.log_path)
+    if child.name in (LEARNER, CURRICULUM):
+        return [child]
+    if child.name not in {actor.name for actor in actors}:
+        log.warning("the run goes on without the %s", child.name)
+        return []
+    if all(actor.gave_up for actor in actors):
+        return actors
+    log.warning("the run goes on with %d of %d actors", sum(not actor.gave_up for actor in actors), len(actors))
+    return []
+
+
+def _failure_message(failed: list[Child]) -> str:
+    """The launcher's last words when it stopped a run because of `failed`: one line per distinct failure, naming
+    the processes, the exit status, the error line and the logs."""
+    by_failure: dict[str, list[Child]] = {}
+    for child in failed:
+        by_failure.setdefault(describe_failure(child), []).append(child)
+    lines = []
+    for failure, children in by_failure.items():
+        names = ", ".join(c.name for c in children[:-1]) + " and " * (len(children) > 1) + children[-1].name
+        each = " each" if len(children) > 1 else ""
+        logs = f"its log: {children[0].log_path}" if len(children) == 1 else \
+            f"their logs are in {children[0].log_path.parent}"
+        lines.append(f"impulse launch: stopped the run: {names}{each} failed {children[0].streak} times in a row the "
+                     f"same way: {failure} ({logs})")
+    return "\n".join(lines)
+
+
 def _read_status(received: Received, bus: Bus, statuses: dict[str, dict]) -> None:
     """Keep the newest status of each process; a malformed one is counted and logged like any bad message."""
 
     try:
-        sender, status = read_status(received, bus.keys.run)
+        heard = read_status(received, bus.keys)
     except Rejected as err:
         bus.rejects.record(err.reason, received.key, err.detail)
         return
-    name = status.get("name", sender.rsplit("/", 1)[-1])
-    if not isinstance(name, str):
-        bus.rejects.record("bad_table", received.key, f"status 'name' is a {type(name).__name__}")
-        return
-    statuses[name] = status
+    statuses[heard.ident] = heard.status

@@ -76,10 +76,13 @@ def _sizes(name: str | None):
 
 
 def _level_files(paths: list[Path]) -> tuple[list[Path], list[str]]:
+    """(the files to check, one "PATH: problem" line per path that names nothing to check). Folders are searched
+    for *.json files (folders named like one are skipped); anything else that exists is checked as a file, so a
+    pipe, a device or an unreadable file is reported by the loader, naming it."""
     files, missing = [], []
     for path in paths:
         if path.is_dir():
-            found = sorted(path.rglob("*.json"))
+            found = sorted(file for file in path.rglob("*.json") if not file.is_dir())
             if not found:
                 missing.append(f"{path}: no .json files in this folder")
             files += found
@@ -108,7 +111,8 @@ def _validate(args: argparse.Namespace) -> int:
         else:
             print(f"ok       {file}")
     total = len(files)
-    print(f"{total - invalid} of {total} level files valid" + (f", {len(missing)} paths not found" if missing else ""))
+    unfound = f", {len(missing)} paths with no level file" if missing else ""
+    print(f"{total - invalid} of {total} level files valid{unfound}")
     return EXIT_INVALID if invalid or missing else 0
 
 

@@ -8,7 +8,10 @@ none should copy:
   second one aborts at once;
 - the metrics window: the solve rate and return over the episodes of the last few cycles (summed counts, not a
   mean of per-cycle means), shown on the progress line and stored with each checkpoint;
-- the checkpoint cadence: every `checkpoint_every` updates, and once more when the loop ends for any reason;
+- the checkpoint cadence: every `checkpoint_every` updates, and once more when the loop ends for any reason if
+  updates were made since the last one (a process stopped before its first update writes none: a checkpoint of
+  update 0 holds nothing worth resuming, and it would make the next start of the same run refuse the directory as
+  one that "already holds checkpoints");
 - `metrics.jsonl` (one line per cycle that did something) and the progress line.
 
 Services are duck-typed (`Service` is a Protocol) and report with `learner.progress.CycleReport`, so the rooms
@@ -127,10 +130,10 @@ def run_loop(
     on_cycle: Callable[[dict[str, Any], dict[str, float]], None] | None = None,
 ) -> LoopSummary:
     """Drive `service` until it is finished, a signal arrives or `should_stop()` is true, then checkpoint once
-    more (unless that update was just saved). `env_steps_done` and `updates_done` continue a resumed run's
-    counters; each metrics.jsonl line carries the running totals. `on_cycle(record, window)` sees every record
-    and the window summary after it."""
-    metrics_file = MetricsFile(metrics_path) if metrics_path is not None else None
+    more if it made updates since the last checkpoint (or since `updates_done`, on a resumed run).
+    `env_steps_done` and `updates_done` continue a resumed run's counters; each metrics.jsonl line carries the
+    running totals. `on_cycle(record, window)` sees every record and the window summary after it."""
+    metrics_file = MetricsFile(metrics_path, through_update=updates_done) if metrics_path is not None else None
     progress = progress if progress is not None else ProgressLine(total_env_steps)
     window = MetricsWindow(window_size)
     env_steps, updates, cycles = env_steps_done, updates_done, 0
@@ -168,7 +171,7 @@ def run_loop(
                     service.save(window.summary())
                     saved_at = updates
             stopped = stopped or stop.stop
-            if updates != saved_at or updates == 0:
+            if updates != saved_at:
                 service.save(window.summary())
     finally:
         progress.close()

@@ -124,9 +124,12 @@ def run_learner(args: argparse.Namespace, config: TrainConfig) -> int:
     if finished:
         final_evaluation(config, agent, env_params, params, run_dir)
         log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
-    else:
+    elif service.update > service.updates_at_start:
         log.info("learner stopped at update %d of %d, checkpointed; --resume continues from there", service.update,
                  service.num_updates)
+    else:
+        log.info("learner stopped at update %d of %d before an update of its own: nothing new to checkpoint",
+                 service.update, service.num_updates)
     return 0
 
 
@@ -163,6 +166,7 @@ def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
     from deploy.launch_cmd import uses_curriculum_service
     from deploy.runloop import run_loop
     from engine.env.spec import env_from_config
+    from engine.levels.sets import LevelSetError
     from learner.agent import make_agent
 
     spec, env_params = env_from_config(config.env)
@@ -174,7 +178,11 @@ def run_actor(args: argparse.Namespace, config: TrainConfig) -> int:
             template = level_batch_template(spec.sizes, config.ppo.num_envs)
             levels = CurriculumLevels(bus, template, config.curriculum.method)
         else:
-            levels = LocalLevels(config.env, spec.sizes)
+            try:
+                levels = LocalLevels(config.env, spec.sizes)
+            except LevelSetError as err:
+                print(f"impulse actor: env.levels: {err}", file=sys.stderr)
+                return EXIT_FAILED
         actor = Actor(config, args.index, bus, agent, env_params, levels, monitor)
         log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
                  config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)

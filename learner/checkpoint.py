@@ -10,13 +10,48 @@ Orbax writes each step into a temporary directory and renames it when complete, 
 (kill -9) leaves the previous checkpoints intact and the partial one is ignored and cleaned up on the next start.
 
 Kept: the newest `keep_last` checkpoints and, when a metric is given, the best one by that metric.
+
+Verification on restore. Orbax itself only lists finalised steps (its temporary directories are ignored); it checks
+neither that an item's files are complete nor, for plain arrays, that their shapes fit the reader's template. So
+`Checkpointer.restore` checks each checkpoint it reads, in this order:
+1. The item directories: the JSON items `counters` and `config` and every item the reader asks for must be there.
+   An item that the checkpoint's own metadata lists but whose directory is gone is corruption; an item the
+   checkpoint never had is a mismatch (it was written by another mode).
+2. `counters` and `config` are read and parsed.
+3. For each array item asked for, its tree metadata (structure, shapes, dtypes: orbax's `_METADATA` file and the
+   arrays' zarr headers in the OCDBT database) is read and compared with the template.
+4. The arrays are restored.
+A failure to read files in steps 1, 2, 3 or 4 (truncated or garbled data or metadata, unparsable JSON, an item's
+files missing) is *corruption*. Metadata that reads fine but describes another tree (other leaves, other shapes)
+is a *mismatch*: the checkpoint is intact but belongs to another network, sizes or number of environments, and
+`CheckpointError` is raised at once without touching anything (a wrong config must never push good checkpoints
+aside). A different dtype is neither: orbax casts, as for an imported bfloat16 policy. Flipped bits inside array
+data go unnoticed: orbax's format holds no checksums of the data.
+
+Corrupt checkpoints. When the newest checkpoint is asked for (`step=None`, as every `--resume` does) and it is
+corrupt, a warning names its step, the item and the error, its directory is moved (never deleted) to
+`<checkpoint directory>-corrupt/<step>` (`<step>-2`, ... if that exists), and the next newest is tried, until one
+restores; `Restored.step` says which. So a damaged newest checkpoint costs the updates since the one before, and
+a restarted service never crashes on the same files twice. If none restores, `CheckpointError` lists each step
+tried, its item and the problem; they have all been moved aside, and a learner or `impulse train --resume`
+started after that refuses to start over while they are there (`nothing_usable` says where they are), while the
+curriculum service starts with an empty buffer and says so. A checkpoint asked for by step
+(`impulse eval --checkpoint RUN/checkpoints/12`) is never moved: a corrupt one raises `CorruptCheckpointError`.
+What to do with a moved checkpoint: nothing, to go on; to inspect it, restore it by step with a `Checkpointer` on
+the `-corrupt` folder; delete the folder when it is no longer wanted.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+import gc
+import logging
+import shutil
+import sys
+import time
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import orbax.checkpoint as ocp
@@ -24,23 +59,67 @@ from orbax.checkpoint.checkpoint_managers import preservation_policy
 
 from learner.config import CheckpointConfig
 
+log = logging.getLogger(__name__)
+
 BEST_METRIC = "solve_rate"
 TRAIN = "train"
 ENVS = "envs"
 CURRICULUM = "curriculum"
 ARRAY_ITEMS = (TRAIN, ENVS, CURRICULUM)
+COUNTERS = "counters"
+CONFIG = "config"
+JSON_ITEMS = (COUNTERS, CONFIG)
+LEGACY_ITEM = "state"
+CORRUPT_SUFFIX = "-corrupt"
+WHOLE_STEP = "*"
+"""`CorruptCheckpointError.item` when the checkpoint as a whole is damaged (no item in it at all)."""
+
+READ_ERRORS = (ValueError, OSError, KeyError, EOFError)
+"""What reading damaged checkpoint files raises: tensorstore's errors (`OUT_OF_RANGE`, `DATA_LOSS`, ...) and JSON
+decoding errors are ValueErrors, a missing file is an OSError, an item orbax cannot find a KeyError. Orbax wraps a
+failed read of a device array in a bare `Exception` whose cause is one of these, so the whole chain of causes is
+searched (`_read_error`). Deliberately not RuntimeError: the runtime's own failures (out of device memory) say
+nothing about the files."""
+
+Templates = Mapping[str, Any] | Callable[[frozenset[str]], Mapping[str, Any]]
+"""The items to restore and their shapes: a mapping from item name to template pytree, or a function that picks
+that mapping from the array items a checkpoint holds (it is called again for each checkpoint tried)."""
 
 
 class CheckpointError(RuntimeError):
-    """A checkpoint directory cannot be used (missing, empty, or from a run with a different structure)."""
+    """A checkpoint directory cannot be used (missing, empty, corrupt, or from a run with a different structure)."""
+
+
+class CorruptCheckpointError(CheckpointError):
+    """Checkpoint `step`'s item `item` (`WHOLE_STEP`: the checkpoint as a whole) could not be read from `path`:
+    its files are damaged or missing. `detail` says so in words (which item, which file, what went wrong)."""
+
+    def __init__(self, message: str, step: int, item: str, path: Path, problem: str, detail: str):
+        super().__init__(message)
+        self.step = step
+        self.item = item
+        self.path = path
+        self.problem = problem
+        self.detail = detail
+
+
+class Restored(NamedTuple):
+    """What `Checkpointer.restore` read: the array items asked for, the counters, the config TOML, and the step
+    they came from (older than the newest when newer ones were corrupt)."""
+
+    items: dict[str, Any]
+    counters: dict[str, Any]
+    config_toml: str
+    step: int
 
 
 class Checkpointer:
-    """Asynchronous save and exact restore of a run's state under `directory`."""
+    """Asynchronous save and verified restore of a run's state under `directory` (see the module docstring)."""
 
     def __init__(self, directory: str | Path, config: CheckpointConfig | None = None):
         config = config or CheckpointConfig()
         self.directory = Path(directory).absolute()
+        self.corrupt_directory = self.directory.with_name(self.directory.name + CORRUPT_SUFFIX)
         policies: list[Any] = [preservation_policy.LatestN(n=config.keep_last)]
         if config.keep_best:
             policies.append(
@@ -57,6 +136,11 @@ class Checkpointer:
             create=True,
         )
         self._manager = ocp.CheckpointManager(self.directory, options=options)
+        # Items are read with their handlers directly: the manager's composite restore of some items only warns
+        # about every item left out, and a restore here reads one item at a time to name the one that fails.
+        self._tree_reader = ocp.StandardCheckpointHandler()
+        self._json_reader = ocp.JsonCheckpointHandler()
+        self._reads_abandoned = False  # an array read failed during this restore (`_quiet_abandoned_reads`)
 
     def save(
         self,
@@ -86,63 +170,80 @@ class Checkpointer:
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
 
+    def set_aside(self) -> list[Path]:
+        """The corrupt checkpoints moved out of this directory so far (by this process or an earlier one)."""
+        if not self.corrupt_directory.is_dir():
+            return []
+        return sorted(self.corrupt_directory.iterdir())
+
+    def nothing_usable(self) -> str:
+        """Why there is no checkpoint to resume, for an error message: none was written, or every one was corrupt
+        and set aside (named, so that a run never starts over silently)."""
+        aside = self.set_aside()
+        if not aside:
+            return f"no complete checkpoint in {self.directory}"
+        return (f"no usable checkpoint in {self.directory}: {len(aside)} corrupt one(s) were moved to "
+                f"{self.corrupt_directory} ({', '.join(p.name for p in aside)}); to start the run over, move that "
+                "folder away")
+
     def all_steps(self) -> list[int]:
         return list(self._manager.all_steps())
 
     def items_at(self, step: int | None = None) -> set[str]:
-        """The array items (of `ARRAY_ITEMS`) checkpoint `step` (default: the newest) holds."""
+        """The array items (of `ARRAY_ITEMS`) checkpoint `step` (default: the newest) holds, from its directory
+        listing (nothing is read, so a corrupt checkpoint answers too)."""
         self.wait()
-        step = self.latest_step() if step is None else step
-        if step is None:
-            raise CheckpointError(f"no complete checkpoint in {self.directory}")
-        return {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()} & set(ARRAY_ITEMS)
+        step = self._existing_step(step)
+        return set(self._present(step)) & set(ARRAY_ITEMS)
 
-    def restore(
-        self, templates: Mapping[str, Any], step: int | None = None
-    ) -> tuple[dict[str, Any], dict[str, Any], str]:
-        """(items, counters, config TOML) of checkpoint `step` (default: the newest). Only the items named in
-        `templates` are read, each shaped like its template."""
+    def restore(self, templates: Templates, step: int | None = None) -> Restored:
+        """Checkpoint `step`, or by default the newest one that is intact: only the array items named in
+        `templates` are read, each shaped like its template. Newer corrupt checkpoints are moved aside on the way
+        (see the module docstring). Raises `CheckpointError` if the checkpoint does not fit the templates or none
+        is usable, `CorruptCheckpointError` if the explicitly asked `step` is corrupt."""
         self.wait()  # a save still being written is not on disk yet
-        step = self.latest_step() if step is None else step
-        if step is None:
+        self._reads_abandoned = False
+        with _quiet_abandoned_reads(lambda: self._reads_abandoned):
+            return self._restore(templates, step)
+
+    def _restore(self, templates: Templates, step: int | None) -> Restored:
+        if step is not None:
+            self._existing_step(step)
+            try:
+                return self._restore_step(step, templates)
+            except CorruptCheckpointError as err:
+                raise CorruptCheckpointError(
+                    f"{err} (left in place; steps in {self.directory}: {self._steps_text()})",
+                    err.step, err.item, err.path, err.problem, err.detail,
+                ) from err
+        steps = sorted(self.all_steps(), reverse=True)
+        if not steps:
             raise CheckpointError(f"no complete checkpoint in {self.directory}")
-        present = {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()}
-        if not present & set(ARRAY_ITEMS):
-            raise CheckpointError(
-                f"checkpoint {step} in {self.directory} was written by an older Impulse (one combined 'state' "
-                "item, before checkpoints were split into train/envs items); it cannot be restored: start a new run"
-            )
-        missing = set(templates) - present
-        if missing:
-            raise CheckpointError(
-                f"checkpoint {step} in {self.directory} has no {', '.join(sorted(missing))} item "
-                f"(it holds {', '.join(sorted(present & set(ARRAY_ITEMS)))}); was it written by another mode?"
-            )
-        abstract = {name: jax.tree.map(ocp.utils.to_shape_dtype_struct, t) for name, t in templates.items()}
-        try:
-            restored = self._manager.restore(
-                step,
-                args=ocp.args.Composite(
-                    **{name: ocp.args.StandardRestore(tree) for name, tree in abstract.items()},
-                    counters=ocp.args.JsonRestore(),
-                    config=ocp.args.JsonRestore(),
-                ),
-            )
-        except (ValueError, KeyError, FileNotFoundError) as err:
-            raise CheckpointError(
-                f"checkpoint {step} in {self.directory} does not match this run's state "
-                f"(different network, sizes or number of environments?): {err}"
-            ) from err
-        items = {name: restored[name] for name in templates}
-        return items, dict(restored["counters"]), restored["config"]["toml"]
+        failures: list[str] = []
+        for candidate in steps:
+            try:
+                restored = self._restore_step(candidate, templates)
+            except CorruptCheckpointError as err:
+                moved = self._move_aside(candidate)
+                log.warning("checkpoint %d is corrupt: %s; moved it to %s and trying the next newest", candidate,
+                            err.detail, moved)
+                failures.append(f"checkpoint {candidate}: {err.detail}; moved to {moved}")
+                continue
+            if failures:
+                log.warning("restored checkpoint %d: the %d newer one(s) were corrupt and are kept in %s", candidate,
+                            len(failures), self.corrupt_directory)
+            return restored
+        raise CheckpointError(f"no usable checkpoint in {self.directory}: every one is corrupt:\n  "
+                              + "\n  ".join(failures))
 
     def read_config(self, step: int | None = None) -> str:
-        """The resolved config TOML saved with a checkpoint, without restoring its arrays."""
-        step = self.latest_step() if step is None else step
-        if step is None:
-            raise CheckpointError(f"no complete checkpoint in {self.directory}")
-        restored = self._manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
-        return restored["config"]["toml"]
+        """The resolved config TOML saved with checkpoint `step` (default: the newest), without restoring its
+        arrays. Raises `CorruptCheckpointError` if it cannot be read (nothing is moved)."""
+        self.wait()
+        step = self._existing_step(step)
+        if CONFIG not in self._present(step):
+            raise self._corrupt(step, CONFIG, "its directory is missing")
+        return self._read_json(step, CONFIG)["toml"]
 
     def wait(self) -> None:
         """Block until background writes are on disk."""
@@ -151,9 +252,210 @@ class Checkpointer:
     def close(self) -> None:
         self._manager.wait_until_finished()
         self._manager.close()
+        self._tree_reader.close()
+        self._json_reader.close()
 
     def __enter__(self) -> Checkpointer:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    # -- verification --------------------------------------------------------------------------------------------
+
+    def _restore_step(self, step: int, templates: Templates) -> Restored:
+        """Checkpoint `step`, checked in the order the module docstring gives. Raises `CorruptCheckpointError`
+        for damaged files and `CheckpointError` for a checkpoint that is intact but does not fit `templates`."""
+        present = self._present(step)
+        saved = self._saved_items(step)
+        written = present | saved
+        if LEGACY_ITEM in written and not written & set(ARRAY_ITEMS):
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} was written by an older Impulse (one combined 'state' "
+                "item, before checkpoints were split into train/envs items); it cannot be restored: start a new run"
+            )
+        if not written & set(ARRAY_ITEMS):
+            raise self._corrupt(step, WHOLE_STEP, "it holds no items")
+        # The items it was written with (not only those still there), so that a lost item is seen as corruption.
+        chosen = dict(templates(frozenset(written & set(ARRAY_ITEMS))) if callable(templates) else templates)
+        for name in (*JSON_ITEMS, *sorted(chosen)):
+            if name not in present and (name in saved or name in JSON_ITEMS):
+                raise self._corrupt(step, name, "its directory is missing")
+        missing = set(chosen) - present
+        if missing:
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} has no {', '.join(sorted(missing))} item "
+                f"(it holds {', '.join(sorted(present & set(ARRAY_ITEMS)))}); was it written by another mode?"
+            )
+        counters = self._read_json(step, COUNTERS)
+        config_toml = self._read_json(step, CONFIG)["toml"]
+        abstract = {name: jax.tree.map(ocp.utils.to_shape_dtype_struct, tree) for name, tree in chosen.items()}
+        for name, tree in abstract.items():
+            self._check_tree(step, name, tree)
+        items = {}
+        for name, tree in abstract.items():
+            try:
+                items[name] = self._tree_reader.restore(
+                    self.directory / str(step) / name, args=ocp.args.StandardRestore(tree)
+                )
+            except Exception as err:
+                self._reads_abandoned = True
+                cause = _read_error(err)
+                if cause is None:
+                    raise
+                raise self._corrupt(step, name, _describe(cause)) from err
+        return Restored(items, counters, config_toml, step)
+
+    def _read_json(self, step: int, name: str) -> dict[str, Any]:
+        """JSON item `name` (`counters` or `config`) of checkpoint `step`; raises `CorruptCheckpointError` if it
+        fails to read or parse, or parses to something else than what `save` writes."""
+        try:
+            value = self._json_reader.restore(self.directory / str(step) / name, args=ocp.args.JsonRestore())
+        except Exception as err:  # reading a file, parsing JSON: any failure is the file's
+            raise self._corrupt(step, name, _describe(err)) from err
+        if not isinstance(value, dict):
+            raise self._corrupt(step, name, f"holds {type(value).__name__}, not a JSON object")
+        if name == CONFIG and not isinstance(value.get("toml"), str):
+            raise self._corrupt(step, name, "holds no 'toml' text")
+        return dict(value)
+
+    def _check_tree(self, step: int, name: str, template: Any) -> None:
+        """Compare item `name`'s saved tree metadata with `template`: unreadable is corruption; other leaves or
+        shapes are a mismatch (CheckpointError). Dtypes may differ: orbax casts on restore."""
+        try:
+            saved = ocp.tree.to_flat_dict(self._tree_reader.metadata(self.directory / str(step) / name).tree)
+        except Exception as err:  # files alone are read here (no template, no device)
+            raise self._corrupt(step, name, f"its metadata cannot be read: {_describe(err)}") from err
+        wanted = ocp.tree.to_flat_dict(template)
+        differences = [f"{_path(key)} only in the checkpoint" for key in saved.keys() - wanted.keys()]
+        differences += [f"{_path(key)} only in this run" for key in wanted.keys() - saved.keys()]
+        for key in saved.keys() & wanted.keys():
+            shapes = (getattr(saved[key], "shape", None), getattr(wanted[key], "shape", None))
+            if None not in shapes and tuple(shapes[0]) != tuple(shapes[1]):
+                differences.append(f"{_path(key)} is {tuple(shapes[0])} in the checkpoint, {tuple(shapes[1])} here")
+        if differences:
+            shown = "; ".join(sorted(differences)[:6]) + (f"; and {len(differences) - 6} more"
+                                                          if len(differences) > 6 else "")
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} does not match this run's state "
+                f"(different network, sizes or number of environments?): {name}: {shown}"
+            )
+
+    # -- helpers -------------------------------------------------------------------------------------------------
+
+    def _existing_step(self, step: int | None) -> int:
+        """`step`, or the newest, checked to be a checkpoint in the directory."""
+        if step is None:
+            step = self.latest_step()
+            if step is None:
+                raise CheckpointError(f"no complete checkpoint in {self.directory}")
+        elif not (self.directory / str(step)).is_dir():  # orbax renames a step into place once it is complete
+            raise CheckpointError(f"no checkpoint {step} in {self.directory} (it holds: {self._steps_text()})")
+        return step
+
+    def _present(self, step: int) -> set[str]:
+        """The item directories of checkpoint `step`."""
+        try:
+            return {p.name for p in (self.directory / str(step)).iterdir() if p.is_dir()}
+        except OSError as err:
+            raise CheckpointError(f"checkpoint {step} in {self.directory} cannot be listed: {err}") from err
+
+    def _saved_items(self, step: int) -> set[str]:
+        """The items that checkpoint `step`'s own metadata says were written (empty if it cannot be read: then
+        orbax guesses from the directories and a missing item counts as never written)."""
+        try:
+            return set(ocp.metadata.get_step_metadata(self.directory / str(step)).item_handlers or {})
+        except (*READ_ERRORS, TypeError, AttributeError):
+            return set()
+
+    def _corrupt(self, step: int, item: str, problem: str) -> CorruptCheckpointError:
+        if item == WHOLE_STEP:
+            path = self.directory / str(step)
+            detail = f"its directory ({path}) cannot be used: {problem}"
+        else:
+            path = self.directory / str(step) / item
+            if item in JSON_ITEMS:
+                path = path / "metadata"  # the one file a JSON item is written to
+            detail = f"its {item} item ({path}) cannot be read: {problem}"
+        return CorruptCheckpointError(f"checkpoint {step} in {self.directory} is corrupt: {detail}",
+                                      step, item, path, problem, detail)
+
+    def _move_aside(self, step: int) -> Path:
+        """Move checkpoint `step` into the `-corrupt` sibling folder (keeping all its files) and make the manager
+        forget it, so that the next newest becomes the latest and the step number can be written again."""
+        self.corrupt_directory.mkdir(parents=True, exist_ok=True)
+        target = self.corrupt_directory / str(step)
+        suffix = 1
+        while target.exists():
+            suffix += 1
+            target = self.corrupt_directory / f"{step}-{suffix}"
+        try:
+            shutil.move(self.directory / str(step), target)
+        except OSError as err:
+            raise CheckpointError(
+                f"checkpoint {step} in {self.directory} is corrupt and could not be moved to {target}: {err}; "
+                "move it out of the directory by hand"
+            ) from err
+        self._manager.reload()
+        return target
+
+    def _steps_text(self) -> str:
+        return ", ".join(str(s) for s in self.all_steps()) or "none"
+
+
+ABANDONED_READ_GRACE_S = 0.2
+"""How long the reads orbax abandoned are given to finish (and report) before their reports are let through."""
+
+
+@contextlib.contextmanager
+def _quiet_abandoned_reads(abandoned: Callable[[], bool]) -> Iterator[None]:
+    """When one read of an item fails, orbax abandons the item's other reads and each of them later reports an
+    'Exception ignored' traceback (a closed event loop, a discarded coroutine): thousands of lines in a service's
+    log for one corrupt checkpoint, already described by one warning. While this is open those reports are
+    dropped and every other one goes on to the previous hook; on the way out, if reads were `abandoned()`, they
+    are given a moment to finish and are collected."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        if not _is_abandoned_read(unraisable):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        if abandoned():
+            time.sleep(ABANDONED_READ_GRACE_S)
+            gc.collect()
+        if sys.unraisablehook is hook:
+            sys.unraisablehook = previous
+
+
+def _is_abandoned_read(unraisable: Any) -> bool:
+    error = unraisable.exc_value
+    if isinstance(error, RuntimeError) and str(error) == "Event loop is closed":
+        return True  # a tensorstore read completing after orbax closed its event loop
+    return (getattr(unraisable.object, "__qualname__", "") == "_read_array_index_and_device_put"
+            or str(error).startswith("Encountered error while reading array index"))
+
+
+def _read_error(err: BaseException) -> BaseException | None:
+    """The first of `err` and its causes (`raise ... from`, or raised while handling) that is a `READ_ERRORS`."""
+    seen: set[int] = set()
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        if isinstance(current, READ_ERRORS):
+            return current
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def _describe(err: BaseException) -> str:
+    """One line of an error from orbax or tensorstore, without tensorstore's long spec dump."""
+    text = str(err).split(" [tensorstore_spec=")[0].replace("\n", " ").strip() or type(err).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _path(key: tuple[str, ...]) -> str:
+    return "/".join(str(part) for part in key)

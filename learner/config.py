@@ -19,6 +19,33 @@ from curriculum.config import CurriculumConfig
 from engine.env.config import EnvConfig
 
 
+def check_range(
+    name: str,
+    value: float,
+    *,
+    at_least: float | None = None,
+    above: float | None = None,
+    at_most: float | None = None,
+    below: float | None = None,
+) -> None:
+    """Refuse a number outside its range with a ValueError naming `name`, the full dotted key ("ppo.num_envs"):
+    `at_least`/`at_most` are inclusive bounds, `above`/`below` exclusive ones (give at most one of each pair).
+    NaN is never in range."""
+    low, low_open = (above, True) if above is not None else (at_least, False)
+    high, high_open = (below, True) if below is not None else (at_most, False)
+    fits_low = low is None or (value > low if low_open else value >= low)
+    fits_high = high is None or (value < high if high_open else value <= high)
+    if fits_low and fits_high:
+        return
+    if low is not None and high is not None:
+        rule = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    elif low is not None:
+        rule = f"{'>' if low_open else '>='} {low}"
+    else:
+        rule = f"{'<' if high_open else '<='} {high}"
+    raise ValueError(f"{name} must be {rule}, got {value}")
+
+
 def check_device_list(name: str, devices: tuple[int, ...]) -> None:
     """Device positions are distinct non-negative integers."""
     if any(isinstance(d, bool) or not isinstance(d, int) or d < 0 for d in devices) or len(set(devices)) != len(
@@ -54,11 +81,21 @@ class PPOConfig:
     vtrace_rho_bar: float = 1.0
     """V-trace: importance weights in the value targets' TD errors are clipped at this (rho-bar)."""
     vtrace_c_bar: float = 1.0
-    """V-trace: trace-cutting weights are clipped at this (c-bar); gae_lambda scales them further."""
+    """V-trace: trace-cutting weights are clipped at this (c-bar); gae_lambda scales them further. At most
+    vtrace_rho_bar; 0 cuts every trace (one-step TD targets)."""
     max_policy_lag: int = 4
-    """Trajectories older than this many policy versions are dropped rather than corrected."""
+    """Trajectories older than this many policy versions are dropped rather than corrected; 0 keeps only those
+    acted by the learner's current weights."""
 
     def __post_init__(self) -> None:
+        for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs"):
+            check_range(f"ppo.{name}", getattr(self, name), at_least=1)
+        for name in ("learning_rate", "clip_eps", "max_grad_norm", "vtrace_rho_bar"):
+            check_range(f"ppo.{name}", getattr(self, name), above=0)
+        for name in ("gamma", "gae_lambda"):
+            check_range(f"ppo.{name}", getattr(self, name), at_least=0, at_most=1)
+        for name in ("ent_coef", "vf_coef", "vtrace_c_bar", "max_policy_lag"):
+            check_range(f"ppo.{name}", getattr(self, name), at_least=0)
         if self.num_envs % self.num_minibatches:
             raise ValueError(
                 f"num_minibatches ({self.num_minibatches}) must divide num_envs ({self.num_envs}), "
@@ -82,10 +119,13 @@ class NetworkConfig:
     width: int = 128
     """Units of each Dense layer of the actor and critic heads."""
     depth: int = 5
-    """Dense layers in each of the separate actor and critic heads."""
+    """Dense layers in each of the separate actor and critic heads; 0: the heads' outputs read the torso's
+    embedding directly."""
     activation: Literal["tanh", "relu"] = "tanh"
     """Nonlinearity of the heads and the entity encoders."""
     transformer_layers: int = 2
+    """Attention layers; 0: the embedding is the mean of the encoded shape tokens and the summary token, with no
+    attention (joints and thrusters then go unused)."""
     num_heads: int = 8
     """Attention heads per layer; shared out evenly among the 4 attention-mask channels, so a multiple of 4
     unless full_attention_mask."""
@@ -119,6 +159,14 @@ class NetworkConfig:
     embedding then depends on the number of slots."""
 
     def __post_init__(self) -> None:
+        for name in ("width", "num_heads", "transformer_size", "entity_heads", "entity_head_size",
+                     "flat_embedding_size"):
+            check_range(f"network.{name}", getattr(self, name), at_least=1)
+        for name in ("depth", "transformer_layers"):
+            check_range(f"network.{name}", getattr(self, name), at_least=0)
+        # With a type column the polygon and circle encoders are one unit narrower than the token.
+        check_range("network.transformer_encoder_size", self.transformer_encoder_size,
+                    at_least=1 if self.shape_type_column == "none" else 2)
         if not self.full_attention_mask and self.num_heads % 4:
             raise ValueError(
                 f"num_heads ({self.num_heads}) must be a multiple of 4, the attention-mask channels "
@@ -133,11 +181,18 @@ class CheckpointConfig:
     """When and what to keep, so a run can resume and its best policy survives."""
 
     every_updates: int = 100
+    """Checkpoint every this many updates, and once more when the run ends; 0: only when it ends (the curriculum
+    service, which counts result messages instead, then saves after every one)."""
     keep_last: int = 3
+    """Newest checkpoints kept (at least 1)."""
     keep_best: bool = True
     """Also keep the checkpoint with the best evaluation solve rate, beyond the last few."""
     directory: str = "checkpoints"
     """Relative paths are taken inside the run directory."""
+
+    def __post_init__(self) -> None:
+        check_range("checkpoint.every_updates", self.every_updates, at_least=0)
+        check_range("checkpoint.keep_last", self.keep_last, at_least=1)
 
 
 @dataclass(frozen=True)
@@ -151,6 +206,9 @@ class EvalConfig:
     """Episodes per level, each from the level's start (Kinetix scores hand-made levels over 20); 0 skips the
     evaluation at the end of training."""
 
+    def __post_init__(self) -> None:
+        check_range("eval.attempts", self.attempts, at_least=0)
+
 
 @dataclass(frozen=True)
 class ActorConfig:
@@ -158,7 +216,7 @@ class ActorConfig:
     steps per cycle, so one actor batch is one learner update."""
 
     num_actors: int = 2
-    """Actors `impulse launch` starts."""
+    """Actors `impulse launch` starts (on several machines: every actor of the run); at least 1."""
     credits: int = 1
     """Trajectory batches an actor may have in flight to the learner; bounds memory and policy lag. When the
     learner is the bottleneck every actor keeps its credits in use, so the lag is about num_actors x credits
@@ -173,7 +231,8 @@ class ActorConfig:
     """Fraction of the GPU's memory each actor process preallocates (XLA_PYTHON_CLIENT_MEM_FRACTION), so several
     actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""
     status_every_s: float = 1.0
-    """How often each process publishes its status line for `impulse launch`'s display."""
+    """How often each process publishes its status line for `impulse launch`'s display; 0: at every turn of its
+    loop (hundreds a second in an idle curriculum service)."""
     devices: tuple[int, ...] = ()
     """GPUs the actors run on, as positions among the GPUs the process may see: actor i takes
     devices[i % len(devices)] and sees only it (CUDA_VISIBLE_DEVICES); empty: every actor sees them all and JAX
@@ -181,11 +240,11 @@ class ActorConfig:
 
     def __post_init__(self) -> None:
         check_device_list("actors.devices", self.devices)
-        if self.num_actors < 0 or self.credits < 1:
-            raise ValueError(f"actors.num_actors must be >= 0 and actors.credits >= 1, got {self.num_actors}, "
-                             f"{self.credits}")
-        if not 0.0 <= self.memory_fraction < 1.0:
-            raise ValueError(f"actors.memory_fraction must be in [0, 1), got {self.memory_fraction}")
+        check_range("actors.num_actors", self.num_actors, at_least=1)
+        check_range("actors.credits", self.credits, at_least=1)
+        check_range("actors.credit_timeout_s", self.credit_timeout_s, above=0)
+        check_range("actors.memory_fraction", self.memory_fraction, at_least=0, below=1)
+        check_range("actors.status_every_s", self.status_every_s, at_least=0)
 
 
 @dataclass(frozen=True)
@@ -195,7 +254,8 @@ class LearnerConfig:
     publish_every: int = 1
     """Publish the weights every this many updates."""
     slow_down_s: float = 0.0
-    """Sleep this long after every update: simulates a slow learner (back-pressure tests and experiments)."""
+    """Sleep this long after every update: simulates a slow learner (back-pressure tests and experiments); 0: no
+    sleep."""
     devices: tuple[int, ...] = ()
     """GPUs the PPO update is sharded over, data parallel (`learner.sharding`), as positions among the GPUs the
     process may see; the learner sees only these. Empty: the first device only. On a machine without GPUs, the
@@ -203,9 +263,8 @@ class LearnerConfig:
 
     def __post_init__(self) -> None:
         check_device_list("learner.devices", self.devices)
-        if self.publish_every < 1 or self.slow_down_s < 0:
-            raise ValueError(f"learner.publish_every must be >= 1 and learner.slow_down_s >= 0, got "
-                             f"{self.publish_every}, {self.slow_down_s}")
+        check_range("learner.publish_every", self.publish_every, at_least=1)
+        check_range("learner.slow_down_s", self.slow_down_s, at_least=0)
 
 
 @dataclass(frozen=True)
@@ -228,7 +287,7 @@ class MonitorConfig:
     curriculum_every_s: float = 10.0
     """How often the curriculum service logs its histograms, statistics and gallery of top levels."""
     gallery: int = 6
-    """Top levels by score drawn in the curriculum gallery."""
+    """Top levels by score drawn in the curriculum gallery; 0: no gallery."""
     server_memory_limit: str = "1GiB"
     """What the viewer's server keeps for late viewers; the oldest data goes first (`rerun --server-memory-limit`)."""
     viewer_memory_limit: str = "2GiB"
@@ -239,12 +298,12 @@ class MonitorConfig:
     def __post_init__(self) -> None:
         if not (self.url.startswith("rerun") and self.url.endswith("/proxy")):
             raise ValueError(f"monitor.url must look like rerun+http://HOST:PORT/proxy, got {self.url!r}")
-        if self.watch_envs < 0 or self.frames_per_s <= 0 or self.queue_rollouts < 1:
-            raise ValueError(f"monitor.watch_envs must be >= 0, monitor.frames_per_s > 0 and monitor.queue_rollouts "
-                             f">= 1, got {self.watch_envs}, {self.frames_per_s}, {self.queue_rollouts}")
-        if self.curriculum_every_s <= 0 or self.gallery < 0 or not 0 < self.web_port < 65536:
-            raise ValueError(f"monitor.curriculum_every_s must be > 0, monitor.gallery >= 0 and monitor.web_port a "
-                             f"port, got {self.curriculum_every_s}, {self.gallery}, {self.web_port}")
+        check_range("monitor.watch_envs", self.watch_envs, at_least=0)
+        check_range("monitor.frames_per_s", self.frames_per_s, above=0)
+        check_range("monitor.queue_rollouts", self.queue_rollouts, at_least=1)
+        check_range("monitor.curriculum_every_s", self.curriculum_every_s, above=0)
+        check_range("monitor.gallery", self.gallery, at_least=0)
+        check_range("monitor.web_port", self.web_port, at_least=1, at_most=65535)
 
 
 @dataclass(frozen=True)
@@ -257,6 +316,7 @@ class TrainConfig:
     run_dir: str = "runs/{name}"
     """Where checkpoints, logs and the resolved config go; "{name}" is replaced by the run name."""
     total_env_steps: int = 2**30
+    """Environment steps to train for (rounded up to whole updates)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
@@ -270,6 +330,9 @@ class TrainConfig:
     router: RouterConfig = field(default_factory=RouterConfig)
     """`impulse router`, for runs across machines."""
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
+
+    def __post_init__(self) -> None:
+        check_range("total_env_steps", self.total_env_steps, at_least=1)
 
     def output_dir(self) -> Path:
         """The run directory with the run name filled in."""

@@ -41,12 +41,47 @@ def _plain(value: Any) -> Any:
     return value
 
 
-class MetricsFile:
-    """metrics.jsonl in the run directory: appended to, never rewritten, so a resumed run continues it."""
+SUPERSEDED_SUFFIX = "-superseded"
+"""`metrics.jsonl`'s rows of updates a resumed run redoes go to `metrics-superseded.jsonl` beside it."""
 
-    def __init__(self, path: str | Path):
+
+def rewind_metrics(path: Path, through_update: int) -> int:
+    """Keep in `path` only the rows of updates up to `through_update` (the checkpoint a run resumes from), so that
+    after a resume each update has one row; the rows of the updates that died with the previous process (and
+    lines cut short by a crash) are moved, never deleted, to `<stem>-superseded.jsonl`. Returns how many moved."""
+    if not path.is_file():
+        return 0
+    kept, superseded = [], []
+    for line in path.read_text(errors="replace").splitlines(keepends=True):
+        if not line.strip():
+            continue
+        try:
+            update = json.loads(line).get("update")
+        except (ValueError, AttributeError):
+            update = None
+        (kept if isinstance(update, int) and update <= through_update else superseded).append(line)
+    if not superseded:
+        return 0
+    aside = path.with_name(f"{path.stem}{SUPERSEDED_SUFFIX}{path.suffix}")
+    with aside.open("a") as out:
+        out.writelines(line if line.endswith("\n") else line + "\n" for line in superseded)
+    scratch = path.with_name(f".{path.name}.tmp")
+    scratch.write_text("".join(kept))
+    scratch.replace(path)
+    log.info("%s: %d rows after update %d (redone by this resumed run) moved to %s", path, len(superseded),
+             through_update, aside.name)
+    return len(superseded)
+
+
+class MetricsFile:
+    """metrics.jsonl in the run directory, appended to row by row. Opened with `through_update` (a resumed run's
+    checkpoint), it first sets aside the rows of later updates (`rewind_metrics`): each update has one row."""
+
+    def __init__(self, path: str | Path, through_update: int | None = None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if through_update is not None:
+            rewind_metrics(self.path, through_update)
         self._file = self.path.open("a")
 
     def write(self, record: dict[str, Any]) -> None:

@@ -46,8 +46,8 @@ def _levels(config: TrainConfig, sizes) -> tuple[list[str], Level | None]:
         return [], None
     try:
         return load_level_set(config.env.levels, sizes)
-    except ValueError as err:
-        raise RunError(str(err)) from err
+    except ValueError as err:  # the message names the set and every file that failed, with its problems
+        raise RunError(f"env.levels: {err}") from err
 
 
 def _eval_levels(config: TrainConfig, sizes, train_names: list[str], train_levels: Level | None):
@@ -57,7 +57,7 @@ def _eval_levels(config: TrainConfig, sizes, train_names: list[str], train_level
     try:
         return load_level_set(source, sizes)
     except ValueError as err:
-        log.warning("no evaluation: %s", err)
+        log.warning("no evaluation: %s%s", "eval.levels: " if config.eval.levels else "", err)
         return [], None
 
 
@@ -154,24 +154,27 @@ class FusedRun:
         written by `impulse import-kinetix` or by a distributed run's learner), go on training that policy on
         freshly reset environments (and a fresh curriculum)."""
         if self.checkpoints.latest_step() is None:
-            raise RunError(f"nothing to resume: no complete checkpoint in {self.checkpoints.directory}")
-        templates = fused_checkpoint_items(self.carry)
+            raise RunError(f"nothing to resume: {self.checkpoints.nothing_usable()}")
+        full = fused_checkpoint_items(self.carry)
+
+        def templates(held: frozenset[str]) -> dict[str, Any]:
+            # Chosen per checkpoint tried: an older one (the newest being corrupt) may hold other items.
+            return {TRAIN: full[TRAIN]} if held == {TRAIN} else full
+
         try:
-            policy_only = self.checkpoints.items_at() == {TRAIN}
-            if policy_only:
-                templates = {TRAIN: templates[TRAIN]}
-            items, counters, _ = self.checkpoints.restore(templates)
+            restored = self.checkpoints.restore(templates)
         except CheckpointError as err:
             raise RunError(str(err)) from err
+        items, counters = restored.items, restored.counters
         self.update = int(counters["update"])
-        if policy_only:
+        if set(items) == {TRAIN}:
             self.carry = self.carry._replace(train=items[TRAIN])
             source = counters.get("imported_from", "a distributed run's learner")
             log.info("started from the policy of checkpoint %d (update %d, from %s) on fresh environments: the "
-                     "checkpoint holds no environment state", self.checkpoints.latest_step(), self.update, source)
+                     "checkpoint holds no environment state", restored.step, self.update, source)
             return
         self.carry = fused_carry_from_items(items)
-        log.info("resumed from checkpoint %d (update %d, %s env steps)", self.checkpoints.latest_step(),
+        log.info("resumed from checkpoint %d (update %d, %s env steps)", restored.step,
                  self.update, f"{counters['env_steps']:,}")
 
     @property
@@ -272,9 +275,10 @@ def evaluate_run(
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         try:
-            items, counters, _ = checkpoints.restore({TRAIN: template}, step)
+            restored = checkpoints.restore({TRAIN: template}, step)
         except CheckpointError as err:
             raise RunError(str(err)) from err
+    items, counters = restored.items, restored.counters
     params = items[TRAIN].params
     scores = evaluate(agent, params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
                       attempts=attempts or config.eval.attempts, greedy=greedy)

@@ -12,8 +12,15 @@ One cycle (driven by the shared run loop):
 4. run `ppo_update` on it, publish the new weights every `learner.publish_every` updates (a cached publication for
    late joiners, plus the queryable), and report metrics.
 
-The learner's epoch counts its restarts (stored in the checkpoint counters); weights carry (epoch, version) so
-actors notice a restarted learner, and trajectories carry the epoch of the weights that acted.
+The learner's epoch counts its restarts. Each start claims a new one, above both the epoch stored in the
+checkpoint it resumes and the last one claimed in the run directory (`claim_epoch`), so no two learner
+incarnations of a run share an epoch even when one dies before its first checkpoint. Weights carry
+(epoch, version), which actors adopt only in increasing order, and trajectories carry the epoch of the weights
+that acted.
+
+Drops. Everything the learner drops or refuses is counted, and so is what the actors and the curriculum report in
+their status lines (`bus.status.DropTotals`): every metrics row carries the running totals (`drops/...`,
+`rejected/...`), and the checkpoint counters keep them across a restart.
 """
 
 from __future__ import annotations
@@ -32,9 +39,9 @@ from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
 from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, weights_meta
 from bus.codec import Kind, Message, Rejected, decode, encode
-from bus.keys import LEARNER
+from bus.keys import ACTOR, CURRICULUM, LEARNER
 from bus.session import Bus
-from bus.status import StatusPublisher
+from bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
 from engine.env.spec import EnvParams
 from engine.levels.level import level_from_scene, stack_levels
 from engine.physics.pytree import tree_arrays
@@ -54,6 +61,11 @@ ACK_REFRESH_S = 1.0
 """Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
 RATE_WINDOW = 20
 """Updates over which the status line's updates/s and consumed steps/s are measured (compile time excluded)."""
+EPOCH_FILE = "learner-epoch"
+"""In the run directory: the last learner epoch claimed (`claim_epoch`)."""
+DROP_COUNTS = ("dropped_stale", "dropped_old_epoch", "dropped_overflow", "dropped_inbox_full", "lost")
+"""The learner's own drop counters: acted by weights too old, or of an earlier learner epoch; pushed out of the
+ready queue; refused by a full trajectory inbox; missing from an actor's sequence (lost on the way)."""
 
 
 class LearnerError(RuntimeError):
@@ -71,6 +83,24 @@ def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps
         return make_batch(steps, carry.obs, 0, train_mask=train_mask)
 
     return jax.eval_shape(one_batch)
+
+
+def claim_epoch(run_dir: Path, restored: int) -> int:
+    """A learner epoch never used before in `run_dir`: one above both the epoch of the checkpoint resumed
+    (`restored`) and the last one claimed there, written down (atomically) before it is used."""
+    path = run_dir / EPOCH_FILE
+    try:
+        claimed = int(path.read_text().strip())
+    except FileNotFoundError:
+        claimed = 0
+    except (OSError, ValueError) as err:
+        log.warning("%s is unreadable (%s): epochs continue from the checkpoint's", path, err)
+        claimed = 0
+    epoch = max(restored, claimed) + 1
+    scratch = path.with_name(f".{EPOCH_FILE}.tmp")
+    scratch.write_text(f"{epoch}\n")
+    scratch.replace(path)
+    return epoch
 
 
 class LearnerService:
@@ -96,15 +126,22 @@ class LearnerService:
         self.update = 0
         self.env_steps = 0
         self.epoch = 0
+        self.counts: Counter[str] = Counter()
+        self.peer_drops = DropTotals()
+        self._rejected_before: Counter[str] = Counter()  # the learner's refusals before its restart
         if self.checkpoints.latest_step() is not None:
             if not resume:
                 self.checkpoints.close()
                 raise LearnerError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose "
                                    "another name")
             self._restore()
+        elif resume and self.checkpoints.set_aside():
+            self.checkpoints.close()
+            raise LearnerError(f"cannot resume: {self.checkpoints.nothing_usable()}")
         elif resume:
             log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
-        self.epoch += 1
+        self.epoch = claim_epoch(run_dir, self.epoch)
+        self.updates_at_start = self.update
         self.train = self.parallel.replicate(self.train)
 
         self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
@@ -120,18 +157,20 @@ class LearnerService:
         keys = bus.keys
         capacity = max(4, config.actors.credits * max(config.actors.num_actors, 1) * 2)
         self._inbox = bus.inbox(keys.traj_all, capacity)
+        self._inbox_dropped_before = self.counts["dropped_inbox_full"]
         self._ready: deque[tuple[str, int, Message, TrajectoryBatch]] = deque()
         self._ready_limit = capacity
         self._weights_publisher = bus.latest_publisher(keys.weights_policy)
         self._weights_queries = bus.queryable(keys.weights_latest, 16)
-        self._alive = bus.watch_alive(keys.alive_pattern("actor"))
+        self._alive = bus.watch_alive(keys.alive_pattern(ACTOR))
+        self._peer_statuses = {role: bus.inbox(keys.status_pattern(role), 256, drop_oldest=True)
+                               for role in (ACTOR, CURRICULUM)}
         self._status = StatusPublisher(bus, config.actors.status_every_s)
         self._credit_publishers: dict[str, Any] = {}
         self._acks: dict[str, tuple[int, int]] = {}  # actor -> (incarnation, highest seq taken off the queue)
         self._last_seq: dict[tuple[str, int], int] = {}
         self._last_ack_refresh = time.monotonic()
         self.actors_alive: set[str] = set()
-        self.counts: Counter[str] = Counter()
         self.lags: Counter[int] = Counter()
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
@@ -143,15 +182,19 @@ class LearnerService:
 
     def _restore(self) -> None:
         try:
-            items, counters, _ = self.checkpoints.restore({TRAIN: self.train})
+            restored = self.checkpoints.restore({TRAIN: self.train})
         except CheckpointError as err:
             raise LearnerError(str(err)) from err
-        self.train = items[TRAIN]
+        counters = restored.counters
+        self.train = restored.items[TRAIN]
         self.update = int(counters["update"])
         self.env_steps = int(counters["env_steps"])
         self.epoch = int(counters.get("learner_epoch", 0))
+        self.counts.update(plausible_counts(counters.get("drop_counts")))
+        self._rejected_before.update(plausible_counts(counters.get("rejected")))
+        self.peer_drops.restore(counters.get("peer_drops"))
         log.info("resumed from checkpoint %d (update %d, policy version %d, %s env steps, epoch %d)",
-                 self.checkpoints.latest_step(), self.update, int(self.train.policy_version),
+                 restored.step, self.update, int(self.train.policy_version),
                  f"{self.env_steps:,}", self.epoch + 1)
 
     @property
@@ -164,7 +207,6 @@ class LearnerService:
         params = self.train.params
         self._weights_frame = bytes(encode(Kind.WEIGHTS, tree_arrays(params), run=self.bus.keys.run,
                                            policy_version=self.version, learner_epoch=self.epoch,
-                                           sender=LEARNER_ID,
                                            meta={**weights_meta(params), PUBLISHED_AT: time.time()}))
         self._weights_publisher.put(self._weights_frame)
         self.counts["weights_published"] += 1
@@ -195,7 +237,7 @@ class LearnerService:
             publisher = self._credit_publishers[actor] = self.bus.publisher(self.bus.keys.credit(actor))
         incarnation, seq = self._acks[actor]
         publisher.put(encode(Kind.CREDIT, {}, run=self.bus.keys.run, policy_version=self.version,
-                             learner_epoch=self.epoch, seq=seq, sender=LEARNER_ID,
+                             learner_epoch=self.epoch, seq=seq,
                              meta={"incarnation": incarnation, "acked_seq": seq}))
 
     def _refresh_acks(self) -> None:
@@ -208,14 +250,13 @@ class LearnerService:
 
     def _ingest(self) -> None:
         for received in self._inbox.poll():
-            source = received.key.rsplit("/", 1)[-1]
+            source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
             try:
                 message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.TRAJECTORY,
                                  max_bytes=self._max_frame_bytes)
                 incarnation = message.meta.get("incarnation")
-                if not isinstance(incarnation, int) or message.sender != source:
-                    raise Rejected("schema", f"frame on {received.key} from {message.sender!r} without a valid "
-                                   "incarnation")
+                if type(incarnation) is not int:
+                    raise Rejected("schema", f"frame on {received.key} without a valid incarnation")
                 batch = checked_tree(message, self._schema, self._template)
                 stream = (source, incarnation)
                 last = self._last_seq.get(stream)
@@ -234,6 +275,32 @@ class LearnerService:
                 self.counts["dropped_overflow"] += 1
                 self._acknowledge(dropped, old.meta["incarnation"], seq_dropped)
             self._ready.append((source, message.seq, message, batch))
+        self.counts["dropped_inbox_full"] = self._inbox_dropped_before + self._inbox.dropped
+
+    def _hear_peers(self) -> None:
+        """The actors' and the curriculum's status lines, for their drop counters."""
+        for inbox in self._peer_statuses.values():
+            for received in inbox.poll():
+                try:
+                    self.peer_drops.note(read_status(received, self.bus.keys))
+                except Rejected as err:
+                    self.bus.rejects.record(err.reason, received.key, err.detail)
+
+    def rejected(self) -> dict[str, int]:
+        """Messages the learner refused, by reason, over the whole run (restarts included)."""
+        return dict(self._rejected_before + Counter(self.bus.rejects.counts()))
+
+    def drop_metrics(self) -> dict[str, int]:
+        """Every drop and refusal of the run so far, as metrics.jsonl columns: `drops/<counter>` and
+        `rejected/<reason>` for the learner's own, `drops/<role>/<counter>` and `rejected/<role>/<reason>` for
+        the other processes' (summed over their incarnations)."""
+        metrics = {f"drops/{name}": int(self.counts.get(name, 0)) for name in DROP_COUNTS}
+        metrics.update({f"rejected/{reason}": count for reason, count in sorted(self.rejected().items())})
+        for name, count in self.peer_drops.totals().items():
+            role, _, counter = name.partition("/")
+            prefix = "rejected" if counter.startswith("rejected/") else "drops"
+            metrics[f"{prefix}/{role}/{counter.removeprefix('rejected/')}"] = count
+        return metrics
 
     def _take(self) -> tuple[str, Message, TrajectoryBatch] | None:
         """The oldest batch fit to train on, acknowledging everything taken off the queue."""
@@ -276,9 +343,11 @@ class LearnerService:
             "actors": sorted(self.actors_alive),
             "actor_lag": self.actor_lag,
             "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
-            "rejected": self.bus.rejects.counts(),
+            "rejected": self.rejected(),
             "solve_rate": self._last_metrics.get("window_solve_rate"),
             "finished": self.finished(),
+            "peer_drops": self.peer_drops.totals(),
+            **{name: 0 for name in DROP_COUNTS},
             **dict(self.counts),
         }
 
@@ -287,6 +356,7 @@ class LearnerService:
             self._status.publish(self.status())
         self._answer_queries()
         self._watch_actors()
+        self._hear_peers()
         self._ingest()
         self._refresh_acks()
         taken = self._take()
@@ -309,6 +379,7 @@ class LearnerService:
             return_sum=float(np.asarray(steps.episode_return)[done].sum()),
             actor=float(batch.actor_id),
             queue=len(self._ready),
+            **self.drop_metrics(),
         )
         if self.config.learner.slow_down_s:
             time.sleep(self.config.learner.slow_down_s)
@@ -322,7 +393,8 @@ class LearnerService:
     def save(self, summary: dict[str, float]) -> None:
         self.note_window(summary)
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
-                    "policy_version": self.version, **summary}
+                    "policy_version": self.version, "drop_counts": dict(self.counts),
+                    "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
         self.checkpoints.save(self.update, {TRAIN: self.train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 

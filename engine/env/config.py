@@ -10,6 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+_SCREEN_PIXELS = 500
+"""Side of Kinetix's square screen in pixels, which env.pixel_downscale must divide: `engine.env.pixels`'s
+SCREEN_PIXELS, repeated here because this module imports nothing from the project."""
+
 
 @dataclass(frozen=True)
 class EnvConfig:
@@ -25,7 +29,7 @@ class EnvConfig:
     """Agent steps before an episode is cut off."""
     dense_reward_scale: float = 0.2
     """Weight of the shaping term that rewards moving the goal shapes closer together (0.2 as in Kinetix's training
-    configs; its level files and EnvParams carry 0.1)."""
+    configs; its level files and EnvParams carry 0.1); 0: the sparse reward alone."""
     observation: Literal["entity", "symbolic", "pixels"] = "entity"
     """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector; pixels: the
     scene drawn as an RGB image (Kinetix's pixel observation, for the "cnn" network)."""
@@ -42,3 +46,13 @@ class EnvConfig:
     physics_backend: Literal["xla", "pallas"] = "xla"
     """How the phased solver's iterations run (`SceneSizes.backend`): "xla" (the pure-JAX stages) or "pallas" (one
     fused Triton kernel per block of scenes on a CUDA GPU; the XLA stages on any other platform)."""
+
+    def __post_init__(self) -> None:
+        for name in ("frame_skip", "max_timesteps", "pixel_downscale"):
+            if not getattr(self, name) >= 1:
+                raise ValueError(f"env.{name} must be >= 1, got {getattr(self, name)}")
+        if _SCREEN_PIXELS % self.pixel_downscale:
+            raise ValueError(f"env.pixel_downscale must be a divisor of {_SCREEN_PIXELS} (the screen's side in "
+                             f"pixels), got {self.pixel_downscale}")
+        if not self.dense_reward_scale >= 0:
+            raise ValueError(f"env.dense_reward_scale must be >= 0, got {self.dense_reward_scale}")

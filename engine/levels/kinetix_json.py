@@ -22,6 +22,7 @@ import functools
 import json
 import math
 import os
+import stat
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -396,15 +397,100 @@ def _manifold_cache(
 # Loading
 
 
-def _read_json(path: Path) -> dict:
+MAX_LEVEL_FILE_BYTES = 64 * 2**20
+"""The largest file the loader reads. Kinetix's largest levels (size L) are about 50 KB; the cap keeps a wrong path
+(a dataset, a disk image) from filling memory before the format check can say it is not a level file."""
+
+# Leading bytes of common binary formats, so that a file given by mistake is named for what it is.
+_BINARY_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+    (b"\xff\xd8\xff", "a JPEG image"),
+    (b"GIF8", "a GIF image"),
+    (b"PK\x03\x04", "a zip archive"),
+    (b"\x1f\x8b", "a gzip file"),
+    (b"\x93NUMPY", "a NumPy array file"),
+    (b"%PDF", "a PDF document"),
+    (b"\x7fELF", "an executable"),
+)
+_UTF16_MARKS = (b"\xff\xfe", b"\xfe\xff")
+
+
+def _read_bytes(path: Path) -> bytes:
+    """The file's bytes, or a `LevelFileError` saying why it cannot be a level file.
+
+    Opened without blocking and checked to be a regular file before reading, so that a folder, a pipe or a device
+    (`/dev/zero`) gives an error instead of a hang, and capped at `MAX_LEVEL_FILE_BYTES`.
+    """
     try:
-        text = path.read_text()
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    except IsADirectoryError as err:
+        raise LevelFileError(path, "is a folder, not a level file") from err
     except OSError as err:
         raise LevelFileError(path, f"cannot read the file: {err.strerror or err}") from err
     try:
-        raw = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as err:
-        raise LevelFileError(path, f"not valid JSON: {err}") from err
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise LevelFileError(path, "is a folder, not a level file")
+        if not stat.S_ISREG(info.st_mode):
+            raise LevelFileError(path, "not a regular file (a device, pipe or socket): is it a level file?")
+        if info.st_size > MAX_LEVEL_FILE_BYTES:
+            raise LevelFileError(path, f"too large for a level file ({info.st_size:,} bytes; level files are at "
+                                       f"most {MAX_LEVEL_FILE_BYTES:,})")
+        chunks: list[bytes] = []
+        size = 0
+        while size <= MAX_LEVEL_FILE_BYTES and (chunk := os.read(fd, MAX_LEVEL_FILE_BYTES + 1 - size)):
+            chunks.append(chunk)
+            size += len(chunk)
+        data = b"".join(chunks)
+    except OSError as err:
+        raise LevelFileError(path, f"cannot read the file: {err.strerror or err}") from err
+    finally:
+        os.close(fd)
+    if len(data) > MAX_LEVEL_FILE_BYTES:  # grew while being read
+        raise LevelFileError(path, f"too large for a level file (over {MAX_LEVEL_FILE_BYTES:,} bytes)")
+    return data
+
+
+def _decode_text(path: Path, data: bytes) -> str:
+    """The file's text: UTF-8 (a leading byte-order mark is allowed), else a `LevelFileError` naming the first
+    byte that is not UTF-8 and, for common binary formats, what the file seems to be."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        bad = err.object[err.start]
+        offset = err.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
+        kind = next((name for magic, name in _BINARY_SIGNATURES if data.startswith(magic)), None)
+        if kind is not None:
+            advice = f"it looks like {kind}, not a level file"
+        elif data.startswith(_UTF16_MARKS):
+            advice = "it looks like UTF-16 text: save it as UTF-8"
+        else:
+            advice = "is it a level file?"
+        raise LevelFileError(path, f"not a UTF-8 text file (byte 0x{bad:02x} at offset {offset}): {advice}") from err
+
+
+def _parse_json(path: Path, text: str) -> Any:
+    """The JSON value in `text`, or a `LevelFileError` with json's message (line and column) and, when the text
+    ends where the error is, a hint that the file was cut short."""
+    if not text.strip():
+        what = "empty file" if not text else "the file holds only blank space"
+        raise LevelFileError(path, f"{what}: a level file holds a JSON object")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        truncated = err.pos >= len(text.rstrip())
+        hint = "; the text ends there: is the file cut short?" if truncated else ""
+        raise LevelFileError(path, f"not valid JSON: {err}{hint}") from err
+    except RecursionError as err:
+        raise LevelFileError(path, "not valid JSON: nested too deeply to read") from err
+    except ValueError as err:  # e.g. an integer of more digits than Python converts
+        raise LevelFileError(path, f"not valid JSON: {str(err).partition(';')[0]}") from err
+
+
+def _read_json(path: Path) -> dict:
+    """The file's top-level JSON object holding `env_state`; every way a file can fail to be one (unreadable, a
+    folder, binary or non-UTF-8, empty, cut short, not JSON, not an object) is a one-line `LevelFileError`."""
+    raw = _parse_json(path, _decode_text(path, _read_bytes(path)))
     if not isinstance(raw, dict):
         raise LevelFileError(path, f"not a level file: the top level must be an object, got {type(raw).__name__}")
     if not isinstance(raw.get("env_state"), dict):

@@ -54,13 +54,19 @@ def _handmade(names: list[str] | None, sizes: SceneSizes) -> tuple[list[str], li
     return chosen, levels
 
 
+def _level_files_under(folder: Path, pattern: str = "*.json", recursive: bool = True) -> list[Path]:
+    """The `pattern` files in `folder`, sorted; folders that happen to be named like one are not level files."""
+    found = folder.rglob(pattern) if recursive else folder.glob(pattern)
+    return sorted(file for file in found if not file.is_dir())
+
+
 def _files(path: Path) -> list[Path]:
     if path.is_dir():
-        files = sorted(path.rglob("*.json"))
+        files = _level_files_under(path)
         if not files:
             raise LevelSetError(f"no .json level files under {path}")
         return files
-    if path.is_file():
+    if path.exists():  # a file, or something else (a pipe, a device) that the loader refuses, naming it
         return [path]
     raise LevelSetError(
         f"level set {str(path)!r} is neither {HANDMADE!r}, {RANDOM!r}, a level file nor a folder of level files"
@@ -93,7 +99,7 @@ def _kinetix_files(which: str) -> list[tuple[str, Path]]:
                             f"{', '.join(f'{KINETIX}:{name}' for name in KINETIX_SETS)}")
     root = kinetix_levels_root()
     files = [(f"{size}/{file.stem}", file) for size in KINETIX_SETS[which]
-             for file in sorted((root / size).glob("*.json"))]
+             for file in _level_files_under(root / size, recursive=False)]
     if not files:
         raise LevelSetError(f"no level files in {root} for {KINETIX}:{which}")
     return files
@@ -101,7 +107,7 @@ def _kinetix_files(which: str) -> list[tuple[str, Path]]:
 
 def _glob_files(pattern: str) -> list[tuple[str, Path]]:
     files = sorted(Path(match) for match in glob.glob(os.path.expanduser(pattern), recursive=True)
-                   if match.endswith(".json"))
+                   if match.endswith(".json") and not os.path.isdir(match))
     if not files:
         raise LevelSetError(f"no .json level files match {pattern!r}")
     common = Path(os.path.commonpath([file.parent for file in files]))
@@ -117,8 +123,27 @@ def kinetix_group(name: str) -> str:
     return f"{size}_{'handmade' if prefix == 'h' else prefix}"
 
 
+MAX_LISTED_PROBLEMS = 20
+"""How many problems a `LevelSetError` for unloadable files lists before summing up the rest."""
+
+
+def _unloadable(source: str, total: int, failures: list[LevelFileError]) -> LevelSetError:
+    """The error for a set whose files do not all load: a set of one file gives that file's error as it is;
+    a larger set says how many files failed, then one line per problem, each starting with the file's path."""
+    if total == 1:
+        return LevelSetError(str(failures[0]))
+    lines = [f"{failure.path}: {problem}" for failure in failures for problem in failure.problems]
+    if len(lines) > MAX_LISTED_PROBLEMS:
+        lines = [*lines[:MAX_LISTED_PROBLEMS], f"... and {len(lines) - MAX_LISTED_PROBLEMS} more problems"]
+    listed = "\n  ".join(lines)
+    return LevelSetError(f"level set {source!r}: {len(failures)} of {total} level files cannot be loaded:\n  {listed}")
+
+
 def load_level_set(source: str, sizes: SceneSizes) -> tuple[list[str], Level]:
-    """(names, batch of levels [K]) for a level-set string, every level in `sizes`."""
+    """(names, batch of levels [K]) for a level-set string, every level in `sizes`.
+
+    Raises `LevelSetError` when the set cannot be resolved or any of its files does not load; every file that
+    fails is named with its problems (all of them, not only the first file's, so one run finds every bad file)."""
     if source == RANDOM:
         raise LevelSetError("'random' levels are sampled by the trainer, not loaded from a set")
     if source == HANDMADE or source.startswith(HANDMADE + ":"):
@@ -133,13 +158,16 @@ def load_level_set(source: str, sizes: SceneSizes) -> tuple[list[str], Level]:
             files = _files(Path(source))
             named = [(file.stem if len(files) == 1 else str(file.relative_to(source)).removesuffix(".json"), file)
                      for file in files]
-        names, levels = [], []
+        names, levels, failures = [], [], []
         for name, file in named:
             try:
                 levels.append(load_kinetix_level(file, sizes).level)
             except LevelFileError as err:
-                raise LevelSetError(str(err)) from err
+                failures.append(err)
+                continue
             names.append(name)
+        if failures:
+            raise _unloadable(source, len(named), failures) from failures[0]
     if not levels:
         raise LevelSetError(f"level set {source!r} has no level that fits the configured size")
     return names, stack_levels(levels)

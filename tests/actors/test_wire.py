@@ -41,7 +41,7 @@ def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
     agent = make_agent(NETWORK, EnvSpec())
     template = batch_template(agent, EnvParams(), num_envs=4, num_steps=3)
     batch = random_like(template, 0)
-    frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=RUN, seq=1, sender="actor-0")
+    frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=RUN, seq=1)
     received = checked_tree(decode(bytes(frame), run=RUN, kinds=Kind.TRAJECTORY), trajectory_schema(template),
                             template)
     for sent, got in zip(jax.tree.leaves(batch), jax.tree.leaves(received), strict=True):

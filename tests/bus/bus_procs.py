@@ -6,7 +6,7 @@ stdin (or stdin closes), closes its Bus, prints {"event": "closed"} and exits by
 does so within a few seconds, which catches zenoh's exit hang. Roles:
 
 - hub ENDPOINT: `run_hub` until stopped; reports "ready" once listening.
-- peer ENDPOINT RUN IDENT OTHER[,OTHER...]: sends CONTROL frames to each other peer's ctrl key every 50 ms,
+- peer ENDPOINT RUN IDENT OTHER[,OTHER...]: sends CONTROL frames to each other peer (on `peer/<from>/<to>`) every 50 ms,
   saying whether it has heard from that peer; reports {"event": "linked", "other": ...} once it has heard from a
   peer that has also heard from it, i.e. messages went both ways.
 - alive ENDPOINT RUN IDENT: only holds its liveliness token.
@@ -30,10 +30,11 @@ from typing import Any
 import numpy as np
 
 from bus.codec import Kind, Rejected, decode, encode
+from bus.keys import OPERATOR
 from bus.session import Bus, BusConfig, run_hub
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-PEER_ROLE = "peer"
+PEER_ROLE = OPERATOR
 SEND_EVERY_S = 0.05
 
 
@@ -70,8 +71,8 @@ def announce_ready(stop: threading.Event) -> Callable[[], bool]:
 
 def run_peer(config: BusConfig, run: str, ident: str, others: list[str], stop: threading.Event) -> None:
     with Bus(config, run, PEER_ROLE, ident) as bus:
-        inbox = bus.inbox(bus.keys.ctrl(PEER_ROLE, ident), 64)
-        publishers = {other: bus.publisher(bus.keys.ctrl(PEER_ROLE, other)) for other in others}
+        inbox = bus.inbox(bus.keys.own(PEER_ROLE, "peer", "*", ident), 64)
+        publishers = {other: bus.publisher(bus.keys.own(PEER_ROLE, "peer", ident, other)) for other in others}
         heard: set[str] = set()
         linked: set[str] = set()
         report("ready", ident=ident)
@@ -79,7 +80,7 @@ def run_peer(config: BusConfig, run: str, ident: str, others: list[str], stop: t
         while not stop.is_set():
             for other, publisher in publishers.items():
                 meta = {"heard_you": other in heard}
-                publisher.put(encode(Kind.CONTROL, {}, run=run, seq=seq, sender=ident, meta=meta))
+                publisher.put(encode(Kind.CONTROL, {}, run=run, seq=seq, meta=meta))
             seq += 1
             deadline = time.monotonic() + SEND_EVERY_S
             while (received := inbox.wait(max(0.0, deadline - time.monotonic()))) is not None:
@@ -88,10 +89,11 @@ def run_peer(config: BusConfig, run: str, ident: str, others: list[str], stop: t
                 except Rejected as exc:
                     bus.rejects.record(exc.reason, received.key, exc.detail)
                     continue
-                heard.add(message.sender)
-                if message.meta.get("heard_you") and message.sender not in linked:
-                    linked.add(message.sender)
-                    report("linked", ident=ident, other=message.sender)
+                sender = received.key.split("/")[-2]  # peer/<from>/<to>
+                heard.add(sender)
+                if message.meta.get("heard_you") and sender not in linked:
+                    linked.add(sender)
+                    report("linked", ident=ident, other=sender)
     report("closed")
 
 
@@ -107,7 +109,7 @@ def run_latest(config: BusConfig, run: str, stop: threading.Event) -> None:
         publisher = bus.latest_publisher(bus.keys.weights_policy)
         for version in (1, 2, 3):
             weights = {"w": np.full((4, 3), version, np.float32)}
-            publisher.put(encode(Kind.WEIGHTS, weights, run=run, policy_version=version, sender="learner"))
+            publisher.put(encode(Kind.WEIGHTS, weights, run=run, policy_version=version))
         report("published", version=3)
         stop.wait()
     report("closed")
@@ -124,7 +126,7 @@ def run_levels(config: BusConfig, run: str, stop: threading.Event) -> None:
             count = int(query.parameters.get("n", "0"))
             ids = np.arange(count, dtype=np.int64)
             meta = {"asked_by": query.parameters.get("actor", ""), "note": (query.payload or b"").decode()}
-            query.reply(encode(Kind.LEVELS, {"level_id": ids}, run=run, sender="curriculum", meta=meta))
+            query.reply(encode(Kind.LEVELS, {"level_id": ids}, run=run, meta=meta))
     report("closed")
 
 

@@ -11,6 +11,9 @@ import pytest
 
 from bus.codec import (
     ALIGN,
+    DIGEST_SIZE,
+    DIGESTED_KINDS,
+    FLAG_DIGEST,
     HEADER,
     HEADER_SIZE,
     MAX_TABLE_BYTES,
@@ -54,7 +57,7 @@ def sample_arrays() -> dict[str, np.ndarray]:
 
 
 def valid_frame(**overrides: Any) -> bytearray:
-    fields: dict[str, Any] = {"run": RUN, "policy_version": 7, "learner_epoch": 2, "seq": 11, "sender": "a0"}
+    fields: dict[str, Any] = {"run": RUN, "policy_version": 7, "learner_epoch": 2, "seq": 11}
     fields.update(overrides)
     return encode(Kind.TRAJECTORY, {"obs": np.arange(12, dtype=np.float32).reshape(3, 4)}, **fields)
 
@@ -102,14 +105,13 @@ def test_round_trip_every_kind(kind: Kind) -> None:
     arrays = sample_arrays()
     meta = {"tree_hash": "abc", "nested": {"x": [1, 2.5, None]}, "text": "é"}
     frame = encode(
-        kind, arrays, run=RUN, policy_version=2**63 + 5, learner_epoch=2**32 - 1, seq=2**40, sender="a7", meta=meta
+        kind, arrays, run=RUN, policy_version=2**63 + 5, learner_epoch=2**32 - 1, seq=2**40, meta=meta
     )
     for data in (frame, bytes(frame), memoryview(frame)):
         message = decode(data, run=RUN, kinds=kind)
         assert isinstance(message, Message)
         assert message.kind is kind
         assert (message.policy_version, message.learner_epoch, message.seq) == (2**63 + 5, 2**32 - 1, 2**40)
-        assert message.sender == "a7"
         assert message.meta == meta
         assert list(message.arrays) == list(arrays)
         for name, expected in arrays.items():
@@ -182,7 +184,8 @@ def test_header_fields_checked() -> None:
     refused(frame, "wrong_kind", kinds=Kind.WEIGHTS)
     refused(frame, "wrong_kind", kinds=[Kind.WEIGHTS, Kind.LEVELS])
     assert decode(frame, run=RUN, kinds=[Kind.WEIGHTS, Kind.TRAJECTORY]).kind is Kind.TRAJECTORY
-    assert decode(rebuild(frame, flags=5), run=RUN).seq == 11  # reserved flags are ignored
+    assert decode(rebuild(frame, flags=4), run=RUN).seq == 11  # reserved flags are ignored
+    refused(rebuild(frame, flags=1), "truncated")  # a digest flag with no digest after the body
 
 
 def test_bad_tables() -> None:
@@ -193,14 +196,13 @@ def test_bad_tables() -> None:
     refused(rebuild(frame, table=[1, 2]), "bad_table")
     refused(rebuild(frame, table={"meta": {}}), "bad_table")
     refused(rebuild(frame, table={"arrays": [], "meta": [1]}), "bad_table")
-    refused(rebuild(frame, table={"arrays": [], "sender": 3}), "bad_table")
     refused(rebuild(frame, table={"arrays": [["obs", "<f4", [3, 4], 0]]}), "bad_table")
     refused(rebuild(frame, table={"arrays": [7]}), "bad_table")
     refused(with_entry(name=5), "bad_table")
     refused(with_entry(name=""), "bad_table")
     refused(rebuild(frame, table_len=MAX_TABLE_BYTES + 1), "bad_table")
-    minimal = decode(rebuild(frame, table={"arrays": []}), run=RUN)  # meta and sender are optional
-    assert (minimal.meta, minimal.sender, minimal.arrays) == ({}, "", {})
+    minimal = decode(rebuild(frame, table={"arrays": []}), run=RUN)  # meta is optional
+    assert (minimal.meta, minimal.arrays) == ({}, {})
 
 
 def test_entries_pointing_outside_the_body_or_misdeclared() -> None:
@@ -266,7 +268,7 @@ def test_fuzz_random_bytes() -> None:
 
 def test_fuzz_single_byte_mutations() -> None:
     rng = np.random.default_rng(2)
-    frame = bytes(encode(Kind.WEIGHTS, sample_arrays(), run=RUN, meta={"tree_hash": "x"}))
+    frame = bytes(encode(Kind.TRAJECTORY, sample_arrays(), run=RUN, meta={"tree_hash": "x"}))  # no digest
     header, _, _ = split(frame)
     table_end = HEADER_SIZE + header.table_len
     valid = 0
@@ -339,11 +341,36 @@ def test_tree_hash_covers_structure_not_values() -> None:
     assert tree_hash({**flat, "extra": np.zeros(1)}) != reference
 
 
-def test_expect_sender_refuses_frames_from_anyone_else() -> None:
-    from bus.codec import expect_sender
+@pytest.mark.parametrize("kind", list(Kind))
+def test_control_frames_carry_a_digest_and_data_frames_do_not(kind: Kind) -> None:
+    frame = encode(kind, {"w": np.arange(10, dtype=np.float32)}, run=RUN, policy_version=3)
+    header = Header._make(HEADER.unpack_from(frame, 0))
+    end = -(-(HEADER_SIZE + header.table_len) // ALIGN) * ALIGN + header.body_len
+    assert bool(header.flags & FLAG_DIGEST) == (kind in DIGESTED_KINDS)
+    assert len(frame) == end + (DIGEST_SIZE if kind in DIGESTED_KINDS else 0)
+    assert decode(frame, run=RUN).policy_version == 3
 
-    message = decode(encode(Kind.WEIGHTS, sample_arrays(), run=RUN, sender="learner"), run=RUN)
-    assert expect_sender(message, "learner") is message
-    with pytest.raises(Rejected) as info:
-        expect_sender(message, "curriculum")
-    assert info.value.reason == "foreign_sender" and "'learner'" in info.value.detail
+
+def test_any_flipped_bit_of_a_weights_frame_is_refused() -> None:
+    """Every byte of a weights frame, header, table, padding, array bytes and digest, is covered: a flip anywhere
+    is refused (by the digest, or earlier by a header check), never decoded into other weights."""
+    frame = encode(Kind.WEIGHTS, {"w": np.linspace(-1, 1, 40, dtype=np.float32)}, run=RUN, policy_version=9,
+                   meta={"tree_hash": "x"})
+    for position in range(len(frame)):
+        flipped = bytearray(frame)
+        flipped[position] ^= 1 << (position % 8)
+        with pytest.raises(Rejected) as info:
+            decode(flipped, run=RUN, kinds=Kind.WEIGHTS)
+        assert info.value.reason in ("digest", "bad_magic", "bad_version", "wrong_run", "wrong_kind", "bad_table",
+                                     "truncated", "bad_size"), (position, info.value)
+    body = len(frame) - DIGEST_SIZE - 1  # the last array byte
+    flipped = bytearray(frame)
+    flipped[body] ^= 0x10
+    assert refused(flipped, "digest").detail.startswith("the WEIGHTS frame's bytes do not match")
+
+
+def test_a_weights_frame_without_its_digest_is_refused() -> None:
+    frame = encode(Kind.WEIGHTS, {"w": np.ones(4, np.float32)}, run=RUN)
+    header = Header._make(HEADER.unpack_from(frame, 0))
+    stripped = HEADER.pack(*header._replace(flags=0)) + bytes(frame[HEADER_SIZE:-DIGEST_SIZE])
+    assert "without the digest" in refused(stripped, "digest").detail

@@ -28,6 +28,7 @@ per reader: cases, accepted, rejected by reason, and the largest allocation of o
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import tracemalloc
@@ -45,6 +46,8 @@ import pytest
 from actors.wire import PUBLISHED_AT, TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_meta, weights_schema
 from bus.codec import (
     ALIGN,
+    DIGEST_SIZE,
+    FLAG_DIGEST,
     HEADER,
     HEADER_SIZE,
     MAX_TABLE_BYTES,
@@ -61,7 +64,7 @@ from bus.codec import (
 )
 from bus.inbox import Received
 from bus.keys import Keys
-from bus.status import StatusPublisher, read_status
+from bus.status import Status, StatusPublisher, read_status
 from curriculum.results import LevelResults
 from curriculum.wire import (
     ResultsError,
@@ -117,9 +120,10 @@ def alloc_bound(size: int) -> int:
 
 @cache
 def parts(frame: bytes) -> tuple[Header, bytes, bytes]:
-    """Header, table text and body of a valid frame."""
+    """Header, table text and body of a valid frame (without its digest, if it has one)."""
     header = Header._make(HEADER.unpack_from(frame, 0))
-    return header, frame[HEADER_SIZE : HEADER_SIZE + header.table_len], frame[len(frame) - header.body_len :]
+    end = len(frame) - (DIGEST_SIZE if header.flags & FLAG_DIGEST else 0)
+    return header, frame[HEADER_SIZE : HEADER_SIZE + header.table_len], frame[end - header.body_len : end]
 
 
 def split(frame: bytes) -> tuple[Header, dict[str, Any], bytes]:
@@ -129,10 +133,15 @@ def split(frame: bytes) -> tuple[Header, dict[str, Any], bytes]:
 
 
 def assemble(header: Header, table: bytes, body: bytes | bytearray, **fields: int) -> bytes:
-    """A frame of `table` and `body` whose header lengths match them, unless `fields` overrides header fields."""
+    """A frame of `table` and `body` whose header lengths match them, unless `fields` overrides header fields, with
+    a correct digest where the header's flag asks for one: anyone can compute a digest, so hostile frames carry
+    valid ones and reach the checks behind it."""
     header = header._replace(table_len=len(table), body_len=len(body))._replace(**fields)
     padding = bytes(-(HEADER_SIZE + len(table)) % ALIGN)
-    return HEADER.pack(*header) + table + padding + bytes(body)
+    frame = HEADER.pack(*header) + table + padding + bytes(body)
+    if header.flags & FLAG_DIGEST:
+        frame += hashlib.blake2b(frame, digest_size=DIGEST_SIZE).digest()
+    return frame
 
 
 def table_json(table: Any) -> bytes:
@@ -195,7 +204,7 @@ def check_message(kind: Kind | None) -> Callable[[Message], None]:
     def check(message: Message) -> None:
         assert isinstance(message, Message)
         assert kind is None or message.kind is kind
-        assert isinstance(message.meta, dict) and isinstance(message.sender, str)
+        assert isinstance(message.meta, dict)
         for name, array in message.arrays.items():
             assert isinstance(name, str) and isinstance(array, np.ndarray) and not array.flags.writeable
 
@@ -230,9 +239,8 @@ def check_results(chunks: list[LevelResults]) -> None:
             assert np.isfinite(getattr(chunk, name)).all(), name
 
 
-def check_status(result: tuple[str, dict[str, Any]]) -> None:
-    sender, status = result
-    assert isinstance(sender, str) and sender and isinstance(status, dict)
+def check_status(result: Status) -> None:
+    assert result.role == "actor" and result.ident == "actor-0" and isinstance(result.status, dict)
 
 
 def check_control(request: dict[str, Any]) -> None:
@@ -282,7 +290,7 @@ def targets() -> dict[str, Target]:
     traj_max_bytes += 1 << 20  # as the learner bounds its frames
     traj_frames = [
         encode(Kind.TRAJECTORY, tree_arrays(random_like(traj_template, rng)), run=RUN, policy_version=4,
-               learner_epoch=1, seq=seq, sender=f"actor-{seq}", meta={"incarnation": 12345 + seq, "actor": seq})
+               learner_epoch=1, seq=seq, meta={"incarnation": 12345 + seq, "actor": seq})
         for seq in (1, 2)
     ]
 
@@ -291,26 +299,25 @@ def targets() -> dict[str, Target]:
     for version in (3, 4):
         params = random_like(params_template, rng)
         weights_frames.append(encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, policy_version=version,
-                                     learner_epoch=1, sender=LEARNER_ID,
+                                     learner_epoch=1,
                                      meta={**weights_meta(params), PUBLISHED_AT: 1.7e9 + version}))
 
     credit_frames = [  # as the learner acknowledges a trajectory
-        encode(Kind.CREDIT, {}, run=RUN, policy_version=4, learner_epoch=1, seq=seq, sender=LEARNER_ID,
+        encode(Kind.CREDIT, {}, run=RUN, policy_version=4, learner_epoch=1, seq=seq,
                meta={"incarnation": 12345, "acked_seq": seq})
         for seq in (3, 2**40)
     ]
 
     results_frames = [
         encode(Kind.LEVEL_RESULTS, results_arrays(level_results(rng, count)), run=RUN, policy_version=4,
-               learner_epoch=1, seq=7, sender="actor-0")
+               learner_epoch=1, seq=7)
         for count in (5, RESULT_ROWS + 4)
     ]
 
     levels_template = level_batch_template(EnvSpec().sizes, 2)
     levels_schema = level_batch_schema(levels_template)
     levels_frames = [
-        encode(Kind.LEVELS, level_batch_arrays(random_like(levels_template, rng)), run=RUN, seq=seq,
-               sender="curriculum")
+        encode(Kind.LEVELS, level_batch_arrays(random_like(levels_template, rng)), run=RUN, seq=seq)
         for seq in (1, 2)
     ]
 
@@ -378,8 +385,8 @@ def targets() -> dict[str, Target]:
                                                      levels_template),
                check_tree(levels_template, lambda path: True), content),
         target("metrics", Kind.METRICS,
-               lambda data: read_status(Received(key=Keys(RUN).metrics("actor", "0"), payload=data,
-                                                 attachment=None), RUN),
+               lambda data: read_status(Received(key=Keys(RUN).status("actor", "actor-0"), payload=data,
+                                                 attachment=None), Keys(RUN)),
                check_status, framing | {"schema"}, refused_share=0.3),
         target("control", Kind.CONTROL, lambda data: decode(data, run=RUN, kinds=Kind.CONTROL),
                check_message(Kind.CONTROL), framing, refused_share=0.3),

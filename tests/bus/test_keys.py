@@ -7,39 +7,50 @@ import pytest
 from bus.keys import SCHEMA_MAJOR, Keys, check_name
 
 
-def test_keys_sit_under_run_and_major_version() -> None:
+def test_each_role_publishes_under_its_own_prefix() -> None:
     keys = Keys("run-7")
     root = f"impulse/run-7/v{SCHEMA_MAJOR}"
-    assert SCHEMA_MAJOR == 1
+    assert SCHEMA_MAJOR == 2
     assert keys.root == root
-    assert keys.traj("a3") == f"{root}/traj/a3"
-    assert keys.traj_all == f"{root}/traj/*"
-    assert keys.credit("a3") == f"{root}/credit/a3"
-    assert keys.weights_policy == f"{root}/weights/policy"
-    assert keys.weights_latest == f"{root}/weights/latest"
-    assert keys.levels_sample == f"{root}/levels/sample"
-    assert keys.levels_results("a3") == f"{root}/levels/results/a3"
-    assert keys.curriculum_knobs == f"{root}/curriculum/knobs"
-    assert keys.curriculum_inspect == f"{root}/curriculum/inspect"
-    assert keys.levels_results_all == f"{root}/levels/results/*"
-    assert keys.ctrl("actor", "a3") == f"{root}/ctrl/actor/a3"
-    assert keys.ctrl_all == f"{root}/ctrl/all"
-    assert keys.metrics("learner", "0") == f"{root}/metrics/learner/0"
-    assert keys.metrics_all == f"{root}/metrics/**"
-    assert keys.alive("actor", "a3") == f"{root}/alive/actor/a3"
-    assert keys.alive_pattern("actor") == f"{root}/alive/actor/*"
-    assert keys.alive_pattern() == f"{root}/alive/**"
+    learner = [keys.weights_policy, keys.weights_latest, keys.credit("a3"), keys.status("learner", "learner"),
+               keys.alive("learner", "learner")]
+    curriculum = [keys.levels_sample, keys.curriculum_knobs, keys.curriculum_inspect, keys.status("curriculum", "c")]
+    actor = [keys.traj("a3"), keys.levels_results("a3"), keys.status("actor", "a3"), keys.alive("actor", "a3")]
+    for role, owned in (("learner", learner), ("curriculum", curriculum), ("actor", actor)):
+        assert all(key.startswith(f"{root}/{role}/") for key in owned), (role, owned)
+    assert keys.weights_policy == f"{root}/learner/weights/policy"
+    assert keys.credit("a3") == f"{root}/learner/credit/a3"
+    assert keys.levels_sample == f"{root}/curriculum/levels/sample"
+    assert keys.traj("a3") == f"{root}/actor/traj/a3"
+    assert keys.traj_all == f"{root}/actor/traj/*"
+    assert keys.levels_results_all == f"{root}/actor/results/*"
+    assert keys.status("operator", "cli-1") == f"{root}/operator/status/cli-1"
+    assert keys.status_pattern() == f"{root}/*/status/*"
+    assert keys.status_pattern("learner") == f"{root}/learner/status/*"
+    assert keys.alive_pattern("actor") == f"{root}/actor/alive/*"
+    assert keys.alive_pattern() == f"{root}/*/alive/*"
 
 
-def test_parse_alive_round_trips_and_refuses_other_keys() -> None:
+def test_keys_of_unknown_roles_are_refused() -> None:
+    with pytest.raises(ValueError, match="not one of"):
+        Keys("r").status("launcher", "main")
+    with pytest.raises(ValueError, match="not one of"):
+        Keys("r").alive_pattern("peer")
+
+
+def test_parse_alive_and_status_round_trip_and_refuse_other_keys() -> None:
     keys = Keys("r")
     assert keys.parse_alive(keys.alive("curriculum", "main")) == ("curriculum", "main")
-    for bad in [Keys("other").alive("actor", "a0"), keys.traj("a0"), f"{keys.root}/alive/x", f"{keys.root}/alive/a/b/"]:
+    assert keys.parse_status(keys.status("actor", "actor-1")) == ("actor", "actor-1")
+    for bad in [Keys("other").alive("actor", "a0"), keys.traj("a0"), f"{keys.root}/actor/alive",
+                f"{keys.root}/actor/alive/a/b", f"{keys.root}/rogue/alive/a", keys.status("actor", "a0")]:
         with pytest.raises(ValueError, match="not a liveliness key"):
             keys.parse_alive(bad)
+    with pytest.raises(ValueError, match="not a status key"):
+        keys.parse_status(keys.alive("learner", "learner"))
 
 
-@pytest.mark.parametrize("name", ["", "a/b", "a*", "$x", "a#b", "what?", "a b", "tab\there", "line\n"])
+@pytest.mark.parametrize("name", ["", "a/b", "a*", "$x", "a#b", "what?", "a b", "tab\there", "line\n", "@adv"])
 def test_bad_names_are_refused(name: str) -> None:
     with pytest.raises(ValueError, match="actor id"):
         check_name(name, "actor id")

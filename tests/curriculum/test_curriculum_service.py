@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from checkpoint_damage import corrupt_newest
 from launch_procs import free_port
 
 from bus.codec import Kind, decode, encode
@@ -70,14 +71,14 @@ def serve_until(service: CurriculumService, asked, timeout_s: float = 30.0):
 def hub():
     port = free_port()
     config = BusConfig(hub=f"tcp/127.0.0.1:{port}")
-    with Bus(config, RUN, "hub", "0", listen=True) as hub_bus:
+    with Bus(config, RUN, "operator", "hub", listen=True) as hub_bus:
         yield hub_bus
 
 
 def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
     template = level_batch_template(SPEC.sizes, BATCH)
     schema = level_batch_schema(template)
-    with Bus(hub.config, RUN, "curriculum", "0") as bus, Bus(hub.config, RUN, "actor", "actor-0") as actor:
+    with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, Bus(hub.config, RUN, "actor", "actor-0") as actor:
         service, checkpoints = start_service(bus, tmp_path / "ckpt", resume=False)
         results = actor.publisher(actor.keys.levels_results("actor-0"))
         assert actor.wait_matching(results, 10)
@@ -100,7 +101,7 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
                   "return_sum": np.ones(BATCH, np.float32), "return_max": np.ones(BATCH, np.float32),
                   "value_sum": np.zeros(BATCH, np.float32), "pvl_sum": np.zeros(BATCH, np.float32),
                   "l1_sum": np.zeros(BATCH, np.float32), "policy_version": np.full(BATCH, 3, np.int32)}
-        results.put(encode(Kind.LEVEL_RESULTS, arrays, run=RUN, policy_version=3, sender="actor-0"))
+        results.put(encode(Kind.LEVEL_RESULTS, arrays, run=RUN, policy_version=3))
         # Malformed: garbage bytes, and well-formed arrays with more solved than played episodes.
         results.put(b"not a frame")
         results.put(encode(Kind.LEVEL_RESULTS, {**arrays, "solved": np.full(BATCH, 5, np.int32)}, run=RUN))
@@ -132,13 +133,20 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
         staged = set(level_id_values(np.asarray(service.state.staging.levels.level_id))[
             np.asarray(service.state.staging.staged)])
         service.save()
+        samples_saved = service.samples
+        serve_until(service, sample)
+        service.save()  # a newer checkpoint, which the test then damages
         checkpoints.close()
+        corrupted = corrupt_newest(tmp_path / "ckpt", "curriculum")
+        assert corrupted == service.step
 
+        # The restarted service sets the damaged checkpoint aside (kept) and resumes from the one before.
         restarted, checkpoints = start_service(bus, tmp_path / "ckpt", resume=True)
         state = restarted.state
         assert set(level_id_values(np.asarray(state.buffer.levels.level_id))[np.asarray(state.buffer.filled)]) \
             == buffered
         assert set(level_id_values(np.asarray(state.staging.levels.level_id))[np.asarray(state.staging.staged)]) \
             == staged
-        assert restarted.live_knobs()["robust"] is True and restarted.samples == service.samples
+        assert restarted.live_knobs()["robust"] is True and restarted.samples == samples_saved
+        assert (tmp_path / "ckpt-corrupt" / str(corrupted)).is_dir()
         checkpoints.close()

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.codec import Rejected
+from bus.keys import OPERATOR
 from bus.session import Bus, BusConfig
 from bus.status import read_status
 
@@ -119,17 +120,17 @@ class StatusWatcher:
 
     def __init__(self, run: str, port: int, config: BusConfig | None = None):
         self.run = run
-        self.bus = Bus(config or BusConfig(hub=f"tcp/127.0.0.1:{port}"), run, "test", "watcher")
-        self.inbox = self.bus.inbox(self.bus.keys.metrics_all, 256, drop_oldest=True)
+        self.bus = Bus(config or BusConfig(hub=f"tcp/127.0.0.1:{port}"), run, OPERATOR, "watcher")
+        self.inbox = self.bus.inbox(self.bus.keys.status_pattern(), 256, drop_oldest=True)
         self.latest: dict[str, dict[str, Any]] = {}
 
     def poll(self) -> dict[str, dict[str, Any]]:
         for received in self.inbox.poll():
             try:
-                _, status = read_status(received, self.run)
+                heard = read_status(received, self.bus.keys)
             except Rejected:
                 continue
-            self.latest[status["name"]] = status
+            self.latest[heard.ident] = heard.status
         return self.latest
 
     def close(self) -> None:

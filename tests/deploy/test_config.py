@@ -9,8 +9,11 @@ from typing import Literal
 import pytest
 
 from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from engine.env import config as env_config
 from engine.env.config import EnvConfig
 from learner.config import PPOConfig, TrainConfig
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,131 @@ def test_cross_field_check_becomes_config_error() -> None:
         resolve_config(TrainConfig, None, ["ppo.num_minibatches=7"])
 
 
+# (key, a refused value): counts, sizes, rates and probabilities outside the range the code can use.
+OUT_OF_RANGE = [
+    ("total_env_steps", "0"),
+    ("env.frame_skip", "0"),
+    ("env.max_timesteps", "0"),
+    ("env.pixel_downscale", "0"),
+    ("env.pixel_downscale", "3"),  # must divide the 500-pixel screen
+    ("env.dense_reward_scale", "-0.1"),
+    ("ppo.num_envs", "0"),
+    ("ppo.num_steps", "0"),
+    ("ppo.num_minibatches", "0"),
+    ("ppo.update_epochs", "0"),
+    ("ppo.learning_rate", "0"),
+    ("ppo.learning_rate", "nan"),
+    ("ppo.gamma", "1.01"),
+    ("ppo.gamma", "-0.1"),
+    ("ppo.gae_lambda", "1.5"),
+    ("ppo.clip_eps", "0"),
+    ("ppo.ent_coef", "-0.01"),
+    ("ppo.vf_coef", "-0.5"),
+    ("ppo.max_grad_norm", "0"),
+    ("ppo.vtrace_rho_bar", "0"),
+    ("ppo.vtrace_c_bar", "-1"),
+    ("ppo.max_policy_lag", "-1"),
+    ("network.width", "0"),
+    ("network.depth", "-1"),
+    ("network.transformer_layers", "-1"),
+    ("network.num_heads", "0"),  # a multiple of 4, but no heads
+    ("network.transformer_size", "0"),
+    ("network.transformer_encoder_size", "0"),
+    ("network.entity_heads", "0"),
+    ("network.entity_head_size", "0"),
+    ("network.flat_embedding_size", "0"),
+    ("checkpoint.every_updates", "-1"),
+    ("checkpoint.keep_last", "0"),
+    ("eval.attempts", "-1"),
+    ("curriculum.buffer_size", "0"),
+    ("curriculum.staging_factor", "1"),
+    ("curriculum.max_edits", "-1"),
+    ("curriculum.filter_ratio", "0"),
+    ("curriculum.filter_steps", "0"),
+    ("curriculum.temperature", "0"),
+    ("curriculum.staleness_coef", "1.5"),
+    ("curriculum.replay_prob", "-0.1"),
+    ("curriculum.min_fill", "2"),
+    ("curriculum.sfl_ratio", "1.1"),
+    ("curriculum.score_memory", "-1"),
+    ("curriculum.num_edits", "9"),  # beyond max_edits
+    ("curriculum.candidate_episodes", "0"),
+    ("actors.num_actors", "0"),
+    ("actors.credits", "0"),
+    ("actors.credit_timeout_s", "0"),
+    ("actors.memory_fraction", "1"),
+    ("actors.status_every_s", "-1"),
+    ("learner.publish_every", "0"),
+    ("learner.slow_down_s", "-1"),
+    ("bus.shm_pool_mib", "0"),
+    ("bus.lease_ms", "0"),
+    ("bus.block_timeout_ms", "-1"),
+    ("bus.query_timeout_s", "0"),
+    ("monitor.watch_envs", "-1"),
+    ("monitor.frames_per_s", "0"),
+    ("monitor.queue_rollouts", "0"),
+    ("monitor.curriculum_every_s", "0"),
+    ("monitor.gallery", "-1"),
+    ("monitor.web_port", "0"),
+    ("monitor.web_port", "65536"),
+]
+
+
+@pytest.mark.parametrize(("key", "bad"), OUT_OF_RANGE)
+def test_out_of_range_value_is_refused_naming_the_dotted_key(key: str, bad: str) -> None:
+    with pytest.raises(ConfigError, match=r"invalid config \[") as info:
+        resolve_config(TrainConfig, None, [f"{key}={bad}"])
+    assert f"{key} must be" in str(info.value)
+
+
+def test_range_message_states_the_rule() -> None:
+    with pytest.raises(ConfigError) as info:
+        resolve_config(TrainConfig, None, ["checkpoint.keep_last=0"])
+    assert str(info.value) == "invalid config [checkpoint]: checkpoint.keep_last must be >= 1, got 0"
+    with pytest.raises(ConfigError, match=r"ppo\.gamma must be in \[0, 1\], got 1\.5"):
+        resolve_config(TrainConfig, None, ["ppo.gamma=1.5"])
+    with pytest.raises(ConfigError, match=r"actors\.memory_fraction must be in \[0, 1\), got 1\.0"):
+        resolve_config(TrainConfig, None, ["actors.memory_fraction=1"])
+
+
+@pytest.mark.parametrize("override", [
+    "checkpoint.every_updates=0",  # only the checkpoint at the end
+    "eval.attempts=0",  # no evaluation at the end of training
+    "env.dense_reward_scale=0",  # sparse reward only
+    "ppo.max_policy_lag=0",  # on-policy batches only
+    "ppo.vtrace_c_bar=0",  # one-step TD targets
+    "ppo.ent_coef=0",
+    "ppo.gamma=1",
+    "network.depth=0",  # linear heads over the torso's embedding
+    "network.transformer_layers=0",  # mean of the encoded tokens
+    "actors.memory_fraction=0",  # JAX's default
+    "actors.status_every_s=0",
+    "monitor.watch_envs=0",  # curves only
+    "monitor.gallery=0",
+    "curriculum={max_edits = 0, num_edits = 0}",  # ACCEL without edits
+])
+def test_documented_zero_and_edge_values_are_accepted(override: str) -> None:
+    resolve_config(TrainConfig, None, [override])
+
+
+def test_type_column_needs_a_token_wider_than_one() -> None:
+    resolve_config(TrainConfig, None, ["network.transformer_encoder_size=1"])
+    with pytest.raises(ConfigError, match=r"network\.transformer_encoder_size must be >= 2, got 1"):
+        resolve_config(TrainConfig, None, ["network.transformer_encoder_size=1", "network.shape_type_column=type"])
+
+
+def test_screen_size_matches_the_pixel_renderer() -> None:
+    from engine.env.pixels import SCREEN_PIXELS
+
+    assert env_config._SCREEN_PIXELS == SCREEN_PIXELS
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_configs_load(path: Path) -> None:
+    config = resolve_config(TrainConfig, path, [])
+    assert config.name == path.stem
+
+
 def test_malformed_inputs(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="not of the form key=value"):
         resolve_config(TrainConfig, None, ["seed"])
@@ -161,3 +289,10 @@ def test_resolved_config_round_trips(tmp_path: Path) -> None:
     odd_path = write_resolved_config(odd, tmp_path)
     assert 'limit = "none"' in odd_path.read_text()
     assert resolve_config(Outer, odd_path, []) == odd
+
+
+@pytest.mark.parametrize("hub", ["tcp/0.0.0.0:7447", "tcp/10.0.0.5:7447", "tls/hostA.example.org:7447"])
+def test_the_open_hub_listens_on_loopback_only(hub: str) -> None:
+    with pytest.raises(ConfigError, match="not a loopback address"):
+        resolve_config(TrainConfig, overrides=[f"bus.hub={hub}"])
+    assert resolve_config(TrainConfig, overrides=["bus.hub=tcp/[::1]:7447"]).bus.hub == "tcp/[::1]:7447"

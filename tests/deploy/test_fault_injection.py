@@ -1,10 +1,12 @@
 """Fault injection: `impulse launch` on random levels with a curriculum service, while the test kills a random one of
 its processes (learner, curriculum, an actor) with SIGKILL at random times for minutes, from the moment the
-launcher starts them (so kills also land while a process compiles or resumes). The launcher restarts each. At the
-end the run must still be training, every learner checkpoint must restore, every restarted curriculum service
-must have resumed from its own checkpoint, and the policy version must never have gone back by more than one
-checkpoint interval. The counters of what was dropped and refused on the way are the test's figure (printed,
-visible with `pytest -s`)."""
+launcher starts them (so kills also land while a process compiles or resumes). The launcher restarts each. Once,
+right after killing the learner, the test also truncates a data file of its newest checkpoint: the restarted
+learner must set that checkpoint aside (kept, not deleted) and resume from the one before. At the end the run must
+still be training, every learner checkpoint must restore, every restarted curriculum service must have resumed
+from its own checkpoint, and the policy version must never have gone back by two checkpoint intervals or more
+(three, once, for the corrupted checkpoint). The counters of what was dropped and refused on the way are the
+test's figure (printed, visible with `pytest -s`)."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import time
 import jax
 import numpy as np
 import pytest
+from checkpoint_damage import corrupt_newest
 from launch_procs import (
     SMALL_BATCH,
     StatusWatcher,
@@ -67,7 +70,7 @@ def learner_checkpoints_restore(run_dir) -> list[int]:
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         steps = checkpoints.all_steps()
         for step in steps:
-            items, counters, _ = checkpoints.restore({TRAIN: template}, step)
+            items, counters, _, _ = checkpoints.restore({TRAIN: template}, step)
             assert int(items[TRAIN].policy_version) == int(counters["update"]) == step
     return steps
 
@@ -84,6 +87,7 @@ def test_random_kills_over_minutes(tmp_path):
     kills: list[tuple[float, str]] = []
     versions: list[tuple[int, int]] = []  # (learner epoch, policy version) as the learner reported them
     curriculum_kills_with_checkpoint = 0
+    corrupted: int | None = None  # the learner checkpoint the test truncated
     totals: dict[str, dict[str, int]] = {}
 
     def observe() -> None:
@@ -114,6 +118,8 @@ def test_random_kills_over_minutes(tmp_path):
             for pid in pids:
                 os.kill(pid, signal.SIGKILL)
             kills.append((round(time.monotonic() - started, 1), victim))
+            if victim == "learner" and corrupted is None:  # the launcher restarts it after 1 s at the earliest
+                corrupted = corrupt_newest(run_dir / "checkpoints", TRAIN)
         assert launch.poll() is None, "the launcher is still running"
 
         # Still training: every process back and the learner making updates again.
@@ -129,16 +135,25 @@ def test_random_kills_over_minutes(tmp_path):
     learner_log = (run_dir / "logs" / "learner.log").read_text()
     curriculum_log = (run_dir / "logs" / "curriculum.log").read_text()
     resumed = [int(m) for m in re.findall(r"resumed from checkpoint \d+ \(update (\d+)", learner_log)]
-    figure = {"kills": kills, "learner_resumes": resumed, "counters": totals, "policy_versions_seen": len(versions)}
+    figure = {"kills": kills, "learner_resumes": resumed, "corrupted_checkpoint": corrupted, "counters": totals,
+              "policy_versions_seen": len(versions)}
     print(json.dumps(figure))
 
     assert len(kills) >= 4, figure
     assert {"learner", "curriculum"} <= {victim for _, victim in kills}, f"seed {SEED} spared someone: {kills}"
-    # The policy version never goes back by more than one checkpoint interval, even across learner restarts.
-    highest = 0
+    # The policy version goes back across a learner restart by less than two checkpoint intervals (the newest
+    # checkpoint may be the one being written when the kill lands, so the one before is restored), and by less
+    # than three once: when the newest complete checkpoint was the corrupted one.
+    highest, setbacks = 0, []
     for _, version in versions:
-        assert version >= highest - EVERY, (version, highest, versions)
+        setbacks.append(highest - version)
         highest = max(highest, version)
+    assert max(setbacks) < 3 * EVERY and sum(s >= 2 * EVERY for s in setbacks) <= 1, (setbacks, versions)
+    # The corrupted checkpoint was set aside, files kept, and the learner resumed from an earlier one.
+    assert corrupted is not None, f"seed {SEED} killed the learner before its first checkpoint only: {kills}"
+    assert (run_dir / "checkpoints-corrupt" / str(corrupted)).is_dir(), figure
+    assert f"checkpoint {corrupted}" in learner_log and "checkpoints-corrupt" in learner_log, learner_log[-3000:]
+    assert resumed and resumed[0] < corrupted, (resumed, corrupted)  # the first resume came after the corruption
     # Every curriculum incarnation that came up after one was killed with a checkpoint on disk came up resumed
     # (one killed while starting never comes up, so incarnations are counted by their "up" lines).
     fresh_starts = sum("curriculum resumed from checkpoint" not in segment

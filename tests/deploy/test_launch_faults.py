@@ -1,13 +1,17 @@
 """A real distributed run (`impulse launch`: learner + 2 actor processes over Zenoh on loopback, CPU) that learns
-our easy car while it is attacked with malformed and foreign messages on every key. It must keep training and
-still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer running: they count what they
-could not stream and neither stall nor keep it. Processes killed at random are test_fault_injection.py's."""
+our easy car while it is attacked on the open one-machine bus: malformed and foreign messages on every key, a
+replayed old weights frame, a weights frame with a flipped bit, and a forged "finished" learner status. It must
+keep training, the actors' policy versions must never go back, nobody may stop early, every refusal must reach
+metrics.jsonl, and it must still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer
+running: they count what they could not stream and neither stall nor keep it. Processes killed at random are
+test_fault_injection.py's."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+import time
 
 import jax
 import numpy as np
@@ -17,6 +21,7 @@ from launch_procs import (
     StatusWatcher,
     free_port,
     last_update,
+    metrics,
     start_launch,
     stop_launch,
     tail,
@@ -24,8 +29,8 @@ from launch_procs import (
 )
 from rerun.chunk import RrdReader
 
-from bus.codec import Kind, encode
-from bus.keys import SCHEMA_MAJOR
+from bus.codec import Kind, decode, encode
+from bus.keys import LEARNER, SCHEMA_MAJOR
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
 from engine.physics.pytree import tree_arrays
@@ -55,7 +60,7 @@ def inject_malformed(watcher: StatusWatcher) -> None:
     bus, run = watcher.bus, watcher.run
     arrays = zero_batch_arrays()
     frame = lambda arrays, **kw: bytes(encode(Kind.TRAJECTORY, arrays, run=kw.pop("run", run),  # noqa: E731
-                                              sender="actor-9", meta={"incarnation": 1}, **kw))
+                                              meta={"incarnation": 1}, **kw))
     good = frame(arrays, learner_epoch=0, seq=1)  # valid, but acted by weights of no learner epoch
     nan = dict(arrays, **{"steps/reward": np.full_like(arrays["steps/reward"], np.nan)})
     wrong_shape = dict(arrays, **{"steps/reward": np.zeros((3, 3), np.float32)})
@@ -67,7 +72,7 @@ def inject_malformed(watcher: StatusWatcher) -> None:
         good[: len(good) // 2],
         b"XXXX" + good[4:],
         frame(arrays, run="another-run", seq=2),
-        bytes(encode(Kind.WEIGHTS, arrays, run=run, sender="actor-9", meta={"incarnation": 1}, seq=3)),
+        bytes(encode(Kind.WEIGHTS, arrays, run=run, meta={"incarnation": 1}, seq=3)),
         frame(nan, seq=4, learner_epoch=1),
         frame(wrong_shape, seq=5, learner_epoch=1),
         frame(wrong_dtype, seq=6, learner_epoch=1),
@@ -77,8 +82,9 @@ def inject_malformed(watcher: StatusWatcher) -> None:
     ]
     publisher = bus.publisher(bus.keys.traj("actor-9"))
     assert bus.wait_matching(publisher, 10), "the learner's trajectory subscription is not visible"
-    for payload in trajectories:
+    for payload in trajectories:  # paced: the learner's inbox holds only a few frames between two updates
         publisher.put(payload)
+        time.sleep(0.4)
     weights = bus.publisher(bus.keys.weights_policy)
     assert bus.wait_matching(weights, 10)
     weights.put(bytes(encode(Kind.WEIGHTS, {"w": np.zeros(3, np.float32)}, run=run, policy_version=10**6,
@@ -86,6 +92,44 @@ def inject_malformed(watcher: StatusWatcher) -> None:
     credit = bus.publisher(bus.keys.credit("actor-1"))
     assert bus.wait_matching(credit, 10)
     credit.put(np.random.default_rng(1).bytes(64))
+
+
+def inject_replays_and_forgeries(watcher: StatusWatcher, old_weights: bytes) -> None:
+    """An old weights frame replayed, the current one with a flipped bit, and a forged "finished" learner status:
+    anyone on the open bus can publish on any key."""
+    bus = watcher.bus
+    [current] = bus.get(bus.keys.weights_latest, timeout_s=10)
+    flipped = bytearray(current)
+    flipped[len(flipped) - 100] ^= 0x01  # inside the last array's bytes
+    weights = bus.publisher(bus.keys.weights_policy)
+    assert bus.wait_matching(weights, 10)
+    for frame in (old_weights, bytes(flipped)):
+        weights.put(frame)
+        time.sleep(0.5)  # actors keep only the newest weights waiting: let each be read
+    status = bus.publisher(bus.keys.status(LEARNER, "learner"))
+    assert bus.wait_matching(status, 10)
+    status.put(bytes(encode(Kind.METRICS, {}, run=watcher.run, meta={"name": "learner", "finished": True})))
+
+
+class VersionWatch:
+    """The actors' policy versions as their status lines report them; fails if one ever goes back."""
+
+    def __init__(self, watcher: StatusWatcher) -> None:
+        self.watcher = watcher
+        self.highest: dict[str, int] = {}
+
+    def poll(self) -> dict[str, dict]:
+        statuses = self.watcher.poll()
+        for name, status in statuses.items():
+            if name.startswith("actor-") and status.get("policy_version", -1) >= 0:
+                version = status["policy_version"]
+                assert version >= self.highest.get(name, -1), f"{name} went back to version {version}"
+                self.highest[name] = version
+        return statuses
+
+
+def refusals(status: dict) -> dict[str, int]:
+    return status.get("rejected", {}) if isinstance(status.get("rejected"), dict) else {}
 
 
 def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
@@ -96,8 +140,11 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
                                f"checkpoint.every_updates={EVERY}", "monitor.enabled=true",
                                f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy")
     watcher = StatusWatcher(run_dir.name, port)
+    versions = VersionWatch(watcher)
     try:
         wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
+        [old_weights] = watcher.bus.get(watcher.bus.keys.weights_latest, timeout_s=10)
+        old_version = decode(old_weights, run=watcher.run, kinds=Kind.WEIGHTS).policy_version
 
         # Malformed and foreign messages: dropped and counted, training goes on.
         inject_malformed(watcher)
@@ -109,13 +156,32 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
             return expected <= set(status.get("rejected", {})) and status.get("dropped_old_epoch", 0) >= 1
 
         wait_for(learner_rejected, 30, f"the learner to count rejects {expected}", launch, log)
+
+        # A flood of frames overflows the learner's trajectory inbox: the frames it cannot hold are counted.
+        flood = watcher.bus.publisher(watcher.bus.keys.traj("actor-8"))
+        garbage = np.random.default_rng(2).bytes(200)
+        wait_for(lambda: ([flood.put(garbage) for _ in range(50)],
+                          watcher.poll().get("learner", {}).get("dropped_inbox_full", 0) >= 1)[1], 30,
+                 "the learner to count frames its full inbox dropped", launch, log)
         streams = {i: watcher.poll()[f"actor-{i}"]["monitor"] for i in (0, 1)}
         assert all(not s["viewer"] and s["frames_logged"] == 0 and s["no_viewer"] >= 1 for s in streams.values()), (
             streams)
-        wait_for(lambda: all(watcher.poll().get(f"actor-{i}", {}).get("rejected", 0) >= 1 for i in (0, 1)), 30,
-                 "both actors to count the foreign weights (and actor-1 the garbage credit)", launch, log)
+        wait_for(lambda: all(refusals(versions.poll().get(f"actor-{i}", {})).get("tree_hash", 0) >= 1
+                             for i in (0, 1)), 30, "both actors to count the foreign weights", launch, log)
+        assert refusals(watcher.poll()["actor-1"]).get("bad_magic", 0) >= 1, "actor-1 counts the garbage credit"
+
+        # A replay of old weights and a corrupted copy of the newest are refused; the versions never go back; a
+        # forged "finished" stops nobody while the learner is there.
+        wait_for(lambda: all(versions.poll().get(f"actor-{i}", {}).get("policy_version", -1) > old_version
+                             for i in (0, 1)), 60, "both actors past the captured weights", launch, log)
+        inject_replays_and_forgeries(watcher, old_weights)
+        wait_for(lambda: all({"stale", "digest"} <= set(refusals(versions.poll().get(f"actor-{i}", {})))
+                             for i in (0, 1)), 30, "both actors to refuse the replay and the flipped bit", launch,
+                 log)
         after_injection = last_update(run_dir)
-        wait_for(lambda: last_update(run_dir) >= after_injection + 2, 60, "training to go on", launch, log)
+        wait_for(lambda: (versions.poll(), last_update(run_dir) >= after_injection + 2)[1], 60,
+                 "training to go on", launch, log)
+        assert "ended" not in log.read_text(), "an actor stopped on the forged status"
 
         assert launch.wait(timeout=600) == 0, tail(log)
     finally:
@@ -125,6 +191,14 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     for index in (0, 1):  # told by the learner's last status, as actors on other hosts are
         assert f"the learner finished the run: actor-{index} stops" in (run_dir / "logs" / f"actor-{index}.log"
                                                                          ).read_text()
+    # Every refusal reached metrics.jsonl (the learner's own and, from their status lines, the actors'), and every
+    # update has one row.
+    rows = metrics(run_dir)
+    assert [row["update"] for row in rows] == list(range(1, UPDATES + 1))
+    last = rows[-1]
+    assert all(last.get(f"rejected/{reason}", 0) >= 1 for reason in expected), last
+    assert last["drops/dropped_old_epoch"] >= 1 and "drops/dropped_inbox_full" in last, last
+    assert last.get("rejected/actor/stale", 0) >= 2 and last.get("rejected/actor/digest", 0) >= 2, last
     scores = json.loads((run_dir / "eval.json").read_text())
     assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores
     config = resolve_config(TrainConfig, run_dir / "config.toml")

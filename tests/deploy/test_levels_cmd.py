@@ -1,4 +1,5 @@
-"""`impulse levels`: validate (exit codes, every problem printed), show, render (PNG of the scene) and convert."""
+"""`impulse levels`: validate (exit codes, every problem printed), show, render (PNG of the scene) and convert; files
+that are not level files (binary, empty, cut short, a folder) give one line naming the file, never a traceback."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from bad_level_files import write_bad_inputs
 from monitor_scenes import BLUE_AT, GREEN_AT, small_level
 from PIL import Image
 
@@ -136,3 +138,48 @@ def test_bad_input_and_usage(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     with pytest.raises(SystemExit) as info:
         main(["levels", "convert", str(bad), str(tmp_path / "y.json")])  # --size is required
     assert info.value.code == 2
+
+
+BAD_INPUTS = ("latin-1 text", "random bytes", "PNG image", "empty file", "truncated JSON", "UTF-16 text", "folder")
+
+
+@pytest.mark.parametrize("case", BAD_INPUTS)
+def test_every_action_names_a_bad_file_without_a_traceback(
+    tmp_path: Path, case: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, expected = write_bad_inputs(tmp_path / "bad")[case]
+    outputs = tmp_path / "out.png", tmp_path / "out.json"
+    for action in (["show", str(path)], ["render", str(path), "-o", str(outputs[0])],
+                   ["convert", str(path), str(outputs[1]), "--size", "m"]):
+        assert main(["levels", *action]) == 1, action  # an exception would fail the test here
+        captured = capsys.readouterr()
+        line = captured.err.strip()
+        assert line.startswith(f"impulse levels: {path}: ") and "\n" not in line, (action, line)
+        assert all(part in line for part in expected), (action, expected, line)
+        assert "Traceback" not in captured.err + captured.out
+    assert not any(output.exists() for output in outputs)
+    if path.is_file():  # a folder given to validate is searched for level files instead
+        assert main(["levels", "validate", str(path)]) == 1
+        out = capsys.readouterr().out
+        lines = out.splitlines()
+        assert lines[0] == f"INVALID  {path}" and all(part in lines[1] for part in expected), out
+        assert lines[2] == "0 of 1 level files valid"
+
+
+def test_validate_a_folder_with_one_bad_file(
+    tmp_path: Path, level_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "set"
+    (folder / "inner").mkdir(parents=True)
+    (folder / "good.json").write_text(level_file.read_text())
+    written = write_bad_inputs(tmp_path / "bad")
+    bad = folder / "inner" / "random.json"
+    bad.write_bytes(written["random bytes"][0].read_bytes())
+    (folder / "inner" / "folder.json").mkdir()  # named like a level file, skipped
+    assert main(["levels", "validate", str(folder)]) == 1
+    out = capsys.readouterr().out
+    assert f"ok       {folder / 'good.json'}" in out and f"INVALID  {bad}\n    not a UTF-8 text file (byte 0x" in out
+    assert "folder.json" not in out and "1 of 2 level files valid" in out
+    assert main(["levels", "validate", str(tmp_path / "bad" / "a_folder.json")]) == 1  # an empty folder
+    out = capsys.readouterr().out
+    assert "a_folder.json: no .json files in this folder" in out and "1 paths with no level file" in out

@@ -25,7 +25,7 @@ import zenoh
 from launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
 from namespaces import Hosts, why_not
 
-from bus.codec import Kind, decode, encode
+from bus.codec import Kind, Rejected, decode, encode
 from bus.keys import Keys
 from bus.session import BusConfig, zenoh_config
 
@@ -134,9 +134,22 @@ def wait_update(watcher: StatusWatcher, cluster: Cluster, beyond: int, timeout_s
         raise AssertionError(f"{err}\n{all_logs(cluster)}") from None
 
 
+def collect(subscriber: zenoh.Subscriber, kind: Kind) -> list:
+    """The decoded frames waiting in a probe's subscriber (undecodable ones as None)."""
+    found = []
+    while (sample := subscriber.try_recv()) is not None:
+        try:
+            found.append(decode(sample.payload.to_bytes(), run=RUN, kinds=kind))
+        except Rejected:
+            found.append(None)
+    return found
+
+
 def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
     """Probes join at the actor's router, so its rules decide what they may send and hear, while the learner's
-    weights and the actor's trajectories cross the link to the learner's router."""
+    weights and the actor's trajectories cross the link to the learner's router. Every role's credentials try to
+    forge what only another role may send: the learner's status saying the run is finished, weights, credits,
+    level batches and knob changes. None reaches anyone; the actor keeps its real weights and keeps training."""
     watcher = watch(cluster)
     try:
         wait_update(watcher, cluster, 2, 240)
@@ -151,41 +164,70 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         with pytest.raises(zenoh.ZError):
             zenoh.open(bare).close()
 
-        probe, rogue, curriculum = cluster.client("actor"), cluster.client("actor"), cluster.client("curriculum")
+        roles = ("actor", "curriculum", "operator", "learner")
+        sessions = {role: cluster.client(role) for role in roles}
+        rogues = {role: cluster.client(role) for role in ("actor", "curriculum", "operator")}
+        probe = sessions["actor"]
         try:
             weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
-            learner_status = probe.declare_subscriber(keys.metrics("learner", "learner"), zenoh.handlers.FifoChannel(8))
-            trajectories = rogue.declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
-            # The real curriculum role answers level queries; a second queryable, under actor credentials, tries to.
-            curriculum.declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"curriculum"))
-            rogue.declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"rogue"))
+            credits = probe.declare_subscriber(keys.credit("actor-0"), zenoh.handlers.FifoChannel(64))
+            learner_status = sessions["operator"].declare_subscriber(keys.status("learner", "learner"),
+                                                                     zenoh.handlers.FifoChannel(64))
+            trajectories = rogues["actor"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
+            # The curriculum role answers level and knob queries (a stand-in: this run has no curriculum service);
+            # a second queryable of each, under actor credentials, tries to.
+            asked: dict[str, list[str]] = {"knobs": []}
+            sessions["curriculum"].declare_queryable(
+                keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"curriculum"))
+            sessions["curriculum"].declare_queryable(
+                keys.curriculum_knobs, lambda q: (asked["knobs"].append(bytes(q.payload.to_bytes()).decode()),
+                                                  q.reply(keys.curriculum_knobs, b"knobs")))
+            rogues["actor"].declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"rogue"))
             real = weights.recv().payload.to_bytes()  # the learner publishes after every update
             genuine = decode(real, run=RUN, kinds=Kind.WEIGHTS)
-            forged = encode(Kind.WEIGHTS, genuine.arrays, run=RUN, policy_version=FORGED_VERSION,
-                            learner_epoch=genuine.learner_epoch, sender=genuine.sender, meta=genuine.meta)
+            forged_weights = bytes(encode(Kind.WEIGHTS, genuine.arrays, run=RUN, policy_version=FORGED_VERSION,
+                                          learner_epoch=genuine.learner_epoch, meta=genuine.meta))
+            forged_credit = bytes(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=genuine.learner_epoch,
+                                         meta={"incarnation": FORGED_VERSION, "acked_seq": FORGED_VERSION}))
+            forged_status = bytes(encode(Kind.METRICS, {}, run=RUN, meta={"name": "learner", "finished": True}))
             for _ in range(5):
-                rogue.put(keys.weights_policy, bytes(forged))
+                for rogue in rogues.values():
+                    rogue.put(keys.weights_policy, forged_weights)
+                    rogue.put(keys.credit("actor-0"), forged_credit)
+                    rogue.put(keys.status("learner", "learner"), forged_status)
                 time.sleep(0.2)
-            replies = probe.get(keys.levels_sample, target=zenoh.QueryTarget.ALL,
-                                consolidation=zenoh.ConsolidationMode.NONE, timeout=3)
-            answers = sorted(r.ok.payload.to_bytes() for r in replies if r.ok is not None)
+            answers = sorted(r.ok.payload.to_bytes() for r in probe.get(
+                keys.levels_sample, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=3) if r.ok is not None)
+            knob_answers = {}
+            for role in roles:  # not from the session serving the knobs: it would answer itself, unrouted
+                session = rogues["curriculum"] if role == "curriculum" else sessions[role]
+                replies = session.get(keys.curriculum_knobs, payload=f"set by {role}".encode(), timeout=3)
+                knob_answers[role] = [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
             time.sleep(3)
-            heard = []
-            while (sample := weights.try_recv()) is not None:
-                heard.append(decode(sample.payload.to_bytes(), run=RUN, kinds=Kind.WEIGHTS).policy_version)
+            heard_weights = collect(weights, Kind.WEIGHTS)
+            heard_credits = collect(credits, Kind.CREDIT)
+            heard_status = collect(learner_status, Kind.METRICS)
             stolen = trajectories.try_recv()
-            status = learner_status.try_recv()  # actors may hear when the run is finished
         finally:
-            for session in (probe, rogue, curriculum):
+            for session in (*sessions.values(), *rogues.values()):
                 session.close()
 
-        assert answers == [b"curriculum"]  # the actor-credentialed queryable's reply never arrived
-        assert heard and FORGED_VERSION not in heard  # the learner's weights arrive, the rogue's do not
+        assert answers == [b"curriculum"]  # the actor-credentialed queryable was never declared to the probe
+        assert asked["knobs"] == ["set by operator"], asked  # only the operator may ask the curriculum's knobs
+        assert knob_answers["operator"] == [b"knobs"] and not any(knob_answers[r] for r in ("actor", "learner"))
+        versions = [m.policy_version for m in heard_weights if m is not None]
+        assert versions and FORGED_VERSION not in versions  # the learner's weights arrive, the rogues' do not
+        assert all(m is not None and m.meta.get("incarnation") != FORGED_VERSION for m in heard_credits)
+        assert heard_status and all(m is not None and m.meta.get("finished") is False for m in heard_status), (
+            "only the learner's own statuses arrive, none of them forged")
         assert stolen is None  # actor credentials do not read trajectories, though the actor keeps sending them
-        assert status is not None and "finished" in decode(status.payload.to_bytes(), run=RUN, kinds=Kind.METRICS).meta
         actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
-        assert actor["policy_version"] < FORGED_VERSION and actor["rejected"] == 0
+        assert actor["policy_version"] < FORGED_VERSION and sum(actor["rejected"].values()) == 0, actor
         assert actor["weights_adopted"] >= 2
+        update = int(watcher.poll()["learner"]["update"])
+        wait_update(watcher, cluster, update + 1, 120)  # still training: the actor did not stop
+        assert cluster.processes["actor"].poll() is None, all_logs(cluster)
     finally:
         watcher.close()
 

@@ -3,17 +3,22 @@ errors a malformed or oversized file gives."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import json
+import os
+import threading
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from bad_level_files import good_level_text, truncation_point, write_bad_inputs
 
 from engine.levels.kinetix_json import (
+    MAX_LEVEL_FILE_BYTES,
     LevelFileError,
     level_file_problems,
     level_to_json_dict,
@@ -432,6 +437,88 @@ def test_not_json_and_unreadable(tmp_path: Path) -> None:
         load_kinetix_level(path)
     with pytest.raises(LevelFileError, match=r"missing\.json: cannot read"):
         load_kinetix_level(tmp_path / "missing.json")
+
+
+BAD_INPUTS = ("latin-1 text", "random bytes", "PNG image", "empty file", "blank file", "truncated JSON", "UTF-16 text",
+              "folder")
+
+
+@pytest.mark.parametrize("case", BAD_INPUTS)
+def test_file_that_is_not_a_level_file_gives_one_line_naming_it(tmp_path: Path, case: str) -> None:
+    path, expected = write_bad_inputs(tmp_path)[case]
+    with pytest.raises(LevelFileError) as info:
+        load_kinetix_level(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message, message
+    for part in expected:
+        assert part in message, f"{part!r} not in {message!r}"
+    assert level_file_problems(path) == info.value.problems  # `impulse levels validate` gets the same problem
+
+
+def test_truncated_file_error_is_where_json_stops(tmp_path: Path) -> None:
+    text = good_level_text()
+    cut, line, column = truncation_point(text)
+    assert line > 1  # the position is a line and column in a multi-line file, not only an offset
+    path = tmp_path / "cut.json"
+    path.write_text(text[:cut])
+    with pytest.raises(LevelFileError, match=rf"cut\.json: not valid JSON: Expecting value: line {line} column "
+                       rf"{column} \(char {cut}\); the text ends there: is the file cut short\?$"):
+        load_kinetix_level(path)
+    path.write_text(text + " }")  # broken, but not at the end: no hint about truncation
+    with pytest.raises(LevelFileError, match="Extra data") as info:
+        load_kinetix_level(path)
+    assert "cut short" not in str(info.value)
+
+
+def test_byte_order_mark_is_allowed_and_odd_json_is_an_error(tmp_path: Path) -> None:
+    path = tmp_path / "bom.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(_valid_dict()).encode())
+    assert level_file_problems(path) == []
+    path.write_text("[" * 100_000)
+    with pytest.raises(LevelFileError, match=r"bom\.json: not valid JSON: nested too deeply"):
+        load_kinetix_level(path)
+    path.write_text('{"env_state": ' + "7" * 5000 + "}")  # more digits than Python converts to an integer
+    with pytest.raises(LevelFileError, match=r"bom\.json: not valid JSON: Exceeds the limit"):
+        load_kinetix_level(path)
+
+
+def test_pipe_device_and_oversized_files_are_refused_without_reading(tmp_path: Path) -> None:
+    if hasattr(os, "mkfifo"):
+        fifo = tmp_path / "pipe.json"
+        os.mkfifo(fifo)  # reading it would block until a writer comes: the loader must not wait for one
+
+        def unblock() -> None:  # should the loader wait after all, a writer comes and goes: the test fails, not hangs
+            with contextlib.suppress(OSError):
+                os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+
+        timer = threading.Timer(10.0, unblock)
+        timer.start()
+        try:
+            with pytest.raises(LevelFileError, match=r"pipe\.json: not a regular file"):
+                load_kinetix_level(fifo)
+        finally:
+            timer.cancel()
+    if Path("/dev/zero").exists():  # endless: reading it would fill memory
+        with pytest.raises(LevelFileError, match="/dev/zero: not a regular file"):
+            load_kinetix_level("/dev/zero")
+    huge = tmp_path / "huge.json"
+    with huge.open("wb") as file:
+        file.truncate(MAX_LEVEL_FILE_BYTES + 1)  # sparse: no disk space used
+    with pytest.raises(LevelFileError, match=r"huge\.json: too large for a level file"):
+        load_kinetix_level(huge)
+
+
+def test_file_without_read_permission(tmp_path: Path) -> None:
+    locked = tmp_path / "locked.json"
+    locked.write_text(json.dumps(_valid_dict()))
+    locked.chmod(0)
+    try:
+        if os.access(locked, os.R_OK):  # root reads anything
+            pytest.skip("running as root: a file without read permission is still readable")
+        with pytest.raises(LevelFileError, match=r"locked\.json: cannot read the file: Permission denied"):
+            load_kinetix_level(locked)
+    finally:
+        locked.chmod(0o644)
 
 
 def test_too_many_shapes_for_the_size(tmp_path: Path) -> None:

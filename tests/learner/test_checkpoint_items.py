@@ -16,11 +16,11 @@ def test_train_item_restores_alone_and_envs_on_request(tmp_path):
     with Checkpointer(tmp_path / "ck") as checkpoints:
         checkpoints.save(3, {"train": TRAIN, "envs": ENVS}, {"update": 3}, "name = 'x'\n", solve_rate=0.5)
     with Checkpointer(tmp_path / "ck") as checkpoints:
-        items, counters, toml = checkpoints.restore({"train": TRAIN})
-        assert set(items) == {"train"} and counters == {"update": 3} and toml == "name = 'x'\n"
+        items, counters, toml, step = checkpoints.restore({"train": TRAIN})
+        assert set(items) == {"train"} and counters == {"update": 3} and toml == "name = 'x'\n" and step == 3
         np.testing.assert_array_equal(items["train"]["params"]["w"], TRAIN["params"]["w"])
-        both, _, _ = checkpoints.restore({"train": TRAIN, "envs": ENVS}, step=3)
-        np.testing.assert_array_equal(both["envs"]["positions"], ENVS["positions"])
+        both = checkpoints.restore({"train": TRAIN, "envs": ENVS}, step=3)
+        np.testing.assert_array_equal(both.items["envs"]["positions"], ENVS["positions"])
 
 
 def test_a_train_only_checkpoint_has_no_envs_to_resume_from(tmp_path):

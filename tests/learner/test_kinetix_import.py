@@ -204,7 +204,7 @@ def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     trainer, _, _, levels = build(config)  # the template `impulse eval` restores with
     template = jax.eval_shape(trainer.init, jax.random.key(0), levels).train
     with Checkpointer(out / config.checkpoint.directory, config.checkpoint) as checkpoints:
-        items, counters, _ = checkpoints.restore({TRAIN: template})
+        items, counters, _, _ = checkpoints.restore({TRAIN: template})
     expected = import_kinetix(read_kinetix_checkpoint(FIXTURES / "flat")).params
     restored = items[TRAIN].params
     np.testing.assert_array_equal(restored["params"]["torso"]["embed"]["kernel"],

@@ -1,6 +1,7 @@
-"""`impulse train curriculum=sfl` on random levels, killed with SIGKILL mid-training, resumes from its newest
-checkpoint and ends with exactly the parameters, environments and curriculum buffer of a run that was never
-interrupted (real `impulse train` processes, real orbax checkpoints with the `curriculum` item)."""
+"""`impulse train curriculum=sfl` on random levels, killed with SIGKILL mid-training, its newest checkpoint then
+damaged (a data file cut short), resumes from the checkpoint before it (the damaged one set aside, kept) and ends
+with exactly the parameters, environments and curriculum buffer of a run that was never interrupted (real
+`impulse train` processes, real orbax checkpoints with the `curriculum` item)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from checkpoint_damage import corrupt_newest
 
 from deploy.config import resolve_config
 from learner.checkpoint import Checkpointer
@@ -55,7 +57,7 @@ def _final_params(run_dir: Path):
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), levels)
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
-        items, counters, _ = checkpoints.restore(fused_checkpoint_items(template))
+        items, counters, _, _ = checkpoints.restore(fused_checkpoint_items(template))
     assert counters["update"] == UPDATES
     return items
 
@@ -77,11 +79,14 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
     victim.wait()
     assert victim.returncode == -signal.SIGKILL
     assert not (killed_dir / "checkpoints" / str(UPDATES)).exists(), "the victim finished before it was killed"
+    damaged = corrupt_newest(killed_dir / "checkpoints", "train")
+    assert damaged is not None and damaged >= 4
 
     resumed = _train(killed_dir, "--resume", str(killed_dir))
     resumed_out, _ = resumed.communicate(timeout=400)
     assert resumed.returncode == 0, resumed_out
-    assert "resumed from checkpoint" in resumed_out
+    assert f"resumed from checkpoint {damaged - 2} " in resumed_out, resumed_out
+    assert (killed_dir / "checkpoints-corrupt" / str(damaged)).is_dir()
 
     a, b = _final_params(tmp_path / "straight"), _final_params(killed_dir)
     assert set(a) == {"train", "envs", "curriculum"}

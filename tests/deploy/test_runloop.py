@@ -1,0 +1,72 @@
+"""The shared run loop's checkpoint cadence: on the configured updates, and once more at the end only if updates
+were made since the last checkpoint. A process stopped before its first update writes no checkpoint (one of
+update 0 would make the next start of the same run refuse its directory as one that already holds checkpoints)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+from deploy.runloop import run_loop
+from learner.progress import CycleReport, ProgressLine
+
+
+class CountingService:
+    """A service that makes one update per cycle until `updates` and records the updates it was saved at."""
+
+    def __init__(self, updates: int, done: int = 0):
+        self.update = done
+        self.target = done + updates
+        self.saved_at: list[int] = []
+
+    def cycle(self) -> CycleReport:
+        self.update += 1
+        return CycleReport(env_steps=10, updates=1, metrics={"episodes": 1.0, "solved": 1.0, "return_sum": 1.0})
+
+    def save(self, summary: dict[str, float]) -> None:
+        self.saved_at.append(self.update)
+
+    def finished(self) -> bool:
+        return self.update >= self.target
+
+
+def run(service: CountingService, *, every: int, stop_after: int | None = None, done: int = 0) -> None:
+    run_loop(service, metrics_path=None, checkpoint_every=every, total_env_steps=1000, updates_done=done,
+             env_steps_done=10 * done, progress=ProgressLine(1000, stream=io.StringIO()),
+             should_stop=None if stop_after is None else lambda: service.update >= stop_after)
+
+
+def test_a_service_stopped_before_its_first_update_writes_no_checkpoint() -> None:
+    service = CountingService(updates=5)
+    run(service, every=2, stop_after=0)
+    assert service.saved_at == []
+    resumed = CountingService(updates=5, done=4)
+    run(resumed, every=2, stop_after=4, done=4)
+    assert resumed.saved_at == [], "nothing new since the checkpoint it resumed"
+
+
+def test_checkpoints_on_the_cadence_and_once_more_at_the_end() -> None:
+    service = CountingService(updates=5)
+    run(service, every=2)
+    assert service.saved_at == [2, 4, 5]
+    stopped = CountingService(updates=5)
+    run(stopped, every=2, stop_after=4)
+    assert stopped.saved_at == [2, 4], "the last update was just saved"
+
+
+def test_a_resumed_run_has_one_metrics_row_per_update(tmp_path) -> None:
+    """A run killed after update 5 with its newest checkpoint at update 3 resumes from 3 and redoes 4 and 5: the
+    dead rows (and a line cut short by the kill) are set aside, never deleted, and each update has one row."""
+    path = tmp_path / "metrics.jsonl"
+    first = CountingService(updates=5)
+    run_loop(first, metrics_path=path, checkpoint_every=3, total_env_steps=1000,
+             progress=ProgressLine(1000, stream=io.StringIO()))
+    with path.open("a") as file:
+        file.write('{"update": 6, "env_st')  # killed mid-line
+    resumed = CountingService(updates=4, done=3)
+    run_loop(resumed, metrics_path=path, checkpoint_every=3, total_env_steps=1000, updates_done=3,
+             env_steps_done=30, progress=ProgressLine(1000, stream=io.StringIO()))
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    assert [row["update"] for row in rows] == [1, 2, 3, 4, 5, 6, 7]
+    aside = (tmp_path / "metrics-superseded.jsonl").read_text().splitlines()
+    assert [json.loads(line)["update"] for line in aside[:2]] == [4, 5] and aside[2] == '{"update": 6, "env_st'
