@@ -15,7 +15,8 @@ from typing import Protocol
 import jax
 import jax.numpy as jnp
 
-from bus.codec import Kind, Rejected, decode
+from bus.codec import Rejected
+from bus.levels import decode_level_batch
 from bus.session import Bus
 from curriculum.state import ORIGIN_NEW, LevelBatch
 from curriculum.wire import level_batch_from_message, level_batch_schema
@@ -94,7 +95,7 @@ class CurriculumLevels:
         while True:
             for payload in self.bus.get(key_expr, parameters=f"n={self.size}", timeout_s=self.timeout_s):
                 try:
-                    message = decode(payload, run=self.bus.keys.run, kinds=Kind.LEVELS)
+                    message = decode_level_batch(payload, self.bus.keys.run)
                     batch = level_batch_from_message(message, self.schema, self.template)
                 except Rejected as err:
                     self.bus.rejects.record(err.reason, key_expr, err.detail)

@@ -37,7 +37,6 @@ overwrites it.
 from __future__ import annotations
 
 import logging
-import math
 import secrets
 import time
 from collections import deque
@@ -49,16 +48,20 @@ import numpy as np
 from actors.levels import LevelSource
 from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
-from actors.wire import PUBLISHED_AT, weights_schema
-from bus.codec import Kind, Message, Rejected, decode, encode
+from actors.wire import weights_schema
+from bus.codec import Rejected
+from bus.credits import decode_credit
 from bus.keys import ACTOR, LEARNER
+from bus.levels import encode_level_results
 from bus.schema import check
 from bus.session import Bus
 from bus.status import StatusPublisher, read_status
+from bus.trajectories import encode_trajectory
+from bus.weights import Weights, decode_weights
 from curriculum.results import LevelResults
 from curriculum.wire import results_arrays
 from engine.env.spec import EnvParams
-from engine.physics.pytree import tree_arrays, tree_from_arrays
+from engine.pytree import tree_arrays, tree_from_arrays
 from learner.agent import Agent
 from learner.config import TrainConfig
 from learner.curriculum_inputs import batch_level_results
@@ -161,10 +164,11 @@ class Actor:
 
     # -- weights ------------------------------------------------------------------------------------------
 
-    def _adopt(self, message: Message) -> None:
+    def _adopt(self, weights: Weights) -> None:
         """Adopt checked weights if they are newer than those held (see the module docstring); raises Rejected."""
+        message = weights.message
         check(message, self._weights_schema)
-        held, offered = (self.epoch, self.version), (message.learner_epoch, message.policy_version)
+        held, offered = (self.epoch, self.version), weights.order
         if offered == held:
             self.counts["weights_repeated"] += 1  # the cached broadcast again (a reconnection), or a copy
             return
@@ -178,11 +182,11 @@ class Actor:
             log.info("learner restarted (epoch %d -> %d): batches in flight written off", self.epoch,
                      message.learner_epoch)
             self._write_off()
-        self.epoch, self.version = message.learner_epoch, message.policy_version
+        self.epoch, self.version = offered
+        self.bus.stamp.acting_for(*offered)
         self.counts["weights_adopted"] += 1
-        published = message.meta.get(PUBLISHED_AT)
-        if isinstance(published, float) and math.isfinite(published):
-            self._weights_latency_ms.append(1000.0 * (time.time() - published))
+        if weights.published_at is not None:
+            self._weights_latency_ms.append(1000.0 * (time.time() - weights.published_at))
 
     def _receive_weights(self) -> None:
         """Adopt the newest weights broadcast; before the first rollout, ask the learner for its current ones."""
@@ -196,7 +200,7 @@ class Actor:
         for payload in payloads[-1:]:
             first = self.params is None
             try:
-                self._adopt(decode(payload, run=self.bus.keys.run, kinds=Kind.WEIGHTS))
+                self._adopt(decode_weights(payload, self.bus.keys.run))
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "weights", err.detail)
                 continue
@@ -241,18 +245,17 @@ class Actor:
         self._watch_learner()
         for received in self._credits.poll():
             try:
-                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.CREDIT)
+                credit = decode_credit(received.payload, self.bus.keys.run)
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "credit", err.detail)
                 continue
-            if message.meta.get("incarnation") != self.incarnation:
+            if credit.incarnation != self.incarnation:
                 continue  # meant for an earlier process with this actor's name
-            if message.learner_epoch > self.epoch >= 0:
+            if credit.learner_epoch > self.epoch >= 0:
                 self._write_off()  # a new learner: nothing sent to the old one will be acknowledged
                 continue
-            acked = message.meta.get("acked_seq")
-            if isinstance(acked, int) and self.acked < acked <= self.seq:
-                self.acked = acked
+            if self.acked < credit.acked_seq <= self.seq:
+                self.acked = credit.acked_seq
                 self._blocked_since = None
 
     @property
@@ -279,18 +282,14 @@ class Actor:
     def _send(self, batch: TrajectoryBatch) -> None:
         self.seq += 1
         batch = batch._replace(seq=np.int32(self.seq))
-        frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=self.bus.keys.run, policy_version=self.version,
-                       learner_epoch=self.epoch, seq=self.seq,
-                       meta={"incarnation": self.incarnation, "actor": self.index})
-        self._traj.put(frame)
+        self._traj.put(encode_trajectory(self.bus.stamp, tree_arrays(batch), seq=self.seq,
+                                         incarnation=self.incarnation, actor_index=self.index))
         self.counts["sent"] += 1
 
     def _publish_results(self, results: LevelResults) -> None:
         arrays = results_arrays(results)
         if arrays["episodes"].size:
-            frame = encode(Kind.LEVEL_RESULTS, arrays, run=self.bus.keys.run, policy_version=self.version,
-                           learner_epoch=self.epoch, seq=self.seq)
-            self._results.put(frame)
+            self._results.put(encode_level_results(self.bus.stamp, arrays, self.seq))
 
     # -- the cycle ----------------------------------------------------------------------------------------
 

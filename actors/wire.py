@@ -2,7 +2,7 @@
 
 This is the one place that knows the wire layout of a `TrajectoryBatch` and of the policy weights. A pytree
 becomes `{name: array}` with names made from its paths (`steps/obs/polygons`, `params/actor/dense_0/kernel`; see
-`engine.physics.pytree.tree_arrays`), and is rebuilt in the order of a template of the same structure, which both
+`engine.pytree.tree_arrays`), and is rebuilt in the order of a template of the same structure, which both
 ends derive from the same config. Receivers check every message against a schema made from that template (exact
 shapes, dtypes and finiteness) before it reaches a jitted function, so a foreign or corrupt message is refused
 at the door instead of crashing or recompiling one.
@@ -16,9 +16,9 @@ import jax
 import numpy as np
 
 from actors.trajectory import TrajectoryBatch
-from bus.codec import TREE_HASH_META, Kind, Message, tree_hash
+from bus.codec import Kind, Message, tree_hash
 from bus.schema import ArraySpec, Schema, check
-from engine.physics.pytree import path_name, tree_from_arrays
+from engine.pytree import path_name, tree_from_arrays
 
 TRAJECTORY_FINITE = ("steps/obs", "steps/log_prob", "steps/value", "steps/reward", "steps/episode_return",
                      "bootstrap_obs")
@@ -56,14 +56,6 @@ def _shape_only(leaf: Any) -> np.ndarray:
 def weights_schema(params_template: Any) -> Schema:
     """The weights of this network: exact shapes, finite values, matching tree hash."""
     return Schema(Kind.WEIGHTS, _specs(params_template, True), tree_hash=weights_hash(params_template))
-
-
-PUBLISHED_AT = "published_at"
-"""Weights meta: the learner's wall-clock time at publication, so actors can measure broadcast latency."""
-
-
-def weights_meta(params: Any) -> dict[str, str]:
-    return {TREE_HASH_META: weights_hash(params)}
 
 
 def checked_tree(message: Message, schema: Schema, template: Any) -> Any:

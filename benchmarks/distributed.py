@@ -53,12 +53,14 @@ import numpy as np
 from benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from bus.codec import Kind, encode
 from bus.session import BusConfig
+from bus.stamp import Stamp
+from bus.trajectories import decode_trajectory, encode_trajectory
 from engine.env.actions import action_space
 from engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
-from engine.physics.pytree import path_name
 from engine.physics.sizes import SceneSizes, size_preset
+from engine.pytree import path_name
 from learner.config import TrainConfig
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
@@ -235,8 +237,8 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int) -
     leaves = jax.tree_util.tree_flatten_with_path(template)[0]
     shapes = {path_name(path): (tuple(leaf.shape), np.dtype(leaf.dtype)) for path, leaf in leaves}
     arrays = {name: np.zeros(shape, dtype) for name, (shape, dtype) in shapes.items()}
-    frame = encode(Kind.TRAJECTORY, arrays, run="bench", policy_version=1, learner_epoch=1, seq=1,
-                   meta={"incarnation": 1, "actor": 0})
+    frame = encode_trajectory(Stamp("bench", epoch=1, policy_version=1), arrays, seq=1, incarnation=1,
+                              actor_index=0)
     steps = num_envs * num_steps
     obs_bytes = sum(a.nbytes for n, a in arrays.items() if n.startswith("steps/obs"))
     active = active_slots(size)
@@ -563,10 +565,11 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     from actors.levels import LocalLevels
     from actors.rollout import rollout, start_rollout
     from actors.trajectory import make_batch
-    from actors.wire import checked_tree, trajectory_schema
+    from actors.wire import checked_tree, trajectory_schema, weights_hash
     from bus.codec import decode
+    from bus.weights import encode_weights
     from engine.env.spec import env_from_config
-    from engine.physics.pytree import tree_arrays
+    from engine.pytree import tree_arrays
     from learner.agent import make_agent
     from learner.service import batch_template
     from learner.update import TrainState, make_optimizer, ppo_update
@@ -591,7 +594,7 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     rollout_s = _median_s(one_rollout, repeats)
     batch = jax.device_get(make_batch(held["steps"], held["carry"].obs, 0, train_mask=held["train_mask"]))
 
-    weights = encode(Kind.WEIGHTS, tree_arrays(params), run="bench")  # before donation
+    weights = encode_weights(Stamp("bench"), tree_arrays(params), weights_hash(params))  # before donation
     optimizer = make_optimizer(ppo, 1000)
     update = jax.jit(lambda state, b, k: ppo_update(state, b, k, apply_fn=agent.apply,
                                                     distribution=agent.distribution, optimizer=optimizer,
@@ -612,15 +615,16 @@ def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
     schema = trajectory_schema(template)
     run = "bench"
 
+    stamp = Stamp(run, epoch=1, policy_version=1)
+
     def actor_encode() -> bytearray:
-        return encode(Kind.TRAJECTORY, tree_arrays(batch), run=run, policy_version=1, learner_epoch=1, seq=1,
-                      meta={"incarnation": 1, "actor": 0})
+        return encode_trajectory(stamp, tree_arrays(batch), seq=1, incarnation=1, actor_index=0)
 
     frame = bytes(actor_encode())
     message = decode(frame, run=run, kinds=Kind.TRAJECTORY)
 
     def learner_decode() -> Any:
-        return checked_tree(decode(frame, run=run, kinds=Kind.TRAJECTORY), schema, template)
+        return checked_tree(decode_trajectory(frame, run, len(frame)).message, schema, template)
 
     received = learner_decode()
     return {

@@ -55,6 +55,7 @@ from bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
 from bus.keys import Keys, check_name, check_role
 from bus.rejects import RejectCounter
 from bus.router import client_security, is_loopback
+from bus.stamp import Stamp
 
 log = logging.getLogger("impulse.bus")
 
@@ -177,6 +178,8 @@ class Bus:
     def __init__(self, config: BusConfig, run: str, role: str, ident: str, *, listen: bool = False) -> None:
         self.config = config
         self.keys = Keys(run)
+        self.stamp = Stamp(run)
+        """What this process's frames say about it (`bus.stamp`)."""
         self.role = check_role(role)
         self.ident = check_name(ident, "id")
         self.rejects = RejectCounter()

@@ -32,7 +32,6 @@ class StatusPublisher:
             bus.keys.status(bus.role, bus.ident), block=False, priority=zenoh.Priority.BACKGROUND
         )
         self._last = -float("inf")
-        self._seq = 0
 
     def due(self) -> bool:
         """Whether the next status should be sent now."""
@@ -41,8 +40,8 @@ class StatusPublisher:
     def publish(self, status: dict[str, Any]) -> None:
         """Send `status` (JSON-serialisable values) now."""
         self._last = time.monotonic()
-        self._seq += 1
-        frame = encode(Kind.METRICS, {}, run=self._bus.keys.run, seq=self._seq, meta=status)
+        stamp = self._bus.stamp
+        frame = encode(Kind.METRICS, {}, run=stamp.run, seq=stamp.next_seq(Kind.METRICS), meta=status)
         self._publisher.put(frame)
 
 

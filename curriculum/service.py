@@ -29,9 +29,11 @@ from typing import Any, Protocol
 import jax
 import numpy as np
 
-from bus.codec import Kind, Rejected, decode, encode
+from bus.codec import Rejected
+from bus.control import control_reply, encode_refusal, encode_report
 from bus.inbox import IncomingQuery
 from bus.keys import CURRICULUM
+from bus.levels import decode_level_results, encode_level_batch
 from bus.session import Bus
 from bus.status import StatusPublisher
 from curriculum.algorithms import Curriculum
@@ -39,9 +41,9 @@ from curriculum.config import LIVE_KNOBS, CurriculumConfig
 from curriculum.results import empty_results
 from curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
 from curriculum.stats import buffer_summary, buffer_table, histogram
-from curriculum.wire import ResultsError, control_reply, level_batch_arrays, results_from_message
+from curriculum.wire import ResultsError, level_batch_arrays, results_from_message
 from engine.levels.level import Level
-from engine.physics.pytree import tree_arrays
+from engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +190,7 @@ class CurriculumService:
         applied = 0
         for received in self._results.poll(RESULTS_PER_POLL):
             try:
-                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.LEVEL_RESULTS)
+                message = decode_level_results(received.payload, self.bus.keys.run)
                 chunks = results_from_message(message, self.rows)
             except Rejected as err:
                 self.bus.rejects.record(err.reason, received.key, err.detail)
@@ -211,7 +213,7 @@ class CurriculumService:
         key = jax.random.fold_in(self._key, self.samples + 1)
         self.state, batch = self._sample(self.state, key)
         self.samples += 1
-        query.reply(encode(Kind.LEVELS, level_batch_arrays(batch), run=self.bus.keys.run, seq=self.samples))
+        query.reply(encode_level_batch(self.bus.stamp, level_batch_arrays(batch)))
         return 1
 
     # -- control -------------------------------------------------------------------------------------------------------
@@ -285,9 +287,9 @@ class CurriculumService:
             top = int(request.get("top", 10))
             report = self.inspect(top)
             arrays = tree_arrays(self.top_levels(top)) if request.get("levels") else {}
-            query.reply(encode(Kind.CONTROL, arrays, run=self.bus.keys.run, meta={"report": report}))
+            query.reply(encode_report(self.bus.stamp, report, arrays))
         except (ValueError, TypeError, OverflowError) as err:
-            query.reply(encode(Kind.CONTROL, {}, run=self.bus.keys.run, meta={"error": str(err)}))
+            query.reply(encode_refusal(self.bus.stamp, str(err)))
 
     def status(self) -> dict[str, Any]:
         """The status line: counts and the buffer statistics (`curriculum.stats.buffer_summary`), which is how the

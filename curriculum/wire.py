@@ -1,15 +1,12 @@
-"""How the curriculum's messages travel on the bus: level results (actors to the curriculum), level batches (the
-curriculum's answer to an actor's `levels/sample` query) and the JSON of the control queries (`knobs`, `inspect`).
+"""The layout of the curriculum's messages on the bus: level results (actors to the curriculum) and level batches
+(the curriculum's answer to an actor's `levels/sample` query), as named arrays, and the schemas that check them.
 
-Results and level batches are frames of named arrays (`bus.codec`), checked against the schemas here before they
-reach a jitted function, so a malformed or foreign message is refused with a reason instead of crashing the
-service or making it recompile. Control queries carry small JSON objects, since people type them.
+The frames themselves are `bus.levels`'s; the arrays are checked against the schemas here before they reach a
+jitted function, so a malformed or foreign message is refused with a reason instead of crashing the service or
+making it recompile.
 """
 
 from __future__ import annotations
-
-import json
-from typing import Any
 
 import jax
 import numpy as np
@@ -20,8 +17,8 @@ from curriculum.results import LevelResults, results_from_host, results_to_host
 from curriculum.state import LevelBatch
 from engine.levels.generator import sample_random_level
 from engine.levels.level import LEVEL_ID_WORDS
-from engine.physics.pytree import tree_arrays, tree_from_arrays
 from engine.physics.sizes import SceneSizes
+from engine.pytree import tree_arrays, tree_from_arrays
 
 _PER_LEVEL = ("K",)
 
@@ -87,18 +84,3 @@ def level_batch_from_message(message: Message, schema: Schema, template: LevelBa
     """The batch a LEVELS frame carries, after the schema check (raises `bus.codec.Rejected` if it fails)."""
     check(message, schema)
     return tree_from_arrays(message.arrays, template)
-
-
-def control_request(**fields: Any) -> bytes:
-    return json.dumps(fields).encode("utf-8")
-
-
-def control_reply(payload: bytes) -> dict[str, Any]:
-    """A control query's or reply's JSON object; ValueError with the reason if it is not one."""
-    try:
-        value = json.loads(payload.decode("utf-8"))
-    except (ValueError, RecursionError) as err:  # also nesting deeper than the parser's recursion limit
-        raise ValueError(f"not a JSON control message: {err}") from err
-    if not isinstance(value, dict):
-        raise ValueError(f"a control message is a JSON object, got {type(value).__name__}")
-    return value

@@ -110,19 +110,23 @@ def _no_answer(config: TrainConfig, key: str) -> None:
 
 
 def _ask_knobs(config: TrainConfig, request: dict[str, Any]) -> dict[str, Any] | None:
-    from curriculum.wire import control_reply, control_request
+    from bus.control import control_reply, control_request
 
     with _client(config) as bus:
         replies = _ask(bus, bus.keys.curriculum_knobs, control_request(**request))
         if not replies:
             _no_answer(config, bus.keys.curriculum_knobs)
             return None
-        return control_reply(replies[0])
+        try:
+            return control_reply(replies[0])
+        except ValueError as err:
+            print(f"impulse curriculum: unreadable answer: {err}", file=sys.stderr)
+            return None
 
 
 def inspect(args: argparse.Namespace, config: TrainConfig) -> int:
-    from bus.codec import Rejected, decode
-    from curriculum.wire import control_request
+    from bus.codec import Rejected
+    from bus.control import control_request, decode_report
 
     with _client(config) as bus:
         replies = _ask(bus, bus.keys.curriculum_inspect, control_request(top=args.top, levels=bool(args.render)))
@@ -130,19 +134,16 @@ def inspect(args: argparse.Namespace, config: TrainConfig) -> int:
             _no_answer(config, bus.keys.curriculum_inspect)
             return EXIT_FAILED
         try:
-            message = decode(replies[0], run=config.name)
+            reply = decode_report(replies[0], config.name)
         except Rejected as err:
             print(f"impulse curriculum inspect: unreadable answer: {err}", file=sys.stderr)
             return EXIT_FAILED
-        if "error" in message.meta:
-            print(f"impulse curriculum inspect: refused: {message.meta['error']}", file=sys.stderr)
+        if reply.error is not None:
+            print(f"impulse curriculum inspect: refused: {reply.error}", file=sys.stderr)
             return EXIT_USAGE
-        report = message.meta.get("report")
-        if not isinstance(report, dict):
-            print("impulse curriculum inspect: the reply holds no report", file=sys.stderr)
-            return EXIT_FAILED
+        report = reply.report
         if args.render:
-            _render(config, message.arrays, report, args.render)
+            _render(config, reply.arrays, report, args.render)
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -156,7 +157,7 @@ def _render(config: TrainConfig, arrays: dict, report: dict, out: Path) -> None:
 
     from engine.env.spec import env_from_config
     from engine.levels.generator import sample_random_level
-    from engine.physics.pytree import tree_from_arrays
+    from engine.pytree import tree_from_arrays
     from monitor.png import render_level, save_png
 
     spec, _ = env_from_config(config.env)

@@ -30,22 +30,25 @@ import math
 import time
 from collections import Counter, deque
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
 
 from actors.rollout import rollout, start_rollout
 from actors.trajectory import TrajectoryBatch, make_batch
-from actors.wire import PUBLISHED_AT, checked_tree, trajectory_schema, weights_meta
-from bus.codec import Kind, Message, Rejected, decode, encode
+from actors.wire import checked_tree, trajectory_schema, weights_hash
+from bus.codec import Message, Rejected
+from bus.credits import encode_credit
 from bus.keys import ACTOR, CURRICULUM, LEARNER
 from bus.session import Bus
 from bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
+from bus.trajectories import decode_trajectory
+from bus.weights import encode_weights
 from engine.env.spec import EnvParams
 from engine.levels.level import level_from_scene, stack_levels
-from engine.physics.pytree import tree_arrays
 from engine.physics.scene import empty_scene
+from engine.pytree import tree_arrays
 from learner.agent import Agent
 from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from learner.config import TrainConfig
@@ -66,6 +69,15 @@ EPOCH_FILE = "learner-epoch"
 DROP_COUNTS = ("dropped_stale", "dropped_old_epoch", "dropped_overflow", "dropped_inbox_full", "lost")
 """The learner's own drop counters: acted by weights too old, or of an earlier learner epoch; pushed out of the
 ready queue; refused by a full trajectory inbox; missing from an actor's sequence (lost on the way)."""
+
+
+class Queued(NamedTuple):
+    """A checked trajectory batch waiting to be trained on: which actor (incarnation) sent it, and its frame."""
+
+    actor: str
+    incarnation: int
+    message: Message
+    batch: TrajectoryBatch
 
 
 class LearnerError(RuntimeError):
@@ -158,7 +170,7 @@ class LearnerService:
         capacity = max(4, config.actors.credits * max(config.actors.num_actors, 1) * 2)
         self._inbox = bus.inbox(keys.traj_all, capacity)
         self._inbox_dropped_before = self.counts["dropped_inbox_full"]
-        self._ready: deque[tuple[str, int, Message, TrajectoryBatch]] = deque()
+        self._ready: deque[Queued] = deque()
         self._ready_limit = capacity
         self._weights_publisher = bus.latest_publisher(keys.weights_policy)
         self._weights_queries = bus.queryable(keys.weights_latest, 16)
@@ -174,6 +186,7 @@ class LearnerService:
         self.lags: Counter[int] = Counter()
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
+        self._weights_hash = weights_hash(self.train.params)
         self._publish_weights()
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
@@ -205,9 +218,8 @@ class LearnerService:
 
     def _publish_weights(self) -> None:
         params = self.train.params
-        self._weights_frame = bytes(encode(Kind.WEIGHTS, tree_arrays(params), run=self.bus.keys.run,
-                                           policy_version=self.version, learner_epoch=self.epoch,
-                                           meta={**weights_meta(params), PUBLISHED_AT: time.time()}))
+        self.bus.stamp.acting_for(self.epoch, self.version)
+        self._weights_frame = encode_weights(self.bus.stamp, tree_arrays(params), self._weights_hash)
         self._weights_publisher.put(self._weights_frame)
         self.counts["weights_published"] += 1
 
@@ -236,9 +248,7 @@ class LearnerService:
         if publisher is None:
             publisher = self._credit_publishers[actor] = self.bus.publisher(self.bus.keys.credit(actor))
         incarnation, seq = self._acks[actor]
-        publisher.put(encode(Kind.CREDIT, {}, run=self.bus.keys.run, policy_version=self.version,
-                             learner_epoch=self.epoch, seq=seq,
-                             meta={"incarnation": incarnation, "acked_seq": seq}))
+        publisher.put(encode_credit(self.bus.stamp, incarnation, seq))
 
     def _refresh_acks(self) -> None:
         if time.monotonic() - self._last_ack_refresh >= ACK_REFRESH_S:
@@ -252,11 +262,8 @@ class LearnerService:
         for received in self._inbox.poll():
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
             try:
-                message = decode(received.payload, run=self.bus.keys.run, kinds=Kind.TRAJECTORY,
-                                 max_bytes=self._max_frame_bytes)
-                incarnation = message.meta.get("incarnation")
-                if type(incarnation) is not int:
-                    raise Rejected("schema", f"frame on {received.key} without a valid incarnation")
+                message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
+                                                         self._max_frame_bytes)
                 batch = checked_tree(message, self._schema, self._template)
                 stream = (source, incarnation)
                 last = self._last_seq.get(stream)
@@ -271,10 +278,10 @@ class LearnerService:
                 self.counts["lost"] += message.seq - last - 1
             self._last_seq[stream] = message.seq
             if len(self._ready) >= self._ready_limit:
-                dropped, seq_dropped, old, _ = self._ready.popleft()
+                dropped = self._ready.popleft()
                 self.counts["dropped_overflow"] += 1
-                self._acknowledge(dropped, old.meta["incarnation"], seq_dropped)
-            self._ready.append((source, message.seq, message, batch))
+                self._acknowledge(dropped.actor, dropped.incarnation, dropped.message.seq)
+            self._ready.append(Queued(source, incarnation, message, batch))
         self.counts["dropped_inbox_full"] = self._inbox_dropped_before + self._inbox.dropped
 
     def _hear_peers(self) -> None:
@@ -305,8 +312,8 @@ class LearnerService:
     def _take(self) -> tuple[str, Message, TrajectoryBatch] | None:
         """The oldest batch fit to train on, acknowledging everything taken off the queue."""
         while self._ready:
-            actor, seq, message, batch = self._ready.popleft()
-            self._acknowledge(actor, message.meta["incarnation"], seq)
+            actor, incarnation, message, batch = self._ready.popleft()
+            self._acknowledge(actor, incarnation, message.seq)
             if message.learner_epoch != self.epoch:
                 self.counts["dropped_old_epoch"] += 1
                 continue

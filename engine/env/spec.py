@@ -12,8 +12,8 @@ from typing import Literal
 from engine.env.config import EnvConfig
 from engine.env.pixels import pixel_geometry
 from engine.physics.params import SimParams
-from engine.physics.pytree import pytree_dataclass
 from engine.physics.sizes import SIZE_S, SceneSizes, size_preset
+from engine.pytree import pytree_dataclass
 
 ObservationKind = Literal["entity", "symbolic", "pixels"]
 ActionKind = Literal["multi_discrete", "continuous", "discrete"]

@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 
 from engine.levels.level import Level
-from engine.physics.pytree import pytree_dataclass
 from engine.physics.state import SimState
+from engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

@@ -21,9 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.physics.pytree import pytree_dataclass
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
+from engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

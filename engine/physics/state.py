@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import jax
 
-from engine.physics.pytree import pytree_dataclass
+from engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

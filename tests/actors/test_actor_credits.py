@@ -14,12 +14,14 @@ from launch_procs import QUICK_LAUNCH, free_port
 
 from actors.levels import LocalLevels
 from actors.process import Actor
-from actors.wire import weights_meta
-from bus.codec import Kind, encode
+from actors.wire import weights_hash
+from bus.credits import encode_credit
 from bus.session import Bus
+from bus.stamp import Stamp
+from bus.weights import encode_weights
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
-from engine.physics.pytree import tree_arrays
+from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import TrainConfig
 
@@ -46,10 +48,11 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
     agent = make_agent(config.network, spec)
     params = agent.init(jax.random.PRNGKey(0))
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner:
+        learner.stamp.acting_for(epoch=1, policy_version=5)
         weights = learner.latest_publisher(learner.keys.weights_policy)
         def weights_frame(version: int) -> bytearray:
-            return encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, policy_version=version, learner_epoch=1,
-                          meta=weights_meta(params))
+            return bytearray(encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
+                                            weights_hash(params)))
 
         weights.put(weights_frame(5))
         trajectories = learner.inbox(learner.keys.traj_all, 16)
@@ -66,13 +69,11 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
 
             credit = learner.publisher(learner.keys.credit("actor-0"))
             assert learner.wait_matching(credit, 10)
-            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
-                              meta={"incarnation": actor.incarnation, "acked_seq": 2}))
+            credit.put(encode_credit(learner.stamp, actor.incarnation, 2))
             waited = cycle_until(actor, lambda: actor.counts["sent"] == 3, 30, "the acknowledged credit")
             assert waited < TIMEOUT_S and actor.counts["written_off"] == 1, "freed by the acknowledgement"
 
-            credit.put(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=1,
-                              meta={"incarnation": actor.incarnation + 1, "acked_seq": 3}))
+            credit.put(encode_credit(learner.stamp, actor.incarnation + 1, 3))
             deadline = time.monotonic() + 1.0
             while time.monotonic() < deadline:
                 actor.cycle()

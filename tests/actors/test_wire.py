@@ -9,13 +9,15 @@ import jax
 import numpy as np
 import pytest
 
-from actors.wire import checked_tree, trajectory_schema, weights_meta, weights_schema
+from actors.wire import checked_tree, trajectory_schema, weights_hash, weights_schema
 from bus.codec import Kind, Rejected, decode, encode
 from bus.schema import check
+from bus.stamp import Stamp
+from bus.weights import decode_weights, encode_weights
 from curriculum.results import level_results
 from curriculum.wire import LEVEL_RESULTS_SCHEMA, results_arrays
 from engine.env.spec import EnvParams, EnvSpec
-from engine.physics.pytree import tree_arrays
+from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.config import NetworkConfig
 from learner.service import batch_template
@@ -63,12 +65,12 @@ def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
 def test_weights_of_another_network_are_refused_by_their_tree_hash():
     params = make_agent(NETWORK, EnvSpec()).init(jax.random.key(0))
     schema = weights_schema(params)
-    frame = encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, meta=weights_meta(params))
-    got = checked_tree(decode(bytes(frame), run=RUN), schema, params)
+    frame = encode_weights(Stamp(RUN), tree_arrays(params), weights_hash(params))
+    got = checked_tree(decode_weights(frame, RUN).message, schema, params)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(got), strict=True):
         np.testing.assert_array_equal(np.asarray(a), b)
     wider = make_agent(dataclasses.replace(NETWORK, width=32), EnvSpec()).init(jax.random.key(0))
-    frame = encode(Kind.WEIGHTS, tree_arrays(wider), run=RUN, meta=weights_meta(wider))
+    frame = encode_weights(Stamp(RUN), tree_arrays(wider), weights_hash(wider))
     with pytest.raises(Rejected) as refused:
-        check(decode(bytes(frame), run=RUN), schema)
+        check(decode_weights(frame, RUN).message, schema)
     assert refused.value.reason == "tree_hash"

@@ -43,7 +43,7 @@ import jax
 import numpy as np
 import pytest
 
-from actors.wire import PUBLISHED_AT, TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_meta, weights_schema
+from actors.wire import TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_hash, weights_schema
 from bus.codec import (
     ALIGN,
     DIGEST_SIZE,
@@ -59,17 +59,20 @@ from bus.codec import (
     Message,
     Rejected,
     decode,
-    encode,
     tree_hash,
 )
+from bus.control import Report, control_reply, control_request, decode_report, encode_refusal, encode_report
+from bus.credits import Credit, decode_credit, encode_credit
 from bus.inbox import Received
 from bus.keys import Keys
+from bus.levels import decode_level_batch, decode_level_results, encode_level_batch, encode_level_results
+from bus.stamp import Stamp
 from bus.status import Status, StatusPublisher, read_status
+from bus.trajectories import decode_trajectory, encode_trajectory
+from bus.weights import PUBLISHED_AT, decode_weights, encode_weights
 from curriculum.results import LevelResults
 from curriculum.wire import (
     ResultsError,
-    control_reply,
-    control_request,
     level_batch_arrays,
     level_batch_from_message,
     level_batch_schema,
@@ -79,7 +82,7 @@ from curriculum.wire import (
 )
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import LEVEL_ID_WORDS
-from engine.physics.pytree import path_name, tree_arrays
+from engine.pytree import path_name, tree_arrays
 from learner.agent import make_agent
 from learner.config import NetworkConfig
 from learner.service import LEARNER_ID, batch_template
@@ -192,7 +195,8 @@ def status_frames(statuses: list[tuple[str, dict[str, Any]]]) -> list[bytes]:
     frames: list[bytes] = []
     sink = SimpleNamespace(put=lambda frame: frames.append(bytes(frame)))
     for role, status in statuses:
-        bus = SimpleNamespace(keys=Keys(RUN), role=role, ident="0", publisher=lambda *_, **__: sink)
+        bus = SimpleNamespace(keys=Keys(RUN), stamp=Stamp(RUN), role=role, ident="0",
+                              publisher=lambda *_, **__: sink)
         StatusPublisher(bus, every_s=0.0).publish(status)
     return frames
 
@@ -247,6 +251,15 @@ def check_control(request: dict[str, Any]) -> None:
     assert isinstance(request, dict)
 
 
+def check_credit(credit: Credit) -> None:
+    assert all(type(value) is int for value in credit)
+
+
+def check_report(reply: Report) -> None:
+    assert (reply.report is None) != (reply.error is None)
+    assert isinstance(reply.report, dict) or isinstance(reply.error, str)
+
+
 # --------------------------------------------------------------------------------------------------- readers
 
 
@@ -288,9 +301,10 @@ def targets() -> dict[str, Target]:
     traj_schema = trajectory_schema(traj_template)
     traj_max_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape) for spec in traj_schema.arrays.values())
     traj_max_bytes += 1 << 20  # as the learner bounds its frames
+    stamp = Stamp(RUN, epoch=1, policy_version=4)  # as each process's bus holds one
     traj_frames = [
-        encode(Kind.TRAJECTORY, tree_arrays(random_like(traj_template, rng)), run=RUN, policy_version=4,
-               learner_epoch=1, seq=seq, meta={"incarnation": 12345 + seq, "actor": seq})
+        encode_trajectory(stamp, tree_arrays(random_like(traj_template, rng)), seq=seq, incarnation=12345 + seq,
+                          actor_index=seq)
         for seq in (1, 2)
     ]
 
@@ -298,28 +312,18 @@ def targets() -> dict[str, Target]:
     weights_frames = []
     for version in (3, 4):
         params = random_like(params_template, rng)
-        weights_frames.append(encode(Kind.WEIGHTS, tree_arrays(params), run=RUN, policy_version=version,
-                                     learner_epoch=1,
-                                     meta={**weights_meta(params), PUBLISHED_AT: 1.7e9 + version}))
+        weights_frames.append(encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
+                                             weights_hash(params)))
 
-    credit_frames = [  # as the learner acknowledges a trajectory
-        encode(Kind.CREDIT, {}, run=RUN, policy_version=4, learner_epoch=1, seq=seq,
-               meta={"incarnation": 12345, "acked_seq": seq})
-        for seq in (3, 2**40)
-    ]
+    credit_frames = [encode_credit(stamp, 12345, seq) for seq in (3, 2**40)]  # as the learner acknowledges
 
-    results_frames = [
-        encode(Kind.LEVEL_RESULTS, results_arrays(level_results(rng, count)), run=RUN, policy_version=4,
-               learner_epoch=1, seq=7)
-        for count in (5, RESULT_ROWS + 4)
-    ]
+    results_frames = [encode_level_results(stamp, results_arrays(level_results(rng, count)), seq=7)
+                      for count in (5, RESULT_ROWS + 4)]
 
     levels_template = level_batch_template(EnvSpec().sizes, 2)
     levels_schema = level_batch_schema(levels_template)
-    levels_frames = [
-        encode(Kind.LEVELS, level_batch_arrays(random_like(levels_template, rng)), run=RUN, seq=seq)
-        for seq in (1, 2)
-    ]
+    levels_frames = [encode_level_batch(stamp, level_batch_arrays(random_like(levels_template, rng)))
+                     for _ in (1, 2)]
 
     metrics_frames = status_frames([
         ("learner", {"role": "learner", "name": LEARNER_ID, "epoch": 1, "policy_version": 4, "update": 10,
@@ -330,11 +334,8 @@ def targets() -> dict[str, Target]:
 
     report = {"method": "plr", "knobs": {"replay_prob": 0.5}, "summary": {"buffer_fill": 0.25},
               "top": [{"level_id": 17, "score": 0.5}], "lineage": []}
-    control_frames = [
-        encode(Kind.CONTROL, tree_arrays(random_like(levels_template.levels, rng)), run=RUN,
-               meta={"report": report}),
-        encode(Kind.CONTROL, {}, run=RUN, meta={"error": "top must be an integer"}),
-    ]
+    control_frames = [encode_report(stamp, report, tree_arrays(random_like(levels_template.levels, rng))),
+                      encode_refusal(stamp, "top must be an integer")]
     control_queries = [control_request(top=3, levels=True), control_request(set=["replay_prob=0.8"]),
                        control_request()]
 
@@ -365,31 +366,30 @@ def targets() -> dict[str, Target]:
 
     listed = [
         target("trajectory", Kind.TRAJECTORY,
-               lambda data: checked_tree(decode(data, run=RUN, kinds=Kind.TRAJECTORY, max_bytes=traj_max_bytes),
-                                         traj_schema, traj_template),
+               lambda data: checked_tree(decode_trajectory(data, RUN, traj_max_bytes).message, traj_schema,
+                                         traj_template),
                check_tree(traj_template, lambda name: any(name == f or name.startswith(f + "/")
                                                           for f in TRAJECTORY_FINITE)),
                content),
         target("weights", Kind.WEIGHTS,
-               lambda data: checked_tree(decode(data, run=RUN, kinds=Kind.WEIGHTS), weights_schema(params_template),
+               lambda data: checked_tree(decode_weights(data, RUN).message, weights_schema(params_template),
                                          params_template),
                check_tree(params_template, lambda path: True),
                content | {"tree_hash"}),
-        target("credit", Kind.CREDIT, lambda data: decode(data, run=RUN, kinds=Kind.CREDIT),
-               check_message(Kind.CREDIT), framing, refused_share=0.3),
+        target("credit", Kind.CREDIT, lambda data: decode_credit(data, RUN), check_credit, framing | {"schema"},
+               refused_share=0.3),
         target("level_results", Kind.LEVEL_RESULTS,
-               lambda data: results_from_message(decode(data, run=RUN, kinds=Kind.LEVEL_RESULTS), RESULT_ROWS),
+               lambda data: results_from_message(decode_level_results(data, RUN), RESULT_ROWS),
                check_results, content | {"ResultsError"}, (Rejected, ResultsError)),
         target("levels", Kind.LEVELS,
-               lambda data: level_batch_from_message(decode(data, run=RUN, kinds=Kind.LEVELS), levels_schema,
-                                                     levels_template),
+               lambda data: level_batch_from_message(decode_level_batch(data, RUN), levels_schema, levels_template),
                check_tree(levels_template, lambda path: True), content),
         target("metrics", Kind.METRICS,
                lambda data: read_status(Received(key=Keys(RUN).status("actor", "actor-0"), payload=data,
                                                  attachment=None), Keys(RUN)),
                check_status, framing | {"schema"}, refused_share=0.3),
-        target("control", Kind.CONTROL, lambda data: decode(data, run=RUN, kinds=Kind.CONTROL),
-               check_message(Kind.CONTROL), framing, refused_share=0.3),
+        target("control", Kind.CONTROL, lambda data: decode_report(data, RUN), check_report, framing,
+               refused_share=0.3),
         Target("any_frame", every, lambda data: decode(data, run=RUN), check_message(None), (Rejected,),
                framing - {"wrong_kind"}, hostile_refused_share=0.3),
         Target("control_query", tuple(control_queries), control_reply, check_control, (ValueError,),

@@ -12,14 +12,14 @@ from checkpoint_damage import corrupt_newest
 from launch_procs import free_port
 
 from bus.codec import Kind, decode, encode
+from bus.control import control_reply, control_request
+from bus.levels import encode_level_results
 from bus.session import Bus, BusConfig
 from curriculum.algorithms import Curriculum
 from curriculum.config import CurriculumConfig
 from curriculum.service import CurriculumService
 from curriculum.state import ORIGIN_NEW
 from curriculum.wire import (
-    control_reply,
-    control_request,
     level_batch_from_message,
     level_batch_schema,
     level_batch_template,
@@ -101,7 +101,8 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
                   "return_sum": np.ones(BATCH, np.float32), "return_max": np.ones(BATCH, np.float32),
                   "value_sum": np.zeros(BATCH, np.float32), "pvl_sum": np.zeros(BATCH, np.float32),
                   "l1_sum": np.zeros(BATCH, np.float32), "policy_version": np.full(BATCH, 3, np.int32)}
-        results.put(encode(Kind.LEVEL_RESULTS, arrays, run=RUN, policy_version=3))
+        actor.stamp.acting_for(epoch=1, policy_version=3)
+        results.put(encode_level_results(actor.stamp, arrays, seq=1))
         # Malformed: garbage bytes, and well-formed arrays with more solved than played episodes.
         results.put(b"not a frame")
         results.put(encode(Kind.LEVEL_RESULTS, {**arrays, "solved": np.full(BATCH, 5, np.int32)}, run=RUN))

@@ -33,7 +33,7 @@ from bus.codec import Kind, decode, encode
 from bus.keys import LEARNER, SCHEMA_MAJOR
 from deploy.config import resolve_config
 from engine.env.spec import env_from_config
-from engine.physics.pytree import tree_arrays
+from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.checkpoint import Checkpointer
 from learner.config import TrainConfig

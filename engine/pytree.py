@@ -1,5 +1,6 @@
-"""Pytree helpers without flax (the engine imports only jax and numpy): a dataclass that is also a JAX pytree, and
-a pytree as flat named host arrays (how trees travel on the bus and are shown to people)."""
+"""Pytree helpers without flax (the engine imports only jax and numpy), for the engine and every room above it: a
+dataclass that is also a JAX pytree, and a pytree as flat named host arrays (how trees travel on the bus, see
+`actors.wire` and `curriculum.wire`, and are shown to people)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,39 @@
+"""Level frames, both ways between actors and the curriculum service:
+
+- a level batch (LEVELS): the curriculum's answer to an actor's query on `curriculum/levels/sample` (the levels,
+  whether each is trained on, where each came from), numbered by the service's samples so far;
+- level results (LEVEL_RESULTS): an actor's per-level outcomes on `actor/results/<actor>`, stamped with the
+  policy that played them.
+
+The arrays' layout and schemas belong to the curriculum (`curriculum.wire`); this module only frames them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from bus.codec import Kind, Message, decode, encode
+from bus.stamp import Stamp
+
+
+def encode_level_batch(stamp: Stamp, arrays: Mapping[str, np.ndarray]) -> bytearray:
+    """A batch of levels served now (numbered by the stamp's LEVELS sequence)."""
+    return encode(Kind.LEVELS, arrays, run=stamp.run, seq=stamp.next_seq(Kind.LEVELS))
+
+
+def decode_level_batch(payload: bytes, run: str) -> Message:
+    """The level batch a frame carries (arrays still to be checked); raises `bus.codec.Rejected` if malformed."""
+    return decode(payload, run=run, kinds=Kind.LEVELS)
+
+
+def encode_level_results(stamp: Stamp, arrays: Mapping[str, np.ndarray], seq: int) -> bytearray:
+    """Per-level results of the stamp's policy, sent with trajectory batch number `seq`."""
+    return encode(Kind.LEVEL_RESULTS, arrays, run=stamp.run, policy_version=stamp.policy_version,
+                  learner_epoch=stamp.epoch, seq=seq)
+
+
+def decode_level_results(payload: bytes, run: str) -> Message:
+    """The results a frame carries (arrays still to be checked); raises `bus.codec.Rejected` if malformed."""
+    return decode(payload, run=run, kinds=Kind.LEVEL_RESULTS)
