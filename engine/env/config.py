@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from engine.config_checks import check_range
+
 _SCREEN_PIXELS = 500
 """Side of Kinetix's square screen in pixels, which env.pixel_downscale must divide: `engine.env.pixels`'s
 SCREEN_PIXELS, repeated here because this module imports nothing from the project."""
@@ -49,10 +51,8 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         for name in ("frame_skip", "max_timesteps", "pixel_downscale"):
-            if not getattr(self, name) >= 1:
-                raise ValueError(f"env.{name} must be >= 1, got {getattr(self, name)}")
+            check_range(f"env.{name}", getattr(self, name), at_least=1)
         if _SCREEN_PIXELS % self.pixel_downscale:
             raise ValueError(f"env.pixel_downscale must be a divisor of {_SCREEN_PIXELS} (the screen's side in "
                              f"pixels), got {self.pixel_downscale}")
-        if not self.dense_reward_scale >= 0:
-            raise ValueError(f"env.dense_reward_scale must be >= 0, got {self.dense_reward_scale}")
+        check_range("env.dense_reward_scale", self.dense_reward_scale, at_least=0)
