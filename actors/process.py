@@ -40,32 +40,32 @@ import logging
 import secrets
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 import numpy as np
 
+from actors.config import ActorConfig
 from actors.levels import LevelSource
 from actors.rollout import rollout, start_rollout
-from actors.trajectory import TrajectoryBatch, make_batch
+from actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
 from actors.wire import weights_schema
 from bus.codec import Rejected
 from bus.credits import decode_credit
 from bus.keys import ACTOR, LEARNER
 from bus.levels import encode_level_results
 from bus.schema import check
+from bus.service import CycleReport, Progress
 from bus.session import Bus
 from bus.status import StatusPublisher, read_status
 from bus.trajectories import encode_trajectory
 from bus.weights import Weights, decode_weights
 from curriculum.results import LevelResults
 from curriculum.wire import results_arrays
-from engine.env.spec import EnvParams
+from engine.env.spec import EnvParams, EnvSpec
 from engine.pytree import tree_arrays, tree_from_arrays
-from learner.agent import Agent
-from learner.config import TrainConfig
-from learner.curriculum_inputs import batch_level_results
-from learner.progress import CycleReport
+from monitor.config import MonitorConfig
 
 if TYPE_CHECKING:
     from monitor.rollouts import RolloutStream
@@ -90,6 +90,22 @@ def _summary(values: deque[float]) -> dict[str, float]:
     return {"n": len(ordered), "p50": ordered[len(ordered) // 2], "max": ordered[-1]}
 
 
+class ActingAgent(Protocol):
+    """What an actor needs of the agent (`learner.agent.Agent` fits): the environment it was built for, its policy
+    (the rollout's `Policy`) and fresh parameters, whose shapes incoming weights are checked against."""
+
+    @property
+    def spec(self) -> EnvSpec: ...
+
+    def act(self, params: Any, obs: Any, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]: ...
+
+    def init(self, key: jax.Array) -> Any: ...
+
+
+LevelResultsFn = Callable[[Any, TrajectoryBatch, int], LevelResults]
+"""(params, batch, rows) -> the batch's per-level results in `rows` rows, for the curriculum (traced under jit)."""
+
+
 def actor_name(index: int) -> str:
     return f"actor-{index}"
 
@@ -97,9 +113,15 @@ def actor_name(index: int) -> str:
 class Actor:
     """One actor process's state and its run-loop `cycle`."""
 
-    def __init__(self, config: TrainConfig, index: int, bus: Bus, agent: Agent, env_params: EnvParams,
-                 levels: LevelSource, monitor: Monitor | None = None):
-        self.config = config
+    def __init__(self, actors: ActorConfig, *, num_envs: int, num_steps: int, seed: int, index: int, bus: Bus,
+                 agent: ActingAgent, env_params: EnvParams, levels: LevelSource, level_results: LevelResultsFn,
+                 env_steps_goal: int = 0, monitor: Monitor | None = None,
+                 monitor_config: MonitorConfig | None = None):
+        """`num_envs` x `num_steps` per batch (the run's `ppo` section); `seed`: the run's; `level_results`: how
+        per-level results are computed from a batch (`learner.curriculum_inputs.batch_level_results` with the
+        agent and the PPO settings); `env_steps_goal`: this actor's share of the run, for its progress line;
+        `monitor_config` says what to stream when there is a `monitor`."""
+        self.actors = actors
         self.monitor = monitor
         self.index = index
         self.name = actor_name(index)
@@ -108,24 +130,25 @@ class Actor:
         self.levels = levels
         self.incarnation = secrets.randbits(31)
         self._stop_requested = False
-        self.num_envs, self.num_steps = config.ppo.num_envs, config.ppo.num_steps
+        self.num_envs, self.num_steps = num_envs, num_steps
+        self.env_steps_goal = env_steps_goal
         # Seeded by the run, the actor and the incarnation: a restarted actor does not replay its predecessor.
-        seed = (config.seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
+        seed = (seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
         self.key, level_key, rollout_key = jax.random.split(jax.random.PRNGKey(seed), 3)
         first = levels.next_batch(level_key)
         if first is None:  # only a `while_waiting` that gives up ends a wait without levels
             raise RuntimeError("the level source returned no first batch")
         self.carry = start_rollout(agent.spec, env_params, first.levels, self.num_envs, rollout_key, first.train)
         spec, steps = agent.spec, self.num_steps
-        self.watch = min(config.monitor.watch_envs, self.num_envs) if monitor is not None else 0
+        monitor_config = monitor_config or MonitorConfig()
+        self.watch = min(monitor_config.watch_envs, self.num_envs) if monitor is not None else 0
         self._rollout = jax.jit(
             lambda params, carry, batch: rollout(agent.act, params, spec, env_params, carry, batch.levels, steps,
                                                  batch.train, self.watch),
             donate_argnums=1,
         )
         rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
-        self._level_results = jax.jit(
-            lambda params, batch: batch_level_results(agent, params, batch, config.ppo, rows))
+        self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
         self._params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
         self._weights_schema = weights_schema(self._params_template)
 
@@ -140,7 +163,7 @@ class Actor:
         self._learner_returned = False  # ... and came back: weights of a new epoch may be adopted
         self._learner_status = bus.inbox(keys.status_pattern(LEARNER), 4, drop_oldest=True)
         self._learner_says_finished = False
-        self._status = StatusPublisher(bus, config.actors.status_every_s)
+        self._status = StatusPublisher(bus, actors.status_every_s)
 
         self.params: Any = None
         self.version = -1
@@ -155,9 +178,9 @@ class Actor:
         self._steps_done = 0
         self._stream: RolloutStream | None = None
         if monitor is not None and self.watch:
-            from monitor.rollouts import RolloutStream  # rerun only with a monitor (deploy/monitoring.py)
+            from monitor.rollouts import RolloutStream  # rerun only with a monitor (deploy/runtime/monitoring.py)
 
-            self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps, config.monitor.contacts)
+            self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps, monitor_config.contacts)
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
         self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
@@ -265,14 +288,14 @@ class Actor:
     def _has_credit(self) -> bool:
         """Whether a batch may be sent now; out of credit for longer than the timeout with no acknowledgement,
         the batches in flight are written off."""
-        if self.in_flight < self.config.actors.credits:
+        if self.in_flight < self.actors.credits:
             return True
         now = time.monotonic()
         if self._blocked_since is None:
             self._blocked_since = now
-        if now - self._blocked_since > self.config.actors.credit_timeout_s:
+        if now - self._blocked_since > self.actors.credit_timeout_s:
             log.warning("no acknowledgement for %.0f s: %d batches in flight written off",
-                        self.config.actors.credit_timeout_s, self.in_flight)
+                        self.actors.credit_timeout_s, self.in_flight)
             self._write_off()
             return True
         return False
@@ -306,7 +329,7 @@ class Actor:
             "in_flight": self.in_flight,
             "levels": self.levels.description,
             "waiting": "weights" if self.params is None else "levels" if self.levels.waiting else (
-                "credit" if self.in_flight >= self.config.actors.credits else ""),
+                "credit" if self.in_flight >= self.actors.credits else ""),
             "rejected": self.bus.rejects.counts(),
             "weights_latency_ms": _summary(self._weights_latency_ms),
             **self.counts,
@@ -335,7 +358,7 @@ class Actor:
         if self._held is not None and self._has_credit():
             self._send(self._held)
             self._held = None
-        drop_oldest = self.config.actors.when_no_credit == "drop_oldest"
+        drop_oldest = self.actors.when_no_credit == "drop_oldest"
         if not self._has_credit() and not drop_oldest:
             return None
         start, started_at = time.monotonic(), time.time()
@@ -344,7 +367,8 @@ class Actor:
         if levels is None:
             return None
         self.carry, steps, train_mask, stats, watched = self._rollout(self.params, self.carry, levels)
-        batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask)
+        batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask,
+                           episodes=stats)
         results = self._level_results(self.params, batch) if self.levels.reports_results else None
         batch = jax.device_get(batch)
         if self._has_credit():
@@ -361,13 +385,19 @@ class Actor:
                                        self._last_cycle_s)
         env_steps = self.num_envs * self.num_steps
         self._steps_done += env_steps
-        stats = {k: float(v) for k, v in jax.device_get(stats._asdict()).items()}
-        metrics = {"episodes": stats["episodes"], "solved": stats["solved"], "return_sum": stats["return_sum"],
-                   "policy_version": float(self.version), "steps_per_s": env_steps / self._last_cycle_s}
+        metrics = {name: float(value) for name, value in jax.device_get(episode_metrics(stats)).items()}
+        metrics.update(policy_version=float(self.version), steps_per_s=env_steps / self._last_cycle_s)
         return CycleReport(env_steps=env_steps, updates=0, metrics=metrics)
+
+    def progress(self) -> Progress:
+        """An actor starts from nothing; its goal is its share of the run's env steps (for its progress line)."""
+        return Progress(total_env_steps=self.env_steps_goal)
 
     def save(self, summary: dict[str, float]) -> None:
         """An actor keeps no state worth a checkpoint: the learner and the curriculum own the run."""
+
+    def close(self) -> None:
+        """Nothing to release: the bus session and the monitor belong to the process that made them."""
 
     def finished(self) -> bool:
         """When the learner's latest status says the run is finished and the learner has left (see the module

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from actors.trajectory import Trajectory
+from actors.trajectory import EpisodeStats, Trajectory
 from engine.env.actions import actuation
 from engine.env.env import reset_batch
 from engine.env.episodes import LoopCarry, Step, episode_loop
@@ -53,18 +53,6 @@ class RolloutCarry(NamedTuple):
     trains: Array  # [E] bool: the episode each environment is playing is trained on
 
 
-class RolloutStats(NamedTuple):
-    """Whole-batch summaries of the episodes that ended during the rollout."""
-
-    episodes: Array
-    solved: Array
-    failed: Array
-    timed_out: Array
-    nan: Array
-    return_sum: Array
-    length_sum: Array
-
-
 class Watched(NamedTuple):
     """The watched environments at each step: [T, W] leading axes."""
 
@@ -76,7 +64,7 @@ class RolloutResult(NamedTuple):
     carry: RolloutCarry
     steps: Trajectory  # [T, E]
     train_mask: Array  # [T, E] the train flag of the episode each step belongs to
-    stats: RolloutStats
+    stats: EpisodeStats
     watched: Watched | None  # None unless `watch` > 0
 
 
@@ -131,7 +119,7 @@ def rollout(
         state = jax.tree.map(lambda x: x[:watch], step.state)
         return Watched(state, jax.vmap(lambda a, level: actuation(spec, a, level))(step.action[:watch], state.level))
 
-    def record(step: Step) -> tuple[Trajectory, Array, RolloutStats, Watched | None]:
+    def record(step: Step) -> tuple[Trajectory, Array, EpisodeStats, Watched | None]:
         info, done = step.info, step.done
         log_prob, value = step.aux
         finished_return = jnp.where(done, info["returned_episode_return"], 0.0)
@@ -147,7 +135,7 @@ def rollout(
             episode_return=finished_return,
             level_id=step.state.level.level_id,
         )
-        episode = RolloutStats(
+        episode = EpisodeStats(
             episodes=done.astype(jnp.int32).sum(),
             solved=info["solved"].sum(),
             failed=info["failed"].sum(),

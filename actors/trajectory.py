@@ -11,7 +11,9 @@ contract, field by field:
   against it (0 in fused mode because the two versions are equal);
 - `train_mask`: [T, E] which steps the update learns from (all of them, unless a curriculum marks levels that are
   only being evaluated);
-- `actor_id`, `seq`: who produced the batch and its number in that actor's stream (fused mode: actor 0).
+- `actor_id`, `seq`: who produced the batch and its number in that actor's stream (fused mode: actor 0);
+- `episodes`: what happened to the episodes that ended during the rollout (`EpisodeStats`), so that every mode
+  reports the same episode metrics for the batch it trains on (`episode_metrics`).
 
 Per-level results for the curriculum are computed from the steps by `curriculum.results.level_results`, keyed by
 level id.
@@ -42,6 +44,45 @@ class Trajectory(NamedTuple):
     level_id: Array  # [T, E, LEVEL_ID_WORDS] uint32: the level this step was played on
 
 
+class EpisodeStats(NamedTuple):
+    """Sums over the episodes that ended during a rollout (scalars): how many, how they ended, their returns and
+    lengths."""
+
+    episodes: Array
+    solved: Array
+    failed: Array
+    timed_out: Array
+    nan: Array
+    return_sum: Array
+    length_sum: Array
+
+
+def no_episodes() -> EpisodeStats:
+    """Stats of a rollout in which no episode ended."""
+    return EpisodeStats(*(jnp.zeros((), dtype) for dtype in
+                          (jnp.int32, jnp.int32, jnp.int32, jnp.int32, jnp.int32, jnp.float32, jnp.int32)))
+
+
+def episode_metrics(stats: EpisodeStats) -> dict[str, Array]:
+    """The episode metrics every mode reports per batch (metrics.jsonl, the progress line, the metrics window):
+    the counts and sums, and solve rate, mean return and mean length (NaN when no episode ended). Works on device
+    arrays inside a jitted function and on host values alike."""
+    episodes = stats.episodes
+    safe = jnp.maximum(episodes, 1)
+    return {
+        "episodes": episodes,
+        "solved": stats.solved,
+        "failed": stats.failed,
+        "timed_out": stats.timed_out,
+        "nan_episodes": stats.nan,
+        "return_sum": stats.return_sum,
+        "length_sum": stats.length_sum,
+        "solve_rate": jnp.where(episodes > 0, stats.solved / safe, jnp.nan),
+        "episode_return": jnp.where(episodes > 0, stats.return_sum / safe, jnp.nan),
+        "episode_length": jnp.where(episodes > 0, stats.length_sum / safe, jnp.nan),
+    }
+
+
 class TrajectoryBatch(NamedTuple):
     """What an actor sends and `ppo_update` consumes (see the module docstring)."""
 
@@ -51,6 +92,7 @@ class TrajectoryBatch(NamedTuple):
     train_mask: Array  # bool [T, E]
     actor_id: Array  # int32 scalar
     seq: Array  # int32 scalar
+    episodes: EpisodeStats  # scalars
 
 
 def make_batch(
@@ -60,10 +102,14 @@ def make_batch(
     actor_id: Array | int = 0,
     seq: Array | int = 0,
     train_mask: Array | None = None,
+    episodes: EpisodeStats | None = None,
 ) -> TrajectoryBatch:
-    """A batch with every step trained on unless `train_mask` says otherwise. Jittable."""
+    """A batch with every step trained on unless `train_mask` says otherwise, and the rollout's `episodes` (none
+    ended, when not given). Jittable."""
     if train_mask is None:
         train_mask = jnp.ones(steps.reward.shape, bool)
+    if episodes is None:
+        episodes = no_episodes()
     return TrajectoryBatch(
         steps=steps,
         bootstrap_obs=bootstrap_obs,
@@ -71,6 +117,7 @@ def make_batch(
         train_mask=train_mask,
         actor_id=jnp.asarray(actor_id, jnp.int32),
         seq=jnp.asarray(seq, jnp.int32),
+        episodes=episodes,
     )
 
 
@@ -85,4 +132,5 @@ def env_axes(batch: TrajectoryBatch) -> TrajectoryBatch:
         train_mask=1,
         actor_id=None,
         seq=None,
+        episodes=EpisodeStats(*(None for _ in EpisodeStats._fields)),
     )

@@ -30,8 +30,9 @@ import zenoh
 
 from benchmarks._harness import REPO
 from bus.codec import Kind, decode, encode
+from bus.config import BusConfig
 from bus.schema import Schema, check
-from bus.session import Bus, BusConfig
+from bus.session import Bus
 
 RUN = "bench-bus"
 ACK_TIMEOUT_S = 30.0

@@ -20,7 +20,7 @@ deliberate difference); and the label ``chaotic`` when the positions agree withi
 start touching and part by more than 1 mm within 15 steps of that start. Bodies are named by global index:
 polygons first (the four static arena polygons are 0-3), then circles.
 
-Our side runs once per ``--solver`` (the ``SceneSizes.solver`` schedule: ``phased``, the default; ``jax2d``,
+Our side runs once per ``--solver`` (the ``SolverOptions.schedule``: ``phased``, the default; ``jax2d``,
 Jax2D's batch order; ``jax2d_wipe``, that order plus Jax2D's padding bug B1); every record and summary names its
 solver, and Jax2D runs once per action mode.
 
@@ -48,8 +48,10 @@ import numpy as np
 from benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
 from benchmarks.scripted_actions import engine_actions
 from engine.levels.kinetix_json import load_kinetix_level
+from engine.physics.options import SCHEDULES as SOLVERS
+from engine.physics.options import SolverOptions
 from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SOLVERS, SceneSizes
+from engine.physics.sizes import SceneSizes
 from engine.physics.step import step
 
 CHECKPOINTS = (30, 60, 120)
@@ -281,12 +283,13 @@ def action_sequence(steps: int, num_joints: int, num_thrusters: int, mode: str) 
     return np.stack(rows).reshape(steps, num_joints + num_thrusters).astype(np.float32)
 
 
-@functools.partial(jax.jit, static_argnames="sizes")
-def _rollout(state, params, actions, sizes: SceneSizes):
-    """Positions [steps, N, 2] and contact flags [steps, num_pairs] after each step; compiled once per size."""
+@functools.partial(jax.jit, static_argnames=("sizes", "options"))
+def _rollout(state, params, actions, sizes: SceneSizes, options: SolverOptions):
+    """Positions [steps, N, 2] and contact flags [steps, num_pairs] after each step; compiled once per size and
+    solver options."""
 
     def body(s, a):
-        s, contacts = step(s, params, a, sizes)
+        s, contacts = step(s, params, a, sizes, options)
         return s, (s.bodies.position, contacts.touching)
 
     return jax.lax.scan(body, state, actions)[1]
@@ -294,9 +297,9 @@ def _rollout(state, params, actions, sizes: SceneSizes):
 
 def run_ours(path: Path, steps: int, mode: str, solver: str = "phased") -> dict[str, Any]:
     level = load_kinetix_level(path)
-    sizes = dataclasses.replace(level.sizes, solver=solver)
+    sizes, options = level.sizes, dataclasses.replace(level.options, schedule=solver)
     actions = action_sequence(steps, sizes.num_joints, sizes.num_thrusters, mode)
-    positions, touching = _rollout(level.state, level.params, jnp.asarray(actions), sizes)
+    positions, touching = _rollout(level.state, level.params, jnp.asarray(actions), sizes, options)
     tables = pair_tables(sizes)
     bodies = level.state.bodies
     return {

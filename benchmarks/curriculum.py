@@ -40,11 +40,11 @@ from benchmarks.plot import PALETTE, Panel, Series, mean_curves, render
 from curriculum.config import METHODS
 from curriculum.stats import buffer_summary
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from engine.env.spec import env_from_config
 from engine.levels.level import Level
 from engine.levels.sets import HANDMADE, LevelSetError, load_level_set
 from engine.physics.sizes import SceneSizes
-from learner.config import TrainConfig
 from learner.evaluate import evaluate
 from learner.run import build
 
@@ -102,11 +102,11 @@ def method_overrides(items: list[str], method: str) -> list[str]:
     return chosen
 
 
-def make_config(method: str, seed: int, env_steps: int, config_path: Path | None, overrides: list[str]) -> TrainConfig:
+def make_config(method: str, seed: int, env_steps: int, config_path: Path | None, overrides: list[str]) -> RunConfig:
     """The training config of one (method, seed): random S levels, the preset, method defaults, then `--set`."""
     items = ["env.levels=random", "env.size=s", f"curriculum={method}", f"seed={seed}",
              f"total_env_steps={env_steps}"]
-    return resolve_config(TrainConfig, config_path, items + method_overrides(overrides, method))
+    return resolve_config(RunConfig, config_path, items + method_overrides(overrides, method))
 
 
 def load_eval_sets(sizes: SceneSizes, kinetix_dir: Path) -> list[EvalSet]:
@@ -138,7 +138,7 @@ def _json_number(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def train_and_evaluate(method: str, seed: int, config: TrainConfig, eval_sets: list[EvalSet], eval_every: int,
+def train_and_evaluate(method: str, seed: int, config: RunConfig, eval_sets: list[EvalSet], eval_every: int,
                        attempts: int, eval_seed: int) -> list[dict[str, Any]]:
     """Train one agent with `method`, evaluating it at update 0, every `eval_every` updates and at the end; emits
     and returns the eval records."""
@@ -332,13 +332,13 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def build_sizes(config: TrainConfig) -> SceneSizes:
+def build_sizes(config: RunConfig) -> SceneSizes:
     """The scene sizes of the run's environment, without building a trainer."""
     spec, _ = env_from_config(config.env)
     return spec.sizes
 
 
-def _title(configs: dict[tuple[str, int], TrainConfig], seeds: list[int], attempts: int) -> str:
+def _title(configs: dict[tuple[str, int], RunConfig], seeds: list[int], attempts: int) -> str:
     config = next(iter(configs.values()))
     seeds_text = f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}" + (" (mean)" if len(seeds) > 1 else "")
     return (f"Zero-shot solve rate vs training env steps, random S levels; {config.network.kind} "

@@ -52,16 +52,16 @@ import numpy as np
 
 from benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from bus.codec import Kind, encode
-from bus.session import BusConfig
+from bus.config import BusConfig
 from bus.stamp import Stamp
 from bus.trajectories import decode_trajectory, encode_trajectory
+from deploy.run_config import RunConfig
 from engine.env.actions import action_space
 from engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
 from engine.physics.sizes import SceneSizes, size_preset
 from engine.pytree import path_name
-from learner.config import TrainConfig
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
 PARTS = ("bytes", "runs", "costs")
@@ -101,13 +101,13 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
     return overrides
 
 
-def resolve(config_path: Path, overrides: list[str]) -> TrainConfig:
+def resolve(config_path: Path, overrides: list[str]) -> RunConfig:
     from deploy.config import resolve_config
 
-    return resolve_config(TrainConfig, config_path, overrides)
+    return resolve_config(RunConfig, config_path, overrides)
 
 
-def describe(config: TrainConfig) -> dict[str, Any]:
+def describe(config: RunConfig) -> dict[str, Any]:
     """The settings a reader needs to match two lines: what was trained, at what batch shape."""
     ppo = config.ppo
     return {"size": config.env.size, "levels": config.env.levels, "observation": config.env.observation,
@@ -486,7 +486,7 @@ def actor_window(statuses: list[tuple[float, str, dict[str, Any]]], window: tupl
     return summary
 
 
-def distributed_record(result: RunResult, skip: int, fused_rate: float | None, config: TrainConfig) -> dict:
+def distributed_record(result: RunResult, skip: int, fused_rate: float | None, config: RunConfig) -> dict:
     """One throughput line of a distributed run: rate, ratio to fused, policy lag and every drop counter."""
     window = steady_window(result.records, skip)
     newest = last_statuses(result.statuses)
@@ -525,7 +525,7 @@ def distributed_record(result: RunResult, skip: int, fused_rate: float | None, c
     }
 
 
-def weights_record(result: RunResult, weights_bytes: int | None, config: TrainConfig) -> dict[str, Any]:
+def weights_record(result: RunResult, weights_bytes: int | None, config: RunConfig) -> dict[str, Any]:
     """Publish-to-adopted latency of weight broadcasts per actor, from each actor's last status line."""
     newest = last_statuses(result.statuses)
     per_actor = {sender.split("/", 1)[1]: s.get("weights_latency_ms") for sender, s in sorted(newest.items())
@@ -558,7 +558,7 @@ def _median_s(fn: Callable[[], Any], repeats: int) -> float:
     return statistics.median(runs)
 
 
-def inprocess_costs(config: TrainConfig, repeats: int) -> dict[str, Any]:
+def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     """One rollout, one `ppo_update`, and the serialisation of one batch, timed here alone at the run's shapes
     (jitted as the actor and the learner jit them). In the runs these compete with other processes for the same
     cores, so they are lower bounds for what the processes spend."""
@@ -673,7 +673,7 @@ def transport_ms(arrays: dict[str, np.ndarray], bus_config: BusConfig, repeats: 
 
 
 def gap_record(result: RunResult, fused: dict[str, Any], costs: dict[str, Any], transport: dict[str, Any],
-               skip: int, config: TrainConfig) -> dict[str, Any]:
+               skip: int, config: RunConfig) -> dict[str, Any]:
     """Where the time of one distributed update goes, next to one fused iteration.
 
     Learner: its steady interval between updates (measured) = update compute + ingest of one batch (decode,
@@ -742,7 +742,7 @@ def measure_bytes(args: argparse.Namespace, env_info: dict[str, str]) -> None:
             emit({**bytes_per_step(size, observation, args.bytes_envs, args.bytes_steps), **env_info})
 
 
-def measure_runs(args: argparse.Namespace, config_path: Path, overrides: list[str], config: TrainConfig,
+def measure_runs(args: argparse.Namespace, config_path: Path, overrides: list[str], config: RunConfig,
                  work: Path, env_info: dict[str, str]) -> tuple[list[RunResult], dict[str, Any] | None]:
     """Fused, then each actor count, then fused again; emits one throughput line per run and a summary."""
     steps_per_update = config.ppo.num_envs * config.ppo.num_steps
@@ -858,7 +858,7 @@ def main(argv: list[str] | None = None) -> int:
         if "costs" not in args.parts:
             return 0
         progress("in-process costs: rollout, update, serialisation, transport ...")
-        from deploy.train_cmd import enable_compile_cache
+        from deploy.runtime.compile_cache import enable_compile_cache
 
         enable_compile_cache()  # the checkout's cache, which the runs above filled with the same programs
         costs = inprocess_costs(config, args.repeats)

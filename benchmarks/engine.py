@@ -7,7 +7,7 @@ interpreter's JAX version) because Kinetix pins an old JAX.
     impulse bench engine                      # S, M, L at 1 and 1,024 envs (+32,768 on a GPU), with Jax2D
     impulse bench engine --quick              # our engine only, small batches: a smoke run
     impulse bench engine --sizes s --num-envs 4096 --no-reference
-    impulse bench engine --quick --solver phased,jax2d   # both contact schedules (SceneSizes.solver)
+    impulse bench engine --quick --solver phased,jax2d   # both contact schedules (SolverOptions.schedule)
     impulse bench engine --backend xla,pallas            # the XLA solver stage and the fused kernel (on a GPU)
 """
 
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
 from engine.levels.kinetix_json import load_kinetix_level
-from engine.physics.sizes import SOLVERS
+from engine.physics.options import SCHEDULES as SOLVERS
 from engine.physics.step import step
 
 
@@ -29,10 +29,11 @@ def measure_ours(
     level_path: str, num_envs: int, num_steps: int, repeats: int, solver: str = "phased", backend: str = "xla"
 ) -> dict:
     level = load_kinetix_level(level_path)
-    sizes, params = dataclasses.replace(level.sizes, solver=solver, backend=backend), level.params
+    sizes, params = level.sizes, level.params
+    options = dataclasses.replace(level.options, schedule=solver, backend=backend)
     batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_envs,) + x.shape), level.state)
     actions = jnp.ones((num_envs, sizes.num_joints + sizes.num_thrusters), jnp.float32)
-    step_batch = jax.vmap(lambda s, a: step(s, params, a, sizes)[0])
+    step_batch = jax.vmap(lambda s, a: step(s, params, a, sizes, options)[0])
 
     @jax.jit
     def rollout(state):

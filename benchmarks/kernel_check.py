@@ -1,4 +1,4 @@
-"""The fused solver kernel (`SceneSizes.backend="pallas"`) against the XLA step: same levels, same actions, how far
+"""The fused solver kernel (`SolverOptions.backend="pallas"`) against the XLA step: same levels, same actions, how far
 apart the trajectories end.
 
 For each size: every shared Kinetix level of that size and `--random` levels from our generator, `--steps` steps of
@@ -14,7 +14,6 @@ Triton; elsewhere it runs through Pallas's interpreter (`pallas_interpret`), whi
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import time
 
@@ -25,6 +24,7 @@ import numpy as np
 from benchmarks._harness import emit, environment, progress, require_levels
 from engine.levels.generator import sample_random_levels
 from engine.levels.kinetix_json import load_kinetix_level
+from engine.physics.options import SolverOptions
 from engine.physics.params import SimParams
 from engine.physics.sizes import SceneSizes, size_preset
 from engine.physics.state import SimState
@@ -38,12 +38,14 @@ def kernel_backend() -> str:
     return "pallas" if jax.default_backend() == "gpu" else "pallas_interpret"
 
 
-@functools.partial(jax.jit, static_argnames="sizes")
-def trajectories(states: SimState, params: SimParams, actions: jax.Array, sizes: SceneSizes) -> jax.Array:
+@functools.partial(jax.jit, static_argnames=("sizes", "options"))
+def trajectories(
+    states: SimState, params: SimParams, actions: jax.Array, sizes: SceneSizes, options: SolverOptions
+) -> jax.Array:
     """Body positions after every step [T, levels, N, 2] of a batch of scenes under per-step actions [T, levels, A]."""
 
     def one_step(s: SimState, a: jax.Array):
-        s = jax.vmap(lambda scene, act: step(scene, params, act, sizes)[0])(s, a)
+        s = jax.vmap(lambda scene, act: step(scene, params, act, sizes, options)[0])(s, a)
         return s, s.bodies.position
 
     return jax.lax.scan(one_step, states, actions)[1]
@@ -57,8 +59,8 @@ def compare(states: SimState, params: SimParams, sizes: SceneSizes, num_steps: i
     actions = jnp.asarray(actions.astype(np.float32))
     backend = kernel_backend()
     started = time.perf_counter()
-    reference = np.asarray(trajectories(states, params, actions, dataclasses.replace(sizes, backend="xla")))
-    fused = np.asarray(trajectories(states, params, actions, dataclasses.replace(sizes, backend=backend)))
+    reference = np.asarray(trajectories(states, params, actions, sizes, SolverOptions(backend="xla")))
+    fused = np.asarray(trajectories(states, params, actions, sizes, SolverOptions(backend=backend)))
     apart = np.abs(reference - fused).max(axis=(2, 3))  # [T, levels]
     last = apart[-1]
     return {

@@ -126,7 +126,7 @@ def two_proportion_z(solved_a: int, n_a: int, solved_b: int, n_b: int) -> float:
 def compare_policy(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     from deploy.cli import main as impulse
     from deploy.config import resolve_config
-    from learner.config import TrainConfig
+    from deploy.run_config import RunConfig
     from learner.run import evaluate_run
 
     level = str(level_path(args.level))
@@ -148,7 +148,7 @@ def compare_policy(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                           str(work / "trained" / "model.json")])
     if status != 0:
         raise SystemExit(f"impulse import-kinetix failed with status {status}")
-    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     table = evaluate_run(config, run_dir, levels=level, attempts=args.episodes, seed=args.seed)
     ours = next(iter(table.values()))
     ours_solved = round(ours["solve_rate"] * args.episodes)

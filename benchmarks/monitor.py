@@ -42,14 +42,14 @@ def run(config_path: Path, overrides: list[str], rounds: int, cycles: int, watch
     from actors.rollout import rollout, start_rollout
     from actors.trajectory import make_batch
     from deploy.config import resolve_config
+    from deploy.run_config import RunConfig
     from engine.env.spec import env_from_config
     from learner.agent import make_agent
-    from learner.config import TrainConfig
     from monitor.rollouts import RolloutStream
     from monitor.stream import Monitor, server_reachable
     from monitor.viewer import rerun_binary
 
-    config = resolve_config(TrainConfig, config_path, overrides)
+    config = resolve_config(RunConfig, config_path, overrides)
     ppo = config.ppo
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)

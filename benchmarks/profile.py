@@ -69,7 +69,7 @@ def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, tra
     repeated = ppo.num_steps * spec.frame_skip
 
     def physics_only(sims):
-        one = jax.vmap(lambda s, a: physics_step(s, env_params.sim, a, spec.sizes)[0])
+        one = jax.vmap(lambda s, a: physics_step(s, env_params.sim, a, spec.sizes, spec.solver)[0])
         return jax.lax.scan(lambda s, _: (one(s, zero_actuation), None), sims, None, length=repeated)[0]
 
     def env_only(state):
@@ -122,8 +122,9 @@ def profile(size: str, ppo: PPOConfig, network: NetworkConfig, repeats: int, tra
     one_sim = jax.tree.map(lambda x: x[0], sims)
     one_state = jax.tree.map(lambda x: x[0], state)
     fusions = {
-        "physics_step": count_fusions(lambda s: physics_step(s, env_params.sim, zero_actuation[0], spec.sizes)[0],
-                                      one_sim),
+        "physics_step": count_fusions(
+            lambda s: physics_step(s, env_params.sim, zero_actuation[0], spec.sizes, spec.solver)[0], one_sim
+        ),
         "env_step": count_fusions(lambda s: env_step(spec, env_params, s, fixed_action[0], levels)[1], one_state),
     }
     steps = ppo.num_envs * ppo.num_steps

@@ -19,7 +19,7 @@ the environment variable ``IMPULSE_REFERENCE_PIP_ARGS``.
 
 Where a venv cannot see the machine's JAX (a lent GPU machine, whose JAX with CUDA lives in a venv of its own and
 cannot be fetched again), ``IMPULSE_REFERENCE_SITE`` names a folder into which Jax2D, Kinetix and what they need
-beyond that machine's packages were installed with ``pip install --target`` (``deploy/gpu_bundle.py`` prepares
+beyond that machine's packages were installed with ``pip install --target`` (``tools/gpu_bundle.py`` prepares
 the wheels). The runner then runs on the calling interpreter, with that folder on its path and no venv.
 """
 

@@ -17,7 +17,6 @@ the cheaper `entity` kind; `--network transformer` is the paper's model class).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from typing import NamedTuple
 
@@ -29,6 +28,7 @@ from benchmarks._harness import emit, environment, progress, require_levels, tim
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.kinetix_json import load_kinetix_level
 from engine.levels.level import Level, stack_levels
+from engine.physics.options import SolverOptions
 from engine.physics.sizes import size_preset
 from learner.agent import Agent, make_agent
 from learner.config import NetworkConfig, PPOConfig
@@ -49,10 +49,11 @@ class FusedSetup(NamedTuple):
 
 def fused_setup(size: str, ppo: PPOConfig, network: NetworkConfig, physics_backend: str = "xla") -> FusedSetup:
     """Build and initialise the fused trainer `impulse train` would run on the shared levels of `size`."""
-    sizes = dataclasses.replace(size_preset(size), backend=physics_backend)
+    sizes = size_preset(size)
     paths = sorted((require_levels() / size).glob("*.json"))
     levels = stack_levels([load_kinetix_level(path, sizes).level for path in paths])
-    spec = EnvSpec(sizes=sizes, observation="symbolic" if network.kind == "flat" else "entity")
+    spec = EnvSpec(sizes=sizes, solver=SolverOptions(backend=physics_backend),
+                   observation="symbolic" if network.kind == "flat" else "entity")
     agent = make_agent(network, spec)
     trainer = FusedTrainer(agent, EnvParams(dense_reward_scale=0.2), ppo, num_updates=1000)
     carry = jax.jit(trainer.init)(jax.random.PRNGKey(0), levels)

@@ -4,7 +4,7 @@ On one machine the processes are peers around a hub (`bus.session`). Across mach
 of a router (`impulse router`, one per host or one for the run) and all traffic passes through routers, which is
 what lets a router enforce access control: a peer-to-peer link would bypass it.
 
-Security material lives in one credentials directory (made for trials by deploy/security/make-test-certs.sh):
+Security material lives in one credentials directory (made for trials by deploy/cluster/security/make-test-certs.sh):
 
 - `ca.pem`: the certificate authority everyone trusts; with it the bus runs over TLS (`tls/HOST:PORT` endpoints);
 - `router.pem`, `router.key`: the router's certificate, whose names clients verify;
@@ -32,7 +32,6 @@ may pass on anything, since each router enforces the rules above on the clients 
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import logging
 import threading
@@ -44,6 +43,7 @@ from typing import Any
 
 import zenoh
 
+from bus.config import RouterConfig, is_loopback
 from bus.keys import ACTOR, CURRICULUM, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
 
 log = logging.getLogger("impulse.router")
@@ -58,40 +58,6 @@ ALL_MESSAGES = ["put", "delete", "query", "reply", "declare_subscriber", "declar
 
 class CredentialsError(ValueError):
     """The credentials directory lacks a file the configuration needs."""
-
-
-def _check_endpoints(name: str, endpoints: object) -> tuple[str, ...]:
-    if isinstance(endpoints, str) or not isinstance(endpoints, tuple | list):
-        raise ValueError(f"{name} must be a list of endpoints, got {endpoints!r}")
-    for endpoint in endpoints:
-        protocol, _, address = str(endpoint).partition("/")
-        if not isinstance(endpoint, str) or not protocol or not address or any(c.isspace() for c in endpoint):
-            raise ValueError(f"{name} entry {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
-    return tuple(endpoints)
-
-
-@dataclass(frozen=True)
-class RouterConfig:
-    """`impulse router`: where it listens, which routers it links to, and its security."""
-
-    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
-    """Endpoints the router listens on. Loopback by default: listen on a host's address (e.g. "tls/0.0.0.0:7447")
-    to serve other machines, with credentials."""
-    connect: tuple[str, ...] = ()
-    """Other routers to link to (one router per host, each host's processes connecting to their own)."""
-    credentials: str = ""
-    """Credentials directory (see `bus.router`): TLS with `ca.pem`, the router's certificate and, when
-    `mutual_tls`, clients' certificates; user/password authentication with `users.txt`. Empty: neither."""
-    mutual_tls: bool = True
-    """With TLS, clients must present a certificate signed by the CA as well."""
-    access_control: bool = True
-    """With credentials, allow each role only its part of the protocol (needs an authentication method)."""
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "listen", _check_endpoints("router.listen", self.listen))
-        object.__setattr__(self, "connect", _check_endpoints("router.connect", self.connect))
-        if not self.listen:
-            raise ValueError("router.listen is empty: a router must listen somewhere")
 
 
 @dataclass(frozen=True)
@@ -116,20 +82,6 @@ class Security:
         if not path.is_file():
             raise CredentialsError(f"{path} is missing from the credentials directory")
         return str(path)
-
-
-def is_loopback(endpoint: str) -> bool:
-    """Whether a listen endpoint is reachable from this machine only (127.x, ::1, localhost, a unix socket)."""
-    protocol, _, address = endpoint.partition("/")
-    if protocol.startswith("unixsock"):
-        return True
-    host = address.split("?")[0].rsplit(":", 1)[0].strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def client_security(credentials: str, role: str) -> dict[str, Any]:
@@ -276,8 +228,8 @@ def open_listeners_warning(config: RouterConfig) -> str | None:
     if security is not None and (security.passwords or (security.tls and config.mutual_tls)):
         return None
     return (f"the router listens on {', '.join(exposed)} without authentication: anyone who can reach it can read "
-            "trajectories and publish weights; set router.credentials (deploy/security/make-test-certs.sh makes "
-            "trial ones) or listen on loopback only")
+            "trajectories and publish weights; set router.credentials (deploy/cluster/security/make-test-certs.sh "
+            "makes trial ones) or listen on loopback only")
 
 
 def run_router(config: RouterConfig, stop: threading.Event | Callable[[], bool], poll_s: float = 0.1,

@@ -44,17 +44,17 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
 import zenoh
 import zenoh.ext
 
+from bus.config import BusConfig, check_positive
 from bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
 from bus.keys import Keys, check_name, check_role
 from bus.rejects import RejectCounter
-from bus.router import client_security, is_loopback
+from bus.router import client_security
 from bus.stamp import Stamp
 
 log = logging.getLogger("impulse.bus")
@@ -71,62 +71,6 @@ LINK_SETTLE_MAX_S): peers only deliver over direct links, which gossip opens jus
 LINK_SETTLE_POLL_S = 0.002
 ALIVE_CHANNEL_SIZE = 1024
 MATCHING_POLL_S = 0.01
-
-
-def _check_endpoint(endpoint: object, what: str) -> str:
-    if not isinstance(endpoint, str) or "/" not in endpoint or any(ch.isspace() for ch in endpoint):
-        raise ValueError(f"{what} {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
-    protocol, _, address = endpoint.partition("/")
-    if not protocol or not address:
-        raise ValueError(f"{what} {endpoint!r} is not a zenoh endpoint like 'tcp/127.0.0.1:7447'")
-    return endpoint
-
-
-def _check_positive(name: str, value: object, kind: type | tuple[type, ...]) -> None:
-    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0:
-        raise ValueError(f"{name} must be a positive number, got {value!r}")
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    """How a process reaches the bus; a section of the run's TOML config, hence only simple types."""
-
-    hub: str = "tcp/127.0.0.1:7447"
-    """Endpoint of the one-machine hub: the hub listens on it, every other process connects to it. Loopback only:
-    the hub has no authentication (docs/multi-host.md, "The open one-machine bus")."""
-    connect: tuple[str, ...] = ()
-    """Several machines: the routers to connect to. When non-empty it replaces `hub` for connecting."""
-    shared_memory: bool = True
-    """Large messages between processes of one machine go through shared memory instead of the socket."""
-    shm_pool_mib: int = 64
-    """Shared-memory pool per process; a message that does not fit falls back to the socket (keep >= 2x the
-    largest message: 16 MiB messages were no faster than TCP with zenoh's default 16 MiB pool)."""
-    lease_ms: int = 3000
-    """A hung peer (socket open, process stopped) is declared gone after about this long."""
-    block_timeout_ms: int = 60000
-    """How long a blocking put waits for a full queue before zenoh drops the message (longest receiver pause)."""
-    query_timeout_s: float = 10.0
-    """Default timeout of `Bus.get`."""
-    credentials: str = ""
-    """With `connect`: the credentials directory (see `bus.router`) holding `ca.pem` for TLS and this process's
-    `<role>.pem`/`.key` (mutual TLS) and `<role>.password` (user/password); empty: plain, unauthenticated."""
-
-    def __post_init__(self) -> None:
-        _check_endpoint(self.hub, "bus.hub")
-        if not is_loopback(self.hub):
-            raise ValueError(f"bus.hub {self.hub!r} is not a loopback address: the one-machine hub has no "
-                             "authentication, so it listens on this machine only (127.0.0.1, ::1 or localhost); "
-                             "across machines run `impulse router` with credentials and set bus.connect")
-        connect = self.connect
-        if isinstance(connect, str) or not isinstance(connect, tuple | list):
-            raise ValueError(f"bus.connect must be a list of endpoints, got {connect!r}")
-        object.__setattr__(self, "connect", tuple(_check_endpoint(e, "bus.connect entry") for e in connect))
-        if not isinstance(self.shared_memory, bool):
-            raise ValueError(f"bus.shared_memory must be true or false, got {self.shared_memory!r}")
-        _check_positive("bus.shm_pool_mib", self.shm_pool_mib, int)
-        _check_positive("bus.lease_ms", self.lease_ms, int)
-        _check_positive("bus.block_timeout_ms", self.block_timeout_ms, int)
-        _check_positive("bus.query_timeout_s", self.query_timeout_s, int | float)
 
 
 def zenoh_config(config: BusConfig, *, listen: bool, role: str = "") -> zenoh.Config:
@@ -275,7 +219,7 @@ class Bus:
         cached by a `latest_publisher`, even one published before this call.
         """
         self._check_open()
-        _check_positive("inbox capacity", capacity, int)
+        check_positive("inbox capacity", capacity, int)
         mailbox = Mailbox(capacity, drop_oldest)
         handler = zenoh.handlers.Callback(mailbox)
         if not latest:
@@ -288,7 +232,7 @@ class Bus:
     def queryable(self, key: str, capacity: int) -> QueryInbox:
         """Serve queries on `key`; they wait in a channel of `capacity` until `QueryInbox.poll` hands them out."""
         self._check_open()
-        _check_positive("queryable capacity", capacity, int)
+        check_positive("queryable capacity", capacity, int)
         queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(capacity))
         return QueryInbox(self._remember(queryable), key)
 

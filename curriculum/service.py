@@ -13,7 +13,8 @@ It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of 
 
 Its whole state, knobs included, is checkpointed with orbax as the `curriculum` item (through a checkpointer the
 caller passes in), so a restarted service resumes with every buffered and staged level. Work happens in the
-caller's thread in `poll`; nothing is done in zenoh callbacks.
+caller's thread in `cycle` (it is a `bus.service.Service`, driven by the run loop like every process); nothing is
+done in zenoh callbacks.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from bus.control import control_reply, encode_refusal, encode_report
 from bus.inbox import IncomingQuery
 from bus.keys import CURRICULUM
 from bus.levels import decode_level_results, encode_level_batch
+from bus.service import CycleReport, Progress
 from bus.session import Bus
 from bus.status import StatusPublisher
 from curriculum.algorithms import Curriculum
@@ -82,8 +84,8 @@ class CheckpointStore(Protocol):
 
 
 class CurriculumService:
-    """One curriculum process (see the module docstring). `poll` does whatever is waiting and returns a few
-    metrics when it did something; `save` checkpoints. Its bus entities live as long as the bus session."""
+    """One curriculum process (see the module docstring). `cycle` does whatever is waiting and reports what it did;
+    `save` checkpoints. Its bus entities live as long as the bus session."""
 
     def __init__(
         self,
@@ -155,7 +157,9 @@ class CurriculumService:
         """Checkpoint step: everything the service has done (monotonic across restarts)."""
         return self.samples + self.result_messages + self.knob_changes
 
-    def save(self) -> None:
+    def save(self, summary: dict[str, float] | None = None) -> None:
+        """Checkpoint the whole state, unless nothing happened since the last checkpoint (`summary`, the run loop's
+        metrics window, is not kept: the curriculum has its own statistics)."""
         if self.step == self._saved_step:
             return
         counters = {"samples": self.samples, "result_messages": self.result_messages,
@@ -168,10 +172,22 @@ class CurriculumService:
         """The config with the live knob values."""
         return config_with_knobs(self.curriculum.config, self.state.knobs)
 
-    # -- one poll ----------------------------------------------------------------------------------------------------
+    # -- the run loop's service -------------------------------------------------------------------------------------
 
-    def poll(self) -> dict[str, float] | None:
-        """Apply waiting results, answer waiting queries; metrics of what was done, or None if nothing was."""
+    def progress(self) -> Progress:
+        """No goal: the service runs until it is stopped. Its checkpoint cadence counts result messages applied."""
+        return Progress()
+
+    def finished(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        """Checkpoint what happened since the last checkpoint (samples and knob changes too)."""
+        self.save()
+
+    def cycle(self) -> CycleReport | None:
+        """Apply waiting results, answer waiting queries; what was done (`updates`: result messages applied, which
+        drive the checkpoint cadence), or None if nothing was."""
         applied = self._apply_results()
         served = 0
         for query in self._sample_queries.poll():
@@ -184,7 +200,8 @@ class CurriculumService:
             self._status.publish(self.status())
         if not applied and not served:
             return None
-        return {"result_messages": float(applied), "samples_served": float(served)}
+        return CycleReport(updates=applied, metrics={"result_messages": float(applied),
+                                                     "samples_served": float(served)})
 
     def _apply_results(self) -> int:
         applied = 0

@@ -15,10 +15,9 @@ from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
 
-from deploy import bench
-from deploy.commands import COMMANDS, Command
+from deploy.commands import COMMANDS, Command, bench
 from deploy.config import ConfigError, config_to_toml, resolve_config
-from deploy.log_setup import LEVELS, configure_logging
+from deploy.runtime.log_setup import LEVELS, configure_logging
 
 EXIT_USAGE = 2
 

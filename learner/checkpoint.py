@@ -236,15 +236,6 @@ class Checkpointer:
         raise CheckpointError(f"no usable checkpoint in {self.directory}: every one is corrupt:\n  "
                               + "\n  ".join(failures))
 
-    def read_config(self, step: int | None = None) -> str:
-        """The resolved config TOML saved with checkpoint `step` (default: the newest), without restoring its
-        arrays. Raises `CorruptCheckpointError` if it cannot be read (nothing is moved)."""
-        self.wait()
-        step = self._existing_step(step)
-        if CONFIG not in self._present(step):
-            raise self._corrupt(step, CONFIG, "its directory is missing")
-        return self._read_json(step, CONFIG)["toml"]
-
     def wait(self) -> None:
         """Block until background writes are on disk."""
         self._manager.wait_until_finished()

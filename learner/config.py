@@ -1,20 +1,18 @@
-"""Training configuration: PPO, the network, checkpoints and the run as a whole.
+"""The learner's configuration sections: `[ppo]`, `[network]`, `[checkpoint]`, `[eval]` and `[learner]`, and
+`TrainingSetup`, the sections a training run reads.
 
 Defaults are Kinetix's PPO setup (entity transformer, 2,048 environments, 256-step rollouts), so a run with no
-overrides is comparable with the published baselines. These are plain dataclasses; `deploy.config` loads them
-from TOML and `key=value` overrides, so every field needs a default and a type it understands. The same config
-describes a distributed run: its `actors`, `learner` and `bus` sections are read by `impulse launch` and the
-services.
+overrides is comparable with the published baselines. These are plain dataclasses; the run configuration that
+composes every room's sections, and its TOML/override loader, are `deploy`'s (`deploy.run_config.RunConfig`), so
+every field needs a default and a type the loader understands.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Literal
+import math
+from dataclasses import dataclass
+from typing import Literal, Protocol
 
-from bus.router import RouterConfig
-from bus.session import BusConfig
 from curriculum.config import CurriculumConfig
 from engine.config_checks import check_device_list, check_range
 from engine.env.config import EnvConfig
@@ -53,6 +51,15 @@ class PPOConfig:
     max_policy_lag: int = 4
     """Trajectories older than this many policy versions are dropped rather than corrected; 0 keeps only those
     acted by the learner's current weights."""
+
+    @property
+    def steps_per_update(self) -> int:
+        """Environment steps in one batch, which is one update: num_envs x num_steps."""
+        return self.num_envs * self.num_steps
+
+    def updates_for(self, total_env_steps: int) -> int:
+        """Updates a run of `total_env_steps` makes: whole batches, rounded up, at least one."""
+        return max(1, math.ceil(total_env_steps / self.steps_per_update))
 
     def __post_init__(self) -> None:
         for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs"):
@@ -178,43 +185,6 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
-class ActorConfig:
-    """Actor processes of a distributed run. Each actor rolls out `ppo.num_envs` environments for `ppo.num_steps`
-    steps per cycle, so one actor batch is one learner update."""
-
-    num_actors: int = 2
-    """Actors `impulse launch` starts (on several machines: every actor of the run); at least 1."""
-    credits: int = 1
-    """Trajectory batches an actor may have in flight to the learner; bounds memory and policy lag. When the
-    learner is the bottleneck every actor keeps its credits in use, so the lag is about num_actors x credits
-    versions: keep that within ppo.max_policy_lag, or batches are dropped as stale."""
-    when_no_credit: Literal["wait", "drop_oldest"] = "wait"
-    """With no credit left: "wait" pauses the actor until the learner frees one; "drop_oldest" keeps rolling out
-    and replaces its one held-back batch with the newer one (every replaced batch is counted as dropped)."""
-    credit_timeout_s: float = 30.0
-    """No acknowledgement from the learner for this long while out of credit: the batches in flight are taken
-    as lost (a learner restarted without them) and the credits are reset."""
-    memory_fraction: float = 0.0
-    """Fraction of the GPU's memory each actor process preallocates (XLA_PYTHON_CLIENT_MEM_FRACTION), so several
-    actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""
-    status_every_s: float = 1.0
-    """How often each process publishes its status line for `impulse launch`'s display; 0: at every turn of its
-    loop (hundreds a second in an idle curriculum service)."""
-    devices: tuple[int, ...] = ()
-    """GPUs the actors run on, as positions among the GPUs the process may see: actor i takes
-    devices[i % len(devices)] and sees only it (CUDA_VISIBLE_DEVICES); empty: every actor sees them all and JAX
-    uses the first."""
-
-    def __post_init__(self) -> None:
-        check_device_list("actors.devices", self.devices)
-        check_range("actors.num_actors", self.num_actors, at_least=1)
-        check_range("actors.credits", self.credits, at_least=1)
-        check_range("actors.credit_timeout_s", self.credit_timeout_s, above=0)
-        check_range("actors.memory_fraction", self.memory_fraction, at_least=0, below=1)
-        check_range("actors.status_every_s", self.status_every_s, at_least=0)
-
-
-@dataclass(frozen=True)
 class LearnerConfig:
     """The learner service of a distributed run."""
 
@@ -234,73 +204,30 @@ class LearnerConfig:
         check_range("learner.slow_down_s", self.slow_down_s, at_least=0)
 
 
-@dataclass(frozen=True)
-class MonitorConfig:
-    """Live monitoring in Rerun (docs/monitoring.md): what the processes of a distributed run stream to the
-    viewer that `impulse view` hosts. `impulse launch --view` turns it on and starts the viewer."""
+class TrainingSetup(Protocol):
+    """The sections a training run reads (the fused trainer, the final evaluation, `impulse eval`); the run
+    configuration (`deploy.run_config.RunConfig`) has them all, and nothing else in the learner needs more."""
 
-    enabled: bool = False
-    """Stream rollouts, curves and the curriculum to the Rerun server at `url`; off, no Rerun code runs."""
-    url: str = "rerun+http://127.0.0.1:9876/proxy"
-    """The Rerun gRPC server the processes log to (`impulse view` hosts it on this port)."""
-    watch_envs: int = 1
-    """Environments each actor streams (its first ones); 0 streams curves only."""
-    frames_per_s: float = 30.0
-    """Most frames per second an actor streams; it streams whole rollouts, skipping rollouts to keep to this."""
-    contacts: bool = False
-    """Also draw where shapes touch in streamed rollouts (found again on the logging thread)."""
-    queue_rollouts: int = 2
-    """Rollouts waiting for the logging thread; one more is dropped (and counted), never waited for."""
-    curriculum_every_s: float = 10.0
-    """How often the curriculum service logs its histograms, statistics and gallery of top levels."""
-    gallery: int = 6
-    """Top levels by score drawn in the curriculum gallery; 0: no gallery."""
-    server_memory_limit: str = "1GiB"
-    """What the viewer's server keeps for late viewers; the oldest data goes first (`rerun --server-memory-limit`)."""
-    viewer_memory_limit: str = "2GiB"
-    """The native viewer's store; it forgets the oldest data beyond this (`rerun --memory-limit`)."""
-    web_port: int = 9090
-    """Port of the web viewer `impulse view` serves on a machine without a display."""
+    @property
+    def seed(self) -> int: ...
 
-    def __post_init__(self) -> None:
-        if not (self.url.startswith("rerun") and self.url.endswith("/proxy")):
-            raise ValueError(f"monitor.url must look like rerun+http://HOST:PORT/proxy, got {self.url!r}")
-        check_range("monitor.watch_envs", self.watch_envs, at_least=0)
-        check_range("monitor.frames_per_s", self.frames_per_s, above=0)
-        check_range("monitor.queue_rollouts", self.queue_rollouts, at_least=1)
-        check_range("monitor.curriculum_every_s", self.curriculum_every_s, above=0)
-        check_range("monitor.gallery", self.gallery, at_least=0)
-        check_range("monitor.web_port", self.web_port, at_least=1, at_most=65535)
+    @property
+    def total_env_steps(self) -> int: ...
 
+    @property
+    def env(self) -> EnvConfig: ...
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """One training run: the config `impulse train` resolves and writes as config.toml in its run directory."""
+    @property
+    def ppo(self) -> PPOConfig: ...
 
-    name: str = "default"
-    """Run name; also the run id in bus key expressions of distributed runs."""
-    seed: int = 0
-    run_dir: str = "runs/{name}"
-    """Where checkpoints, logs and the resolved config go; "{name}" is replaced by the run name."""
-    total_env_steps: int = 2**30
-    """Environment steps to train for (rounded up to whole updates)."""
-    env: EnvConfig = field(default_factory=EnvConfig)
-    ppo: PPOConfig = field(default_factory=PPOConfig)
-    network: NetworkConfig = field(default_factory=NetworkConfig)
-    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
-    eval: EvalConfig = field(default_factory=EvalConfig)
-    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
-    """Which levels to train on when env.levels is "random" (domain randomisation unless a method is chosen)."""
-    actors: ActorConfig = field(default_factory=ActorConfig)
-    learner: LearnerConfig = field(default_factory=LearnerConfig)
-    bus: BusConfig = field(default_factory=BusConfig)
-    router: RouterConfig = field(default_factory=RouterConfig)
-    """`impulse router`, for runs across machines."""
-    monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    @property
+    def network(self) -> NetworkConfig: ...
 
-    def __post_init__(self) -> None:
-        check_range("total_env_steps", self.total_env_steps, at_least=1)
+    @property
+    def checkpoint(self) -> CheckpointConfig: ...
 
-    def output_dir(self) -> Path:
-        """The run directory with the run name filled in."""
-        return Path(self.run_dir.replace("{name}", self.name))
+    @property
+    def eval(self) -> EvalConfig: ...
+
+    @property
+    def curriculum(self) -> CurriculumConfig: ...

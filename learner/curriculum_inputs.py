@@ -21,8 +21,9 @@ from learner.returns import gae
 Array = jax.Array
 
 
-def batch_level_results(agent: Agent, params: Any, batch: TrajectoryBatch, ppo: PPOConfig, rows: int) -> LevelResults:
-    """Per-level results of `batch` (played by `params`) in `rows` rows (at least E + K for K levels)."""
+def batch_level_results(agent: Agent, ppo: PPOConfig, params: Any, batch: TrajectoryBatch, rows: int) -> LevelResults:
+    """Per-level results of `batch` (played by `params`) in `rows` rows (at least E + K for K levels). With `agent`
+    and `ppo` bound, this is an actor's `actors.process.LevelResultsFn`."""
     steps = batch.steps
     _, bootstrap_value = agent.apply(params, batch.bootstrap_obs)
     discounts = ppo.gamma * (1.0 - steps.done.astype(steps.value.dtype))

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from actors.rollout import RolloutCarry, rollout, start_rollout
-from actors.trajectory import make_batch
+from actors.trajectory import episode_metrics, make_batch
 from curriculum.algorithms import Curriculum
 from curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, CurriculumState
 from engine.env.spec import EnvParams, EnvSpec
@@ -89,7 +89,7 @@ class FusedTrainer:
             self.agent.act, acting, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps, flags
         )
         # The parameters that acted are the ones trained, so the batch's version equals the learner's: lag 0.
-        batch = make_batch(trajectory, envs.obs, carry.train.policy_version, train_mask=train_mask)
+        batch = make_batch(trajectory, envs.obs, carry.train.policy_version, train_mask=train_mask, episodes=stats)
         train, losses = ppo_update(
             carry.train,
             batch,
@@ -101,22 +101,11 @@ class FusedTrainer:
         )
         if self.curriculum is not None:
             rows = self.ppo.num_envs + self.curriculum.batch_size
-            results = batch_level_results(self.agent, acting, batch, self.ppo, rows)
+            results = batch_level_results(self.agent, self.ppo, acting, batch, rows)
             curriculum = self.curriculum.update(curriculum, results)
-        episodes = stats.episodes
-        safe = jnp.maximum(episodes, 1)
         metrics = {
             **losses,
-            "episodes": episodes,
-            "solved": stats.solved,
-            "failed": stats.failed,
-            "timed_out": stats.timed_out,
-            "nan_episodes": stats.nan,
-            "return_sum": stats.return_sum,
-            "length_sum": stats.length_sum,
-            "solve_rate": jnp.where(episodes > 0, stats.solved / safe, jnp.nan),
-            "episode_return": jnp.where(episodes > 0, stats.return_sum / safe, jnp.nan),
-            "episode_length": jnp.where(episodes > 0, stats.length_sum / safe, jnp.nan),
+            **episode_metrics(stats),
             "reward_per_step": trajectory.reward.mean(),
             **origin_metrics,
         }

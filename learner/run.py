@@ -1,5 +1,6 @@
-"""A fused training run from a `TrainConfig`, as a service the shared run loop drives (`deploy.runloop`):
-levels, trainer, resume, checkpoints, final evaluation. `impulse train` composes it with the loop.
+"""A fused training run from its configuration sections (`learner.config.TrainingSetup`), as a service the shared
+run loop drives (`deploy.runtime.runloop`): levels, trainer, resume, checkpoints, final evaluation. `impulse train`
+composes it with the loop.
 
 Run directory layout: `config.toml` (the resolved config, written by the command), `metrics.jsonl` (one line per
 update), `checkpoints/<update>/` (orbax items `train`, `envs` and, on random levels, `curriculum`), `eval.json`
@@ -12,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +21,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from bus.service import CycleReport, Progress
 from curriculum.algorithms import Curriculum
 from curriculum.stats import buffer_summary
 from engine.env.spec import EnvParams, env_from_config
@@ -28,11 +29,11 @@ from engine.levels.level import Level
 from engine.levels.sets import HANDMADE, RANDOM, kinetix_group, load_level_set
 from learner.agent import Agent, make_agent
 from learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
-from learner.config import TrainConfig
+from learner.config import TrainingSetup
 from learner.evaluate import LevelScores, RecordedEpisodes, evaluate, record_episodes
 from learner.fused import FusedCarry, FusedTrainer
 from learner.networks import describe_parameters
-from learner.progress import CycleReport
+from learner.run_directory import existing_run
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +42,7 @@ class RunError(RuntimeError):
     """A run cannot start or resume (existing run directory, mismatched checkpoint, no levels)."""
 
 
-def _levels(config: TrainConfig, sizes) -> tuple[list[str], Level | None]:
+def _levels(config: TrainingSetup, sizes) -> tuple[list[str], Level | None]:
     if config.env.levels == RANDOM:
         return [], None
     try:
@@ -50,7 +51,7 @@ def _levels(config: TrainConfig, sizes) -> tuple[list[str], Level | None]:
         raise RunError(f"env.levels: {err}") from err
 
 
-def _eval_levels(config: TrainConfig, sizes, train_names: list[str], train_levels: Level | None):
+def _eval_levels(config: TrainingSetup, sizes, train_names: list[str], train_levels: Level | None):
     source = config.eval.levels or (HANDMADE if train_levels is None else "")
     if not source:
         return train_names, train_levels
@@ -99,12 +100,11 @@ def format_scores(table: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-def build(config: TrainConfig) -> tuple[FusedTrainer, Agent, list[str], Level | None]:
+def build(config: TrainingSetup) -> tuple[FusedTrainer, Agent, list[str], Level | None]:
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
     names, levels = _levels(config, spec.sizes)
-    steps_per_update = config.ppo.num_envs * config.ppo.num_steps
-    num_updates = max(1, math.ceil(config.total_env_steps / steps_per_update))
+    num_updates = config.ppo.updates_for(config.total_env_steps)
     curriculum = None
     if levels is None:
         curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
@@ -118,17 +118,17 @@ def build(config: TrainConfig) -> tuple[FusedTrainer, Agent, list[str], Level | 
 class FusedRun:
     """The fused trainer as a run-loop service: one `cycle` is one jitted iteration (rollout + PPO update)."""
 
-    def __init__(self, config: TrainConfig, run_dir: Path, config_toml: str, resume: bool = False,
+    def __init__(self, config: TrainingSetup, run_dir: Path, config_toml: str, resume: bool = False,
                  stop_after_updates: int | None = None):
         self.config = config
         self.run_dir = run_dir
         self.config_toml = config_toml
         self.trainer, self.agent, self.names, self.levels = build(config)
-        self.steps_per_update = config.ppo.num_envs * config.ppo.num_steps
+        self.steps_per_update = config.ppo.steps_per_update
         self.checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
         if not resume and self.checkpoints.latest_step() is not None:
             self.checkpoints.close()
-            raise RunError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose another name")
+            raise RunError(existing_run(run_dir))
         init, iterate = self.trainer.jitted()
         self.carry: FusedCarry = init(jax.random.PRNGKey(config.seed), self.levels)
         log.info(
@@ -181,6 +181,10 @@ class FusedRun:
     def env_steps(self) -> int:
         return self.update * self.steps_per_update
 
+    def progress(self) -> Progress:
+        return Progress(env_steps_done=self.env_steps, updates_done=self.update,
+                        total_env_steps=self.trainer.num_updates * self.steps_per_update)
+
     def finished(self) -> bool:
         return self.update >= self.target
 
@@ -217,7 +221,7 @@ class FusedRun:
                                 self.run_dir)
 
 
-def final_evaluation(config: TrainConfig, agent: Agent, env_params: EnvParams, params: Any,
+def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams, params: Any,
                      run_dir: Path) -> dict[str, dict[str, float]] | None:
     """Scores of `params` on the run's evaluation levels (`eval.levels`, else the training levels, else the
     hand-made set), logged as a table and written to eval.json; None when evaluation is off or has no levels."""
@@ -249,7 +253,7 @@ def fused_carry_from_items(items: dict[str, Any]) -> FusedCarry:
 
 
 def evaluate_run(
-    config: TrainConfig,
+    config: TrainingSetup,
     run_dir: Path,
     step: int | None = None,
     levels: str | None = None,

@@ -36,23 +36,24 @@ import jax
 import numpy as np
 
 from actors.rollout import rollout, start_rollout
-from actors.trajectory import TrajectoryBatch, make_batch
+from actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
 from actors.wire import checked_tree, trajectory_schema, weights_hash
 from bus.codec import Message, Rejected
 from bus.credits import encode_credit
 from bus.keys import ACTOR, CURRICULUM, LEARNER
+from bus.service import CycleReport, Progress
 from bus.session import Bus
 from bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
 from bus.trajectories import decode_trajectory
 from bus.weights import encode_weights
 from engine.env.spec import EnvParams
 from engine.levels.level import level_from_scene, stack_levels
-from engine.physics.scene import empty_scene
+from engine.physics.building import empty_scene
 from engine.pytree import tree_arrays
 from learner.agent import Agent
 from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
-from learner.config import TrainConfig
-from learner.progress import CycleReport
+from learner.config import CheckpointConfig, LearnerConfig, PPOConfig
+from learner.run_directory import existing_run
 from learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
 from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
 
@@ -91,8 +92,9 @@ def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps
     def one_batch() -> TrajectoryBatch:
         carry = start_rollout(agent.spec, env_params, levels, num_envs, jax.random.PRNGKey(0))
         params = agent.init(jax.random.PRNGKey(0))
-        carry, steps, train_mask, _, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels, num_steps)
-        return make_batch(steps, carry.obs, 0, train_mask=train_mask)
+        carry, steps, train_mask, episodes, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels,
+                                                        num_steps)
+        return make_batch(steps, carry.obs, 0, train_mask=train_mask, episodes=episodes)
 
     return jax.eval_shape(one_batch)
 
@@ -118,23 +120,25 @@ def claim_epoch(run_dir: Path, restored: int) -> int:
 class LearnerService:
     """The learner process's state and its run-loop `cycle`."""
 
-    def __init__(self, config: TrainConfig, run_dir: Path, config_toml: str, bus: Bus, agent: Agent,
-                 env_params: EnvParams, resume: bool = False):
-        self.config = config
+    def __init__(self, ppo: PPOConfig, learner: LearnerConfig, checkpoint: CheckpointConfig, *, seed: int,
+                 num_updates: int, batches_in_flight: int, status_every_s: float, run_dir: Path, config_toml: str,
+                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False):
+        """`num_updates`: the run's length; `batches_in_flight`: the most the actors may have sent unacknowledged
+        (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints."""
+        self.ppo, self.learner = ppo, learner
         self.config_toml = config_toml
         self.bus = bus
-        ppo = config.ppo
-        self.steps_per_batch = ppo.num_envs * ppo.num_steps
-        self.num_updates = max(1, math.ceil(config.total_env_steps / self.steps_per_batch))
+        self.steps_per_batch = ppo.steps_per_update
+        self.num_updates = num_updates
         optimizer = make_optimizer(ppo, self.num_updates)
         try:
-            self.parallel = DataParallel(learner_devices(len(config.learner.devices)))
+            self.parallel = DataParallel(learner_devices(len(learner.devices)))
             check_divisible(ppo, self.parallel.size)
         except DeviceError as err:
             raise LearnerError(str(err)) from err
-        params = agent.init(jax.random.PRNGKey(config.seed))
+        params = agent.init(jax.random.PRNGKey(seed))
         self.train = TrainState(params, optimizer.init(params), np.asarray(0, np.int32))
-        self.checkpoints = Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint)
+        self.checkpoints = Checkpointer(run_dir / checkpoint.directory, checkpoint)
         self.update = 0
         self.env_steps = 0
         self.epoch = 0
@@ -144,8 +148,7 @@ class LearnerService:
         if self.checkpoints.latest_step() is not None:
             if not resume:
                 self.checkpoints.close()
-                raise LearnerError(f"{run_dir} already holds checkpoints: resume it with --resume, or choose "
-                                   "another name")
+                raise LearnerError(existing_run(run_dir))
             self._restore()
         elif resume and self.checkpoints.set_aside():
             self.checkpoints.close()
@@ -164,10 +167,10 @@ class LearnerService:
             self._template,
         )
         self._schema = trajectory_schema(self._template)
-        self.key = jax.random.PRNGKey(config.seed + 7 + self.epoch)
+        self.key = jax.random.PRNGKey(seed + 7 + self.epoch)
 
         keys = bus.keys
-        capacity = max(4, config.actors.credits * max(config.actors.num_actors, 1) * 2)
+        capacity = max(4, 2 * batches_in_flight)
         self._inbox = bus.inbox(keys.traj_all, capacity)
         self._inbox_dropped_before = self.counts["dropped_inbox_full"]
         self._ready: deque[Queued] = deque()
@@ -177,7 +180,7 @@ class LearnerService:
         self._alive = bus.watch_alive(keys.alive_pattern(ACTOR))
         self._peer_statuses = {role: bus.inbox(keys.status_pattern(role), 256, drop_oldest=True)
                                for role in (ACTOR, CURRICULUM)}
-        self._status = StatusPublisher(bus, config.actors.status_every_s)
+        self._status = StatusPublisher(bus, status_every_s)
         self._credit_publishers: dict[str, Any] = {}
         self._acks: dict[str, tuple[int, int]] = {}  # actor -> (incarnation, highest seq taken off the queue)
         self._last_seq: dict[tuple[str, int], int] = {}
@@ -317,7 +320,7 @@ class LearnerService:
             if message.learner_epoch != self.epoch:
                 self.counts["dropped_old_epoch"] += 1
                 continue
-            lag = check_policy_lag(int(batch.behaviour_version), self.version, self.config.ppo.max_policy_lag)
+            lag = check_policy_lag(int(batch.behaviour_version), self.version, self.ppo.max_policy_lag)
             if not bool(lag.accepted) or int(lag.lag) < 0:
                 self.counts["dropped_stale"] += 1
                 continue
@@ -370,26 +373,21 @@ class LearnerService:
         if taken is None:
             return None
         actor, _, batch = taken
-        steps = batch.steps
-        done = np.asarray(steps.done)
-        episodes = int(done.sum())
         self.key, update_key = jax.random.split(self.key)
         self.train, losses = self._update(self.train, self.parallel.place_batch(batch), update_key)
         self.update += 1
         self.env_steps += self.steps_per_batch
-        if self.update % self.config.learner.publish_every == 0:
+        if self.update % self.learner.publish_every == 0:
             self._publish_weights()
-        metrics = {k: float(v) for k, v in jax.device_get(losses).items()}
+        metrics = {k: float(v) for k, v in jax.device_get({**losses, **episode_metrics(batch.episodes)}).items()}
         metrics.update(
-            episodes=episodes,
-            solved=float(np.asarray(steps.solved)[done].sum()),
-            return_sum=float(np.asarray(steps.episode_return)[done].sum()),
             actor=float(batch.actor_id),
+            steps_per_s=self._rate() * self.steps_per_batch,
             queue=len(self._ready),
             **self.drop_metrics(),
         )
-        if self.config.learner.slow_down_s:
-            time.sleep(self.config.learner.slow_down_s)
+        if self.learner.slow_down_s:
+            time.sleep(self.learner.slow_down_s)
         self._recent.append(time.monotonic())
         return CycleReport(env_steps=self.steps_per_batch, updates=1, metrics=metrics)
 
@@ -404,6 +402,10 @@ class LearnerService:
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
         self.checkpoints.save(self.update, {TRAIN: self.train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
+
+    def progress(self) -> Progress:
+        return Progress(env_steps_done=self.env_steps, updates_done=self.update,
+                        total_env_steps=self.num_updates * self.steps_per_batch)
 
     def finished(self) -> bool:
         return self.update >= self.num_updates

@@ -33,7 +33,7 @@ class DeviceError(ValueError):
 
 
 def learner_devices(count: int) -> list[jax.Device]:
-    """The first `count` local devices (at least one). `deploy.devices.restrict_gpus` has already narrowed the
+    """The first `count` local devices (at least one). `deploy.runtime.devices.restrict_gpus` has already narrowed the
     GPUs a process sees to the configured ones, so on a GPU machine these are exactly them, in order."""
     devices = jax.local_devices()
     count = max(count, 1)

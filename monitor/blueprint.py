@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import rerun.blueprint as rrb
 
-from engine.levels.scene import ARENA_METRES
+from engine.levels.drawing import ARENA_METRES
 from monitor.metrics import CURRICULUM, METRICS
 from monitor.rollouts import env_entity
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import rerun as rr
 
-from engine.levels.scene import SceneDrawing
+from engine.levels.drawing import SceneDrawing
 from monitor.draw import log_scene
 
 METRICS = "metrics"

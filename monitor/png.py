@@ -1,6 +1,6 @@
 """Drawing a scene as an RGB image with Pillow (no GPU, no viewer: files, reports and tests).
 
-It draws `engine.levels.scene.SceneDrawing`, the geometry every renderer shares: a white background, the
+It draws `engine.levels.drawing.SceneDrawing`, the geometry every renderer shares: a white background, the
 5 m x 5 m arena with y up, shapes filled in their role colours with a darker outline, circles with a spoke showing
 their rotation, joints as dots (welded joints as squares) and thrusters as small triangles pointing the way they
 push, with a flame behind the ones firing. Unlike Kinetix's 125-pixel observation it draws outlines at any scale.
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from engine.levels.drawing import ARENA_METRES, SceneDrawing, scene_drawing
 from engine.levels.level import Level
-from engine.levels.scene import ARENA_METRES, SceneDrawing, scene_drawing
 from engine.physics.state import SimState
 
 PIXELS_PER_METRE = 100.0  # Kinetix's pixels_per_unit: the arena is 500 x 500 pixels at scale 1

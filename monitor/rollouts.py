@@ -29,8 +29,8 @@ import numpy as np
 import rerun as rr
 
 from engine.env.state import EnvState
+from engine.levels.drawing import scene_drawing
 from engine.levels.level import level_id_values
-from engine.levels.scene import scene_drawing
 from engine.physics.narrowphase import detect_contacts
 from engine.physics.pairs import pair_tables
 from engine.physics.sizes import SceneSizes
@@ -78,10 +78,6 @@ class RolloutFrames:
     """[T, W] bool: the frames to log (default all)."""
     contacts: bool = False
     """Also draw the contact points (found again here, on the logging thread: the rollout does not keep them)."""
-
-    @property
-    def num_frames(self) -> int:
-        return int(np.size(self.reward) if self.keep is None else np.asarray(self.keep).sum())
 
 
 @functools.cache

@@ -1,7 +1,9 @@
 """The import rules between rooms (DESIGN section 1), checked by reading the source: no module is imported.
 
 The rules keep the lower rooms usable alone (the engine without the learner, the curriculum's pure functions
-without the processes) and the dependency graph without cycles. Imports inside functions count too.
+without the processes) and the dependency graph without cycles: the rooms stand in levels (`LEVELS`), and a room
+imports only rooms below it. Imports inside functions count too. No module imports another module's private
+(`_underscored`) names.
 """
 
 from __future__ import annotations
@@ -57,6 +59,47 @@ def _violations(files: list[Path], allowed) -> dict[str, list[str]]:
         if wrong:
             bad[str(path.relative_to(REPO))] = wrong
     return bad
+
+
+LEVELS = {"engine": 0, "bus": 1, "curriculum": 2, "monitor": 2, "actors": 3, "learner": 4, "deploy": 5}
+"""How high each room stands: a room imports only rooms of a lower level (and itself). The benchmarks stand beside
+`deploy` (they may import everything but its commands)."""
+
+
+def _room(name: str) -> str:
+    return name.split(".")[0]
+
+
+def test_no_room_imports_a_room_above_or_beside_it():
+    bad = {}
+    for room, level in LEVELS.items():
+        for path in _files(f"{room}/**/*.py"):
+            wrong = sorted(n for n in our_imports(path) if _room(n) != room
+                           and (_room(n) == "benchmarks" or LEVELS[_room(n)] >= level))
+            if wrong:
+                bad[str(path.relative_to(REPO))] = wrong
+    assert bad == {}
+
+
+def test_benchmarks_do_not_run_deploys_commands():
+    assert _violations(_files("benchmarks/**/*.py"), lambda n: not _within(n, "deploy.commands")) == {}
+
+
+def private_imports(path: Path) -> set[str]:
+    """`module.name` for every `from module import _name` in `path` (dunder names are not private)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom):
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    found.add(f"{'.' * node.level}{node.module or ''}.{alias.name}")
+    return found
+
+
+def test_no_module_imports_another_modules_private_names():
+    rooms = [f"{room}/**/*.py" for room in sorted(OURS)]
+    bad = {str(path.relative_to(REPO)): sorted(found) for path in _files(*rooms) if (found := private_imports(path))}
+    assert bad == {}
 
 
 RULES = {

@@ -54,10 +54,6 @@ class ActionSpace:
     def num_logits(self) -> int:
         return sum(self.nvec) if self.nvec else int(np.prod(self.shape))
 
-    @property
-    def is_discrete(self) -> bool:
-        return self.kind != "continuous"
-
 
 def action_space(spec: EnvSpec) -> ActionSpace:
     motors, thrusters = NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS

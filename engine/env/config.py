@@ -41,12 +41,12 @@ class EnvConfig:
     action: Literal["multi_discrete", "continuous", "discrete"] = "multi_discrete"
     """How actions map to motors and thrusters; multi-discrete is Kinetix's default."""
     solver: Literal["phased", "jax2d", "jax2d_wipe"] = "phased"
-    """Contact schedule of the physics step (`engine.physics.sizes.SceneSizes.solver`): "phased" (the fast
+    """Contact schedule of the physics step (`engine.physics.options.SolverOptions.schedule`): "phased" (the fast
     default) or "jax2d" (Jax2D's batch order with lever arms recomputed at every visit: closer to Jax2D's
     trajectories on articulated levels, and slower; see docs/engine.md) or "jax2d_wipe" (the same plus Jax2D's
     padding bug B1, which zeroes the last contact pair's impulses: only for comparing trajectories with Jax2D)."""
     physics_backend: Literal["xla", "pallas"] = "xla"
-    """How the phased solver's iterations run (`SceneSizes.backend`): "xla" (the pure-JAX stages) or "pallas" (one
+    """How the phased solver's iterations run (`SolverOptions.backend`): "xla" (the pure-JAX stages) or "pallas" (one
     fused Triton kernel per block of scenes on a CUDA GPU; the XLA stages on any other platform)."""
 
     def __post_init__(self) -> None:

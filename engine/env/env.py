@@ -85,7 +85,7 @@ def _simulate(spec: EnvSpec, params: EnvParams, sim: SimState, level: Level, act
 
     def substep(carry, _):
         sim, decided, reward, distance = carry
-        sim, contacts = physics_step(sim, params.sim, actions, sizes)
+        sim, contacts = physics_step(sim, params.sim, actions, sizes, spec.solver)
         r = sparse_reward(contacts.touching, roles)
         d = goal_distance(sim.bodies.position, roles, tables)
         reward = jnp.where(decided, reward, r)

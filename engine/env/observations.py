@@ -40,8 +40,8 @@ from engine.env.observation_types import EntityObservation, PixelObservation
 from engine.env.pixels import pixel_observation
 from engine.env.spec import EnvSpec
 from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, level_from_scene
+from engine.physics.building import empty_scene
 from engine.physics.pairs import pair_tables
-from engine.physics.scene import empty_scene
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
 

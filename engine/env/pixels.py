@@ -5,7 +5,7 @@ Layout (Kinetix digest, section 7.5): float32 in [0, 1] of shape (500 / downscal
 [gravity_y / 10]. Drawing order: white background, the floor as one quad in its (fixed) role colour, the
 non-arena polygons, the circles (each with a dark spoke showing its rotation), joints (one pixel at downscale 4,
 a small glyph otherwise), thrusters (a nozzle-and-flame glyph rotated with the push direction). Shape colours and
-the binding palette are the monitor's (`engine.levels.scene`), with Kinetix's float halving of fixed coloured
+the binding palette are the monitor's (`engine.levels.drawing`), with Kinetix's float halving of fixed coloured
 shapes. Edges: 2 px outlines at downscale 1, 1 px at 2, none at 4.
 
 To agree with Kinetix pixel for pixel, the sampling rules copy its behaviour rather than an ideal renderer: a
@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from engine.env.observation_types import PixelObservation
+from engine.levels.drawing import FIXED_NEUTRAL, MOTOR_BINDING_COLOURS, ROLE_COLOURS, UNBOUND
 from engine.levels.level import Level
-from engine.levels.scene import FIXED_NEUTRAL, MOTOR_BINDING_COLOURS, ROLE_COLOURS, UNBOUND
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
 
@@ -129,12 +129,6 @@ def pixel_geometry(downscale: int) -> PixelGeometry:
         thruster_pixels=thruster,
         thruster_window=int(thruster * np.sqrt(2)) + 1,
     )
-
-
-def pixel_image_shape(downscale: int) -> tuple[int, int, int]:
-    """Shape of the image of one environment: (500 / downscale, 500 / downscale, 3)."""
-    size = pixel_geometry(downscale).size
-    return size, size, 3
 
 
 def world_polygon_vertices(position: Array, rotation: Array, local: Array) -> Array:

@@ -6,11 +6,12 @@ Both are built from the user-facing `EnvConfig` by `env_from_config`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 from engine.env.config import EnvConfig
 from engine.env.pixels import pixel_geometry
+from engine.physics.options import SolverOptions
 from engine.physics.params import SimParams
 from engine.physics.sizes import SIZE_S, SceneSizes, size_preset
 from engine.pytree import pytree_dataclass
@@ -26,6 +27,8 @@ class EnvSpec:
     """Static description of an environment: a jit static argument (hashable)."""
 
     sizes: SceneSizes = SIZE_S
+    solver: SolverOptions = SolverOptions()
+    """How the physics step solves each scene (schedule, backend, iterations, warm start)."""
     frame_skip: int = 2
     """Physics sub-steps per agent step, all with the same action."""
     max_timesteps: int = 256
@@ -60,7 +63,8 @@ class EnvParams:
 def env_from_config(config: EnvConfig, sim: SimParams | None = None) -> tuple[EnvSpec, EnvParams]:
     """The spec and params an `EnvConfig` describes (physics constants default to Jax2D's)."""
     spec = EnvSpec(
-        sizes=replace(size_preset(config.size), solver=config.solver, backend=config.physics_backend),
+        sizes=size_preset(config.size),
+        solver=SolverOptions(schedule=config.solver, backend=config.physics_backend),
         frame_skip=config.frame_skip,
         max_timesteps=config.max_timesteps,
         observation=config.observation,

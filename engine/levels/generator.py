@@ -19,8 +19,9 @@ also never fix shapes): the proposal whose scene has the fewest touching contact
 whose two shapes cannot both be seen around their joint counting 10 more.
 
 The whole level is built by one `lax.scan` over a fixed list of attempts (add a free shape, a connected shape,
-a thruster, or nothing), writing into the slot arrays with one-hot selects, so the compiled program stays small
-for every size (Kinetix's large-size generator took minutes to compile).
+a thruster, or nothing), writing bodies, shapes, joints and thrusters through the scene builder's slot writers
+(`engine.physics.building`, one-hot selects), so the compiled program stays small for every size (Kinetix's
+large-size generator took minutes to compile) and a slot is filled as the scene builder fills it.
 
 `add_free_shape`, `add_connected_shape` and `add_thruster` are the single-attempt building blocks, also used
 by the ACCEL mutations (`engine.levels.mutations`).
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -48,12 +50,23 @@ from engine.levels.level import (
     level_from_scene,
     random_level_id,
 )
+from engine.physics.building import (
+    ARENA_SIZE,
+    FLOOR_TOP,
+    empty_scene,
+    put_rows,
+    refresh_collision_filter,
+    write_body,
+    write_circle,
+    write_joint,
+    write_polygon,
+    write_thruster,
+)
 from engine.physics.geometry import rotate
 from engine.physics.mass import circle_mass_properties, polygon_mass_properties
 from engine.physics.narrowphase import detect_contacts
-from engine.physics.scene import ARENA_SIZE, FLOOR_TOP, empty_scene, refresh_collision_filter
 from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
+from engine.physics.state import Joints, SimState
 
 Array = jax.Array
 
@@ -155,12 +168,6 @@ def first_free(active: Array, start: int = 0) -> tuple[Array, Array]:
     tail = active[start:]
     slot = jnp.argmin(tail).astype(jnp.int32)
     return slot + start, ~tail[slot]
-
-
-def _put(old: Array, mask: Array, new) -> Array:
-    """`old` with the slots in `mask` (shape old.shape[:1]) replaced by `new` (broadcast)."""
-    mask = mask.reshape(mask.shape + (1,) * (old.ndim - 1))
-    return jnp.where(mask, jnp.asarray(new, old.dtype), old)
 
 
 def _non_arena(sizes: SceneSizes) -> Array:
@@ -348,121 +355,133 @@ SHAPE_ADD_DRAWS = DrawLayout(ShapeAddDraws, {"free_position": 2, "new_anchor": 2
                                              "shape": SHAPE_DRAWS.size})
 
 
-def add_shape_from_uniforms(
-    u: Array,
-    level: Level,
-    sizes: SceneSizes,
-    config: GeneratorConfig,
-    connected: Array,
-    force_no_fixate: Array,
-    force_revolute: Array,
-) -> tuple[Level, Array]:
-    """Add a free shape or (if `connected`) a shape joined to an existing one. Returns the level (unchanged when
-    there is no room or no target) and whether both shapes of a new joint stick out of each other (True for
-    free shapes). `u` holds SHAPE_ADD_DRAWS.size uniforms. The collision filter is not refreshed here."""
-    P, N, S, V = sizes.num_polygons, sizes.num_bodies, sizes.num_static_polygons, sizes.max_polygon_vertices
-    draws = SHAPE_ADD_DRAWS.split(u)
-    state = level.state
-    bodies, joints = state.bodies, state.joints
-    body = jnp.arange(N)
-    is_polygon_slot = body < P
-    connected = jnp.asarray(connected)
+class _FreeSlots(NamedTuple):
+    """Where a new shape and its joint would go: the first free slot of each kind, and whether there is one."""
 
-    poly_slot, poly_free = first_free(bodies.active[:P], start=S)
-    circle_slot, circle_free = first_free(bodies.active[P:])
-    circle_slot = circle_slot + P
+    polygon: Array  # body index
+    polygon_free: Array
+    circle: Array  # body index
+    circle_free: Array
+    joint: Array
+    joint_free: Array
 
-    # Target of a connected shape: active non-arena shapes, fixed ones rarely, rectangles with fewer than two
-    # joints and circles with none; a circle target needs room for a new rectangle (no circle-circle links).
+
+def _free_slots(level: Level, sizes: SceneSizes) -> _FreeSlots:
+    """The first free non-arena polygon, circle and joint slots of `level`."""
+    P, S = sizes.num_polygons, sizes.num_static_polygons
+    active = level.state.bodies.active
+    polygon, polygon_free = first_free(active[:P], start=S)
+    circle, circle_free = first_free(active[P:])
+    joint, joint_free = first_free(level.state.joints.active)
+    return _FreeSlots(polygon, polygon_free, circle + P, circle_free, joint, joint_free)
+
+
+class _Target(NamedTuple):
+    """The existing shape a connected shape joins."""
+
+    index: Array  # body index (meaningless when `exists` is false)
+    is_rect: Array
+    exists: Array
+
+
+def _choose_target(draws: ShapeAddDraws, level: Level, sizes: SceneSizes, config: GeneratorConfig,
+                   polygon_free: Array) -> _Target:
+    """Kinetix's target rule: active non-arena shapes, fixed ones rarely, rectangles with fewer than two joints
+    and circles with none; a circle target needs room for a new rectangle (no circle-circle links)."""
+    bodies = level.state.bodies
+    is_polygon_slot = jnp.arange(sizes.num_bodies) < sizes.num_polygons
     links = joint_counts(level)
     weight = (bodies.active & _non_arena(sizes)).astype(jnp.float32)
     weight = weight * jnp.where(bodies.inverse_mass == 0, config.connect_to_fixed_weight, 1.0)
     weight = weight * jnp.where(is_polygon_slot, jnp.maximum(2.0 - links, 0.0) / 2.0, (links == 0) * 1.0)
     rect_weight = jnp.where(is_polygon_slot, weight, 0.0)
     circle_weight = jnp.where(is_polygon_slot, 0.0, weight)
-    target_kinds = jnp.stack([rect_weight.sum() > 0, (circle_weight.sum() > 0) & poly_free])
-    target_kind, has_target = choose(draws.target_kind, target_kinds)
-    target_is_rect = target_kind == 0
-    target, _ = choose(draws.target, jnp.where(target_is_rect, rect_weight, circle_weight))
-    joint_slot, joint_free = first_free(joints.active)
+    target_kinds = jnp.stack([rect_weight.sum() > 0, (circle_weight.sum() > 0) & polygon_free])
+    target_kind, exists = choose(draws.target_kind, target_kinds)
+    is_rect = target_kind == 0
+    index, _ = choose(draws.target, jnp.where(is_rect, rect_weight, circle_weight))
+    return _Target(index, is_rect, exists)
 
-    kind, has_room = choose(draws.kind, jnp.stack([poly_free, circle_free]))
-    is_rect = (kind == 0) | (connected & ~target_is_rect)
-    index = jnp.where(is_rect, poly_slot, circle_slot)
-    valid = has_room & (~connected | (has_target & joint_free))
 
-    target_role = level.roles[target]
-    allowed = jnp.where(connected, _allowed_roles_next_to(target_role), 1.0)
-    role = _draw_role(draws.role, level, allowed, config)
-    goal = (role == ROLE_GREEN) | (role == ROLE_BLUE)
-    max_size = config.max_shape_size * jnp.where(goal & ~connected, config.goal_size_factor, 1.0)
-    shape = sample_shape(draws.shape, is_rect, max_size, config, V)
-    rotation = draws.rotation * _TWO_PI
-
-    # Free placement: inside the arena with a margin, green left / blue right with opposite_side_chance.
+def _free_placement(draws: ShapeAddDraws, shape: SampledShape, role: Array, config: GeneratorConfig,
+                    connected: Array, force_no_fixate: Array) -> tuple[Array, Array]:
+    """(position, whether fixed) of an unattached shape: inside the arena with a margin, green left / blue right
+    with opposite_side_chance; fixed with a chance that grows with its mass, and then moved down from the upper
+    half with the bottom bias. Connected shapes are never fixed."""
     margin = jnp.maximum(_SQRT2 * shape.half.max(), shape.radius)
     low = jnp.stack([margin, margin + FLOOR_TOP])
     high = jnp.stack([ARENA_SIZE - margin, ARENA_SIZE - margin])
     opposite = draws.opposite_side < config.opposite_side_chance
     high = high.at[0].add(jnp.where(opposite & (role == ROLE_GREEN), -ARENA_SIZE / 2.0, 0.0))
     low = low.at[0].add(jnp.where(opposite & (role == ROLE_BLUE), ARENA_SIZE / 2.0, 0.0))
-    free_position = _between(draws.free_position, low, high)
+    position = _between(draws.free_position, low, high)
     mass = 1.0 / shape.inverse_mass
     fix_chance = jnp.minimum(config.fixate_chance_min + config.fixate_chance_scale * mass, config.fixate_chance_max)
     fixed = (draws.fixate < fix_chance) & ~force_no_fixate & ~connected
     bias = config.fixate_bottom_bias + config.fixate_bottom_bias_special_role * (role != ROLE_NEUTRAL)
-    to_bottom = fixed & (draws.fixate_at_bottom < bias) & (free_position[1] >= ARENA_SIZE / 2.0)
-    free_position = free_position.at[1].add(jnp.where(to_bottom, -ARENA_SIZE / 2.0, 0.0))
+    to_bottom = fixed & (draws.fixate_at_bottom < bias) & (position[1] >= ARENA_SIZE / 2.0)
+    return position.at[1].add(jnp.where(to_bottom, -ARENA_SIZE / 2.0, 0.0)), fixed
 
-    # Connected placement: anchors uniform in rectangles (local box), at circle centres; the new shape is put so
-    # that the anchors coincide.
+
+class _Anchors(NamedTuple):
+    """Where a connected shape is pinned: anchors in each shape's frame, the joint's world point, and the position
+    that puts the new shape's anchor there."""
+
+    new: Array  # [2] on the new shape
+    target: Array  # [2] on the target
+    world: Array  # [2]
+    new_position: Array  # [2]
+    target_vertices: Array  # [V, 2] the target's polygon (meaningless for a circle target)
+    target_n_vertices: Array
+
+
+def _anchors(draws: ShapeAddDraws, state: SimState, sizes: SceneSizes, target: _Target, is_rect: Array,
+             shape: SampledShape, rotation: Array) -> _Anchors:
+    """Anchors uniform in rectangles (local box) and at circle centres; the new shape is put so that they
+    coincide."""
+    bodies = state.bodies
     new_anchor = jnp.where(is_rect, (2.0 * draws.new_anchor - 1.0) * shape.half, 0.0)
-    target_poly = jnp.minimum(target, P - 1)
+    target_poly = jnp.minimum(target.index, sizes.num_polygons - 1)
     target_vertices = state.polygon_vertices[target_poly]
     target_n = state.polygon_n_vertices[target_poly]
     target_anchor = jnp.where(
-        target_is_rect, _random_point_in_polygon(draws.target_anchor, target_vertices, target_n), jnp.zeros(2)
+        target.is_rect, _random_point_in_polygon(draws.target_anchor, target_vertices, target_n), jnp.zeros(2)
     )
-    target_rotation = bodies.rotation[target]
-    anchor_world = bodies.position[target] + rotate(target_rotation, target_anchor)
-    joined_position = anchor_world - rotate(rotation, new_anchor)
-    position = jnp.where(connected, joined_position, free_position)
+    world = bodies.position[target.index] + rotate(bodies.rotation[target.index], target_anchor)
+    return _Anchors(new_anchor, target_anchor, world, world - rotate(rotation, new_anchor), target_vertices, target_n)
 
-    # The new body and its task data.
-    hot = (body == index) & valid
-    new_bodies = bodies.replace(
-        position=_put(bodies.position, hot, position),
-        rotation=_put(bodies.rotation, hot, rotation),
-        velocity=_put(bodies.velocity, hot, 0.0),
-        angular_velocity=_put(bodies.angular_velocity, hot, 0.0),
-        inverse_mass=_put(bodies.inverse_mass, hot, jnp.where(fixed, 0.0, shape.inverse_mass)),
-        inverse_inertia=_put(bodies.inverse_inertia, hot, jnp.where(fixed, 0.0, shape.inverse_inertia)),
-        friction=_put(bodies.friction, hot, 1.0),
-        restitution=_put(bodies.restitution, hot, 0.0),
-        collision_mode=_put(bodies.collision_mode, hot, 1),
-        active=_put(bodies.active, hot, True),
-    )
-    poly_hot = hot[:P] & is_rect
-    circle_hot = hot[P:] & ~is_rect
-    state = state.replace(
-        bodies=new_bodies,
-        polygon_vertices=_put(state.polygon_vertices, poly_hot, shape.vertices),
-        polygon_n_vertices=_put(state.polygon_n_vertices, poly_hot, 4),
-        circle_radius=_put(state.circle_radius, circle_hot, shape.radius),
-    )
 
-    # The joint (connected shapes only), with a_index < b_index.
-    new_is_a = index < target
-    a_index, b_index = jnp.minimum(index, target), jnp.maximum(index, target)
-    a_anchor = jnp.where(new_is_a, new_anchor, target_anchor)
-    b_anchor = jnp.where(new_is_a, target_anchor, new_anchor)
+def _write_shape(state: SimState, sizes: SceneSizes, index: Array, is_rect: Array, position: Array,
+                 rotation: Array, shape: SampledShape, fixed: Array) -> SimState:
+    """The new body and its rectangle or circle in slot `index` (-1: nothing is written), at rest, with Kinetix's
+    friction, restitution and collision mode."""
+    bodies = write_body(
+        state.bodies, index, position=position, rotation=rotation,
+        inverse_mass=jnp.where(fixed, 0.0, shape.inverse_mass),
+        inverse_inertia=jnp.where(fixed, 0.0, shape.inverse_inertia),
+        velocity=0.0, angular_velocity=0.0, friction=1.0, restitution=0.0, collision_mode=1,
+    )
+    state = write_polygon(state.replace(bodies=bodies), jnp.where(is_rect, index, -1), shape.vertices, 4)
+    return write_circle(state, jnp.where(is_rect | (index < 0), -1, index - sizes.num_polygons), shape.radius)
+
+
+def _write_joint(draws: ShapeAddDraws, joints: Joints, slot: Array, index: Array, target: _Target,
+                 is_rect: Array, rotation: Array, target_rotation: Array, anchors: _Anchors,
+                 config: GeneratorConfig, force_revolute: Array) -> tuple[Joints, Array, Array, Array]:
+    """The joint between the new shape (body `index`) and the target in `slot` (-1: nothing is written), its
+    bodies ordered a < b as Kinetix orders them: revolute (with a motor and, between rectangles, limits) or
+    fixed. Returns the joints, the motor binding, and the anchors on sides a and b."""
+    new_is_a = index < target.index
+    a_index, b_index = jnp.minimum(index, target.index), jnp.maximum(index, target.index)
+    a_anchor = jnp.where(new_is_a, anchors.new, anchors.target)
+    b_anchor = jnp.where(new_is_a, anchors.target, anchors.new)
     rotation_a = jnp.where(new_is_a, rotation, target_rotation)
     rotation_b = jnp.where(new_is_a, target_rotation, rotation)
     revolutes = (joints.active & ~joints.is_fixed_joint).sum()
     revolute = (
         (draws.revolute < config.revolute_chance) | force_revolute | (revolutes < config.min_revolute_joints)
     )
-    rect_rect = is_rect & target_is_rect
+    rect_rect = is_rect & target.is_rect
     motor_on = (draws.motor_on < config.motor_on_chance) & revolute
     speed = _between(draws.motor_speed, config.motor_min_speed, config.motor_max_speed)
     power = jnp.where(
@@ -474,33 +493,80 @@ def add_shape_from_uniforms(
     min_rotation = jnp.where(limits, _between(draws.min_rotation, -config.joint_limit_max, 0.0), 0.0)
     max_rotation = jnp.where(limits, _between(draws.max_rotation, 0.0, config.joint_limit_max), 0.0)
     binding = jnp.minimum(jnp.floor(draws.motor_binding * NUM_MOTOR_BINDINGS), NUM_MOTOR_BINDINGS - 1).astype(jnp.int32)
-    j_hot = (jnp.arange(sizes.num_joints) == joint_slot) & valid & connected
-    j = joints
-    joints = j.replace(
-        a_index=_put(j.a_index, j_hot, a_index),
-        b_index=_put(j.b_index, j_hot, b_index),
-        a_relative_pos=_put(j.a_relative_pos, j_hot, a_anchor),
-        b_relative_pos=_put(j.b_relative_pos, j_hot, b_anchor),
+    joints = write_joint(
+        joints, slot,
+        a_index=a_index,
+        b_index=b_index,
+        a_relative_pos=a_anchor,
+        b_relative_pos=b_anchor,
         # Kinetix: a fixed joint holds the current relative angle; a revolute joint's reference (the origin of its
         # limits) is 0.
-        rotation=_put(j.rotation, j_hot, jnp.where(revolute, 0.0, rotation_b - rotation_a)),
-        active=_put(j.active, j_hot, True),
-        is_fixed_joint=_put(j.is_fixed_joint, j_hot, ~revolute),
-        motor_on=_put(j.motor_on, j_hot, motor_on),
-        motor_speed=_put(j.motor_speed, j_hot, jnp.where(revolute, speed, 0.0)),
-        motor_power=_put(j.motor_power, j_hot, jnp.where(revolute, power, 0.0)),
-        motor_has_joint_limits=_put(j.motor_has_joint_limits, j_hot, limits),
-        min_rotation=_put(j.min_rotation, j_hot, min_rotation),
-        max_rotation=_put(j.max_rotation, j_hot, max_rotation),
-        acc_impulse=_put(j.acc_impulse, j_hot, 0.0),
-        acc_r_impulse=_put(j.acc_r_impulse, j_hot, 0.0),
-        global_position=_put(j.global_position, j_hot, anchor_world),
+        rotation=jnp.where(revolute, 0.0, rotation_b - rotation_a),
+        is_fixed_joint=~revolute,
+        motor_on=motor_on,
+        motor_speed=jnp.where(revolute, speed, 0.0),
+        motor_power=jnp.where(revolute, power, 0.0),
+        motor_has_joint_limits=limits,
+        min_rotation=min_rotation,
+        max_rotation=max_rotation,
+        acc_impulse=0.0,
+        acc_r_impulse=0.0,
+        global_position=anchors.world,
     )
+    return joints, binding, a_anchor, b_anchor
+
+
+def add_shape_from_uniforms(
+    u: Array,
+    level: Level,
+    sizes: SceneSizes,
+    config: GeneratorConfig,
+    connected: Array,
+    force_no_fixate: Array,
+    force_revolute: Array,
+) -> tuple[Level, Array]:
+    """Add a free shape or (if `connected`) a shape joined to an existing one. Returns the level (unchanged when
+    there is no room or no target) and whether both shapes of a new joint stick out of each other (True for
+    free shapes). `u` holds SHAPE_ADD_DRAWS.size uniforms. The collision filter is not refreshed here.
+
+    The steps: find free slots and a target; draw the kind, role and dimensions; place the shape (free, or pinned
+    to the target); write the body, its shape and the joint through the scene builder's writers; then the task
+    data, and the visibility test that ranks proposals."""
+    draws = SHAPE_ADD_DRAWS.split(u)
+    connected = jnp.asarray(connected)
+    state = level.state
+    slots = _free_slots(level, sizes)
+    target = _choose_target(draws, level, sizes, config, slots.polygon_free)
+
+    kind, has_room = choose(draws.kind, jnp.stack([slots.polygon_free, slots.circle_free]))
+    is_rect = (kind == 0) | (connected & ~target.is_rect)
+    index = jnp.where(is_rect, slots.polygon, slots.circle)
+    valid = has_room & (~connected | (target.exists & slots.joint_free))
+
+    allowed = jnp.where(connected, _allowed_roles_next_to(level.roles[target.index]), 1.0)
+    role = _draw_role(draws.role, level, allowed, config)
+    goal = (role == ROLE_GREEN) | (role == ROLE_BLUE)
+    max_size = config.max_shape_size * jnp.where(goal & ~connected, config.goal_size_factor, 1.0)
+    shape = sample_shape(draws.shape, is_rect, max_size, config, sizes.max_polygon_vertices)
+    rotation = draws.rotation * _TWO_PI
+
+    free_position, fixed = _free_placement(draws, shape, role, config, connected, force_no_fixate)
+    anchors = _anchors(draws, state, sizes, target, is_rect, shape, rotation)
+    position = jnp.where(connected, anchors.new_position, free_position)
+
+    body = jnp.where(valid, index, -1)
+    joint = jnp.where(valid & connected, slots.joint, -1)
+    target_rotation = state.bodies.rotation[target.index]
+    state = _write_shape(state, sizes, body, is_rect, position, rotation, shape, fixed)
+    joints, binding, a_anchor, b_anchor = _write_joint(
+        draws, state.joints, joint, index, target, is_rect, rotation, target_rotation, anchors, config, force_revolute,
+    )
+    body_hot = jnp.arange(sizes.num_bodies) == body
     level = level.replace(
         state=state.replace(joints=joints),
-        roles=_put(level.roles, hot, role),
-        densities=_put(level.densities, hot, config.density),
-        motor_bindings=_put(level.motor_bindings, j_hot, binding),
+        roles=put_rows(level.roles, body_hot, role),
+        densities=put_rows(level.densities, body_hot, config.density),
+        motor_bindings=put_rows(level.motor_bindings, jnp.arange(sizes.num_joints) == joint, binding),
     )
 
     # Can both shapes be seen, whatever the joint angle? (Only used to rank proposals.) Kinetix evaluates this
@@ -509,15 +575,15 @@ def add_shape_from_uniforms(
     # then counts as hidden unless its radius exceeds the rectangle's shorter half-side plus the margin, which
     # makes large levels rectangle-heavy, as Kinetix's are).
     new_test_anchor, target_test_anchor = a_anchor, b_anchor
-    target_half = local_half_extents(target_vertices, target_n)
-    target_radius = circle_radius_of(state, target, sizes)
+    target_half = local_half_extents(anchors.target_vertices, anchors.target_n_vertices)
+    target_radius = circle_radius_of(state, target.index, sizes)
     new_half = jnp.where(is_rect, shape.half, 0.0)
     m = config.visibility_margin
     visible = _sticks_out(
         m, is_rect, new_half, shape.radius, new_test_anchor,
-        target_is_rect, target_half, target_radius, target_test_anchor,
+        target.is_rect, target_half, target_radius, target_test_anchor,
     ) & _sticks_out(
-        m, target_is_rect, target_half, target_radius, target_test_anchor,
+        m, target.is_rect, target_half, target_radius, target_test_anchor,
         is_rect, new_half, shape.radius, new_test_anchor,
     )
     return level, jnp.where(connected, visible, True)
@@ -593,18 +659,15 @@ def add_thruster_from_uniforms(u: Array, level: Level, sizes: SceneSizes, config
     mass = 1.0 / jnp.where(inverse_mass == 0, 1.0, inverse_mass)
     factor = _between(draws.power_factor, config.thruster_min_factor, config.thruster_max_factor)
     binding = jnp.minimum(jnp.floor(draws.binding * NUM_THRUSTER_BINDINGS), NUM_THRUSTER_BINDINGS - 1).astype(jnp.int32)
-    hot = (jnp.arange(sizes.num_thrusters) == slot) & valid
+    slot = jnp.where(valid, slot, -1)
     world = bodies.position[target] + rotate(bodies.rotation[target], relative)
-    new = thrusters.replace(
-        body_index=_put(thrusters.body_index, hot, target),
-        relative_position=_put(thrusters.relative_position, hot, relative),
-        rotation=_put(thrusters.rotation, hot, direction),
-        power=_put(thrusters.power, hot, mass * config.thruster_power_multiplier * factor),
-        active=_put(thrusters.active, hot, True),
-        global_position=_put(thrusters.global_position, hot, world),
+    new = write_thruster(
+        thrusters, slot, body_index=target, relative_position=relative, rotation=direction,
+        power=mass * config.thruster_power_multiplier * factor, global_position=world,
     )
+    hot = jnp.arange(sizes.num_thrusters) == slot
     return level.replace(
-        state=state.replace(thrusters=new), thruster_bindings=_put(level.thruster_bindings, hot, binding)
+        state=state.replace(thrusters=new), thruster_bindings=put_rows(level.thruster_bindings, hot, binding)
     )
 
 
@@ -655,31 +718,22 @@ def new_shape_contacts(state: SimState, sizes: SceneSizes, poly_slot: Array, cir
     return jnp.where(is_rect, as_rect, as_circle)
 
 
-def _add_shape_filtered(
-    u: Array,
-    level: Level,
-    sizes: SceneSizes,
-    config: GeneratorConfig,
-    connected: Array,
-    force_no_fixate: Array,
-    force_revolute: Array,
-) -> Level:
+Proposal = Callable[[Array, Level], tuple[Level, Array]]
+"""One way to add a shape: (SHAPE_ADD_DRAWS.size uniforms, level) -> (level, visible), `add_shape_from_uniforms`
+with its flags bound."""
+
+
+def _add_shape_filtered(u: Array, level: Level, sizes: SceneSizes, config: GeneratorConfig, propose: Proposal) -> Level:
     """The best of the proposals (one per row of `u`, [K, SHAPE_ADD_DRAWS.size]): fewest touching contact points,
     plus a penalty for a connected shape hidden by its partner. Kinetix counts every contact of the scene; all
     proposals write the same slot of the same scene, so counting only the new shape's contacts ranks them
     identically at a fraction of the cost."""
-    propose = functools.partial(
-        add_shape_from_uniforms, sizes=sizes, config=config, connected=connected, force_no_fixate=force_no_fixate,
-        force_revolute=force_revolute,
-    )
     if u.shape[0] == 1:
         return propose(u[0], level)[0]
     candidates, visible = jax.vmap(lambda row: propose(row, level))(u)
-    poly_slot, _ = first_free(level.state.bodies.active[: sizes.num_polygons], start=sizes.num_static_polygons)
-    circle_slot, _ = first_free(level.state.bodies.active[sizes.num_polygons :])
-    circle_slot = circle_slot + sizes.num_polygons
-    is_rect = candidates.state.bodies.active[:, poly_slot] & ~level.state.bodies.active[poly_slot]
-    contacts = jax.vmap(lambda s, r: new_shape_contacts(s, sizes, poly_slot, circle_slot, r))(
+    slots = _free_slots(level, sizes)
+    is_rect = candidates.state.bodies.active[:, slots.polygon] & ~level.state.bodies.active[slots.polygon]
+    contacts = jax.vmap(lambda s, r: new_shape_contacts(s, sizes, slots.polygon, slots.circle, r))(
         candidates.state, is_rect
     )
     score = contacts + jnp.where(visible, 0.0, config.no_visibility_penalty)
@@ -795,7 +849,11 @@ def sample_random_level(key: Array, sizes: SceneSizes, config: GeneratorConfig =
         shape_rows = row[: num_proposals * SHAPE_ADD_DRAWS.size].reshape(num_proposals, SHAPE_ADD_DRAWS.size)
         thruster_row = row[num_proposals * SHAPE_ADD_DRAWS.size :]
         connected = kind == _CONNECTED_SHAPE
-        with_shape = _add_shape_filtered(shape_rows, level, sizes, config, connected, no_fix, revolute)
+        propose = functools.partial(
+            add_shape_from_uniforms, sizes=sizes, config=config, connected=connected, force_no_fixate=no_fix,
+            force_revolute=revolute,
+        )
+        with_shape = _add_shape_filtered(shape_rows, level, sizes, config, propose)
         with_thruster = add_thruster_from_uniforms(thruster_row, level, sizes, config)
         is_shape = (kind == _FREE_SHAPE) | connected
         pick = lambda s, t, n: jnp.where(is_shape, s, jnp.where(kind == _THRUSTER, t, n))  # noqa: E731

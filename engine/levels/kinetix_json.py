@@ -41,9 +41,10 @@ from engine.levels.level import (
     level_id_words,
     with_content_id,
 )
+from engine.physics.building import empty_scene, refresh_collision_filter
+from engine.physics.options import SolverOptions
 from engine.physics.pairs import pair_tables
 from engine.physics.params import SimParams
-from engine.physics.scene import empty_scene, refresh_collision_filter
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
 from engine.physics.validate import validate_scene
@@ -97,6 +98,9 @@ class KinetixLevel:
     frame_skip: int
     file_sizes: SceneSizes | None = None
     """The slot counts stored in the file (`sizes` is what it was loaded into)."""
+    options: SolverOptions = SolverOptions()
+    """The solver iterations and warm start the file asks for (its `num_solver_iterations` and
+    `do_warm_starting`); schedule and backend are ours, left at their defaults."""
 
     @property
     def level(self) -> Level:
@@ -554,9 +558,10 @@ def load_kinetix_level(
     if S > P:
         raise LevelFileError(path, f"static_env_params.num_static_fixated_polys is {S} but the file has {P} polygons")
     file_sizes = SceneSizes(
-        num_polygons=P, num_circles=C, num_joints=J, num_thrusters=T, max_polygon_vertices=V,
-        num_static_polygons=S, num_solver_iterations=int(static["num_solver_iterations"]),
-        warm_starting=bool(static["do_warm_starting"]),
+        num_polygons=P, num_circles=C, num_joints=J, num_thrusters=T, max_polygon_vertices=V, num_static_polygons=S,
+    )
+    options = SolverOptions(
+        iterations=int(static["num_solver_iterations"]), warm_starting=bool(static["do_warm_starting"])
     )
     target = sizes or file_sizes
     if not file_sizes.fits_in(target):
@@ -589,6 +594,7 @@ def load_kinetix_level(
         thruster_bindings=task(thrusters, "thruster_binding", target.num_thrusters, 0, np.int32),
         frame_skip=int(static["frame_skip"]),
         file_sizes=file_sizes,
+        options=options,
     )
 
 
@@ -705,10 +711,16 @@ def _encode(value: np.ndarray) -> Any:
 
 
 def level_to_json_dict(
-    level: Level, sizes: SceneSizes, params: SimParams | None = None, frame_skip: int = 2
+    level: Level,
+    sizes: SceneSizes,
+    params: SimParams | None = None,
+    frame_skip: int = 2,
+    options: SolverOptions | None = None,
 ) -> dict[str, Any]:
-    """A level as the JSON object of a Kinetix level file (three keys: env_state, env_params, static_env_params)."""
+    """A level as the JSON object of a Kinetix level file (three keys: env_state, env_params, static_env_params).
+    `options` gives the solver iterations and warm start the file records (default: Kinetix's)."""
     params = SimParams() if params is None else params
+    options = SolverOptions() if options is None else options
     host: Level = jax.tree.map(np.asarray, level)
     s = host.state
     P, C, J, T, V = (sizes.num_polygons, sizes.num_circles, sizes.num_joints, sizes.num_thrusters,
@@ -795,9 +807,9 @@ def level_to_json_dict(
         "num_joints": J,
         "num_thrusters": T,
         "max_polygon_vertices": V,
-        "num_solver_iterations": sizes.num_solver_iterations,
+        "num_solver_iterations": options.iterations,
         "solver_batch_size": SOLVER_BATCH_SIZE,
-        "do_warm_starting": bool(sizes.warm_starting),
+        "do_warm_starting": bool(options.warm_starting),
         "num_static_fixated_polys": sizes.num_static_polygons,
         "screen_dim": {"0": SCREEN_DIM, "1": SCREEN_DIM},
         "downscale": DOWNSCALE,
@@ -843,11 +855,16 @@ def _collision_matrix(joints: Any, num_bodies: int) -> np.ndarray:
 
 
 def save_kinetix_level(
-    path: str | Path, level: Level, sizes: SceneSizes, params: SimParams | None = None, frame_skip: int = 2
+    path: str | Path,
+    level: Level,
+    sizes: SceneSizes,
+    params: SimParams | None = None,
+    frame_skip: int = 2,
+    options: SolverOptions | None = None,
 ) -> Path:
     """Write `level` (one level of `sizes`) as a Kinetix JSON file; the file is replaced atomically."""
     path = Path(path)
-    text = json.dumps(level_to_json_dict(level, sizes, params, frame_skip))
+    text = json.dumps(level_to_json_dict(level, sizes, params, frame_skip, options))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

@@ -52,10 +52,10 @@ from engine.levels.generator import (
     uniforms,
 )
 from engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, random_level_id
+from engine.physics.building import ARENA_SIZE, FLOOR_TOP, connected_by_joints, refresh_collision_filter
 from engine.physics.geometry import rotate
 from engine.physics.mass import circle_mass_properties, polygon_mass_properties
 from engine.physics.params import SimParams
-from engine.physics.scene import ARENA_SIZE, FLOOR_TOP, connected_by_joints, refresh_collision_filter
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
 from engine.physics.step import step
@@ -203,7 +203,8 @@ def _body_extents(state: SimState, sizes: SceneSizes) -> tuple[Array, Array]:
 
 def settle(level: Level, sizes: SceneSizes, steps: int) -> Level:
     """Kinetix's settling after a size or rotation change: `steps` engine steps with zero gravity, contacts off
-    and zero actions, velocities zeroed after each; warm-start caches cleared at the end."""
+    and zero actions, velocities zeroed after each; warm-start caches cleared at the end. The steps use the default
+    solver options, so an edited level does not depend on how the trainer that asked for it solves its scenes."""
     state = level.state
     quiet = state.replace(gravity=jnp.zeros_like(state.gravity), pair_collides=jnp.zeros_like(state.pair_collides))
     actions = jnp.zeros((sizes.num_joints + sizes.num_thrusters,), jnp.float32)

@@ -14,13 +14,7 @@ _ARENA_NAMES = ("floor", "left wall", "right wall", "ceiling")
 
 def size_class(sizes: SceneSizes) -> str:
     """"S", "M" or "L" when the slot counts are one of Kinetix's sizes, else "custom"."""
-    counts = (sizes.num_polygons, sizes.num_circles, sizes.num_joints, sizes.num_thrusters,
-              sizes.max_polygon_vertices, sizes.num_static_polygons)
-    for name, preset in _PRESETS:
-        if counts == (preset.num_polygons, preset.num_circles, preset.num_joints, preset.num_thrusters,
-                      preset.max_polygon_vertices, preset.num_static_polygons):
-            return name
-    return "custom"
+    return next((name for name, preset in _PRESETS if sizes == preset), "custom")
 
 
 def _count(n: int, noun: str) -> str:

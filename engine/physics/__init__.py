@@ -1,13 +1,13 @@
 """Impulse's 2D rigid-body engine.
 
 A scene is a structure of fixed-size arrays (a pytree) whose sizes are fixed by a hashable `SceneSizes`, so that
-`step` can be jitted once per size and vmapped over millions of different scenes. Behaviour follows Jax2D 1.0.2 as
+`step` can be jitted once per size (and per `SolverOptions`, how it solves) and vmapped over millions of different
+scenes. Behaviour follows Jax2D 1.0.2 as
 used by Kinetix (units, parameter names and defaults, contact and joint formulas) so that Kinetix levels keep their
 meaning; the solver's schedule and data layout are our own, chosen for throughput. See `docs/engine.md`.
 """
 
-from engine.physics.params import SimParams
-from engine.physics.scene import (
+from engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,
@@ -17,6 +17,8 @@ from engine.physics.scene import (
     empty_scene,
     refresh_collision_filter,
 )
+from engine.physics.options import SolverOptions
+from engine.physics.params import SimParams
 from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes, size_preset
 from engine.physics.state import Bodies, ContactCache, Joints, SimState, Thrusters
 from engine.physics.step import StepContacts, step
@@ -33,6 +35,7 @@ __all__ = [
     "SceneSizes",
     "SimParams",
     "SimState",
+    "SolverOptions",
     "StepContacts",
     "Thrusters",
     "add_circle",

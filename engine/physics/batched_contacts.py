@@ -1,4 +1,4 @@
-"""Contact solve in Jax2D's schedule: the `solver="jax2d"` option of the step.
+"""Contact solve in Jax2D's schedule: the `schedule="jax2d"` solver option of the step.
 
 Why it exists: our default schedule (phased Gauss-Seidel, constants fixed per step, see contact_solver.py) is
 faster but visits contacts in another order, and on articulated levels that order difference grows into
@@ -16,7 +16,7 @@ matched where that matters:
 
 Padding slots do nothing here by default. Jax2D's padding also overwrites the accumulated impulse of each kind's
 last pair (bug B1 of the Jax2D digest): its padded slots carry index -1, which wraps onto that pair, and write it a
-zero in every batch that holds padding. We do not copy that into "jax2d"; `solver="jax2d_wipe"` reproduces it, off
+zero in every batch that holds padding. We do not copy that into "jax2d"; `schedule="jax2d_wipe"` reproduces it, off
 the default path, so that trajectories can be compared with Jax2D's and Kinetix's on the levels it changes.
 """
 
@@ -28,27 +28,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from engine.physics.context import Impulses, StepContext
 from engine.physics.geometry import cross_scalar_vector, dot, nonzero
+from engine.physics.joint_solver import JointSolverState
 from engine.physics.pairs import PairTables
 
 Array = jax.Array
 
 BATCH = 16  # Jax2D's default solver_batch_size, which Kinetix keeps
-
-
-class ContactConstants(NamedTuple):
-    """What stays fixed for a contact slot during the iterations of one step."""
-
-    point: Array  # [K, 2] world contact point
-    normal: Array  # [K, 2]
-    tangent: Array  # [K, 2]
-    inverse_mass_a: Array  # [K]
-    inverse_mass_b: Array
-    inverse_inertia_a: Array
-    inverse_inertia_b: Array
-    friction: Array  # [K]
-    target_velocity: Array  # [K] position bias minus restitution bounce
-    enabled: Array  # [K] bool: may exchange impulses
 
 
 class KindBatches(NamedTuple):
@@ -89,28 +76,29 @@ def solve_batch(
     position: Array,
     velocity: Array,
     angular_velocity: Array,
-    normal_impulse: Array,
-    tangent_impulse: Array,
+    impulses: Impulses,
     slots: Array,
-    constants: ContactConstants,
-    tables: PairTables,
-) -> tuple[Array, Array, Array, Array]:
-    """One Jacobi batch: every slot in `slots` reads the same velocities; the changes are summed onto bodies."""
+    context: StepContext,
+) -> tuple[Array, Array, Impulses]:
+    """One Jacobi batch: every slot in `slots` reads the same velocities; the changes are summed onto bodies.
+    Lever arms and effective masses come from `position`, the bodies' current positions."""
+    tables = context.tables
     num_contacts = tables.num_contacts
     real = slots < num_contacts
     k = jnp.minimum(slots, num_contacts - 1)
     a = jnp.asarray(tables.contact_a)[k]
     b = jnp.asarray(tables.contact_b)[k]
-    c = constants
-    on = real & c.enabled[k]
+    c = context.contact_rows
+    on = real & context.enabled[k]
     n, t = c.normal[k], c.tangent[k]
     ima, imb = c.inverse_mass_a[k], c.inverse_mass_b[k]
     iia, iib = c.inverse_inertia_a[k], c.inverse_inertia_b[k]
-    ra = c.point[k] - position[a]
-    rb = c.point[k] - position[b]
+    point = context.contacts.point[k]
+    ra = point - position[a]
+    rb = point - position[b]
     va, vb = velocity[a], velocity[b]
     wa, wb = angular_velocity[a], angular_velocity[b]
-    lam_n, lam_t = normal_impulse[k], tangent_impulse[k]
+    lam_n, lam_t = impulses.normal[k], impulses.tangent[k]
 
     def inverse_effective_mass(direction: Array) -> Array:
         ra_n, rb_n = dot(ra, direction), dot(rb, direction)
@@ -138,39 +126,34 @@ def solve_batch(
     mask = on.astype(velocity.dtype)
     velocity = velocity.at[a].add(dva * mask[:, None]).at[b].add(dvb * mask[:, None])
     angular_velocity = angular_velocity.at[a].add(dwa * mask).at[b].add(dwb * mask)
-    normal_impulse = normal_impulse.at[slots].set(jnp.where(on, new_n, 0.0), mode="drop")
-    tangent_impulse = tangent_impulse.at[slots].set(jnp.where(on, new_t, 0.0), mode="drop")
-    return velocity, angular_velocity, normal_impulse, tangent_impulse
+    return velocity, angular_velocity, Impulses(
+        normal=impulses.normal.at[slots].set(jnp.where(on, new_n, 0.0), mode="drop"),
+        tangent=impulses.tangent.at[slots].set(jnp.where(on, new_t, 0.0), mode="drop"),
+    )
 
 
 def solve_contacts(
-    position: Array,
-    velocity: Array,
-    angular_velocity: Array,
-    normal_impulse: Array,
-    tangent_impulse: Array,
-    batches: list[KindBatches],
-    constants: ContactConstants,
-    tables: PairTables,
-    wipe: bool = False,
-) -> tuple[Array, Array, Array, Array]:
-    """One iteration's contact sweep, kind after kind, batch after batch; with `wipe`, each batch ends with
-    Jax2D's padding write onto its `wiped` slot."""
+    joint_state: JointSolverState, impulses: Impulses, batches: list[KindBatches], context: StepContext
+) -> tuple[JointSolverState, Impulses]:
+    """One iteration's contact sweep, kind after kind, batch after batch; with the "jax2d_wipe" schedule, each
+    batch ends with Jax2D's padding write onto its `wiped` slot."""
+    wipe = context.options.schedule == "jax2d_wipe"
+    position = joint_state.position
+    velocity, angular_velocity = joint_state.velocity, joint_state.angular_velocity
     for kind in batches:
-        def visit(carry: tuple[Array, Array, Array, Array], batch: KindBatches) -> tuple:
-            velocity, angular_velocity, normal_impulse, tangent_impulse = solve_batch(
-                position, *carry, batch.slots, constants, tables
-            )
+        def visit(carry: tuple[Array, Array, Impulses], batch: KindBatches) -> tuple:
+            velocity, angular_velocity, impulses = solve_batch(position, *carry, batch.slots, context)
             if wipe:
-                normal_impulse = normal_impulse.at[batch.wiped].set(0.0, mode="drop")
-                tangent_impulse = tangent_impulse.at[batch.wiped].set(0.0, mode="drop")
-            return (velocity, angular_velocity, normal_impulse, tangent_impulse), None
+                impulses = Impulses(
+                    normal=impulses.normal.at[batch.wiped].set(0.0, mode="drop"),
+                    tangent=impulses.tangent.at[batch.wiped].set(0.0, mode="drop"),
+                )
+            return (velocity, angular_velocity, impulses), None
 
-        carry = (velocity, angular_velocity, normal_impulse, tangent_impulse)
+        carry = (velocity, angular_velocity, impulses)
         if kind.slots.shape[0] == 1:
             carry = visit(carry, KindBatches(kind.slots[0], kind.wiped[0]))[0]
         else:
             carry, _ = jax.lax.scan(visit, carry, kind)
-        velocity, angular_velocity, normal_impulse, tangent_impulse = carry
-    return velocity, angular_velocity, normal_impulse, tangent_impulse
-
+        velocity, angular_velocity, impulses = carry
+    return joint_state._replace(velocity=velocity, angular_velocity=angular_velocity), impulses

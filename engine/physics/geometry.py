@@ -27,12 +27,6 @@ def rotate(angle: Array, v: Array) -> Array:
     return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
 
 
-def rotate_by(cos_sin: tuple[Array, Array], v: Array) -> Array:
-    """Rotate v by an angle given as precomputed (cos, sin), to share trigonometry between callers."""
-    c, s = cos_sin
-    return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
-
-
 def nonzero(x: Array) -> Array:
     """x, or 1 where x == 0: the divide guard Jax2D applies to every denominator (masked slots stay finite)."""
     return jnp.where(x == 0, 1.0, x)

@@ -1,14 +1,11 @@
-"""Static scene sizes: everything that changes array shapes and therefore forces a recompile."""
+"""Static scene sizes: the slot counts, everything that changes array shapes and therefore forces a recompile.
+
+How the step solves a scene (schedule, backend, iterations, warm start) is not a size: see `options.py`.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
-
-Solver = Literal["phased", "jax2d", "jax2d_wipe"]
-SOLVERS: tuple[str, ...] = ("phased", "jax2d", "jax2d_wipe")
-Backend = Literal["xla", "pallas", "pallas_interpret"]
-BACKENDS: tuple[str, ...] = ("xla", "pallas", "pallas_interpret")
 
 
 @dataclass(frozen=True)
@@ -17,13 +14,6 @@ class SceneSizes:
 
     The first `num_static_polygons` polygons are the arena (floor, left wall, right wall, ceiling) by convention.
     Polygons carry up to `max_polygon_vertices` vertices; raising it is a size change, not a code change.
-    `solver` picks the contact schedule (static, so it is compiled in): "phased" (default, fastest) or "jax2d"
-    (Jax2D's batch order, for trajectories that follow Jax2D's closely; see docs/engine.md) or "jax2d_wipe" (the
-    same plus Jax2D's padding bug, which zeroes the last contact pair's impulses; only to compare trajectories
-    with Jax2D and Kinetix, never to train with).
-    `backend` picks how the phased solver iterations run: "xla" (the pure-JAX stages) or "pallas" (one fused
-    kernel per block of scenes on a GPU, solver_kernel.py; the XLA stages on other platforms);
-    "pallas_interpret" runs that kernel through Pallas's interpreter on any platform, to test it without a GPU.
     """
 
     num_polygons: int = 5
@@ -32,10 +22,6 @@ class SceneSizes:
     num_thrusters: int = 1
     max_polygon_vertices: int = 4
     num_static_polygons: int = 4
-    num_solver_iterations: int = 10
-    warm_starting: bool = True
-    solver: Solver = "phased"
-    backend: Backend = "xla"
 
     def __post_init__(self) -> None:
         if self.num_polygons < self.num_static_polygons:
@@ -48,14 +34,6 @@ class SceneSizes:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.max_polygon_vertices < 3:
             raise ValueError(f"max_polygon_vertices must be >= 3, got {self.max_polygon_vertices}")
-        if self.solver not in SOLVERS:
-            raise ValueError(f"unknown solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
-        if self.backend not in BACKENDS:
-            raise ValueError(f"unknown physics backend {self.backend!r}; choose one of {', '.join(BACKENDS)}")
-        if self.backend != "xla" and self.solver != "phased":
-            raise ValueError(f"physics backend {self.backend!r} runs the phased solver only, not {self.solver!r}")
-        if self.num_solver_iterations < 1:
-            raise ValueError(f"num_solver_iterations must be >= 1, got {self.num_solver_iterations}")
 
     @property
     def num_bodies(self) -> int:

@@ -3,7 +3,7 @@
 Why: on a GPU the XLA step runs every joint visit and every contact phase of every iteration as its own chain of
 small kernels that read and write the bodies in global memory; a Kinetix scene is 1-2 KB, so the step is bound
 by launches and memory traffic (docs/engine.md). Here a block of scenes (one per lane) loads its bodies, joint
-accumulators and contact impulses once, runs all `num_solver_iterations` sweeps with them held as values, and
+accumulators and contact impulses once, runs all `options.iterations` sweeps with them held as values, and
 stores them once. The per-contact constants stay in the block's input and are read where they are used.
 
 What it computes is `step.iterate_phased`, visit for visit: per iteration the joints in slot order
@@ -33,12 +33,11 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as pallas_triton
 
 from engine.physics.contact_solver import ContactRows
-from engine.physics.joint_solver import JointRows, JointSolverState
+from engine.physics.context import Impulses, StepContext
+from engine.physics.joint_solver import JointSolverState
 from engine.physics.lanes import Row, RowLayout, Vector, flatten, vectors
-from engine.physics.pairs import PairTables, pair_tables
-from engine.physics.params import SimParams
+from engine.physics.pairs import pair_tables
 from engine.physics.sizes import SceneSizes
-from engine.physics.state import Joints
 
 Array = jax.Array
 
@@ -78,22 +77,15 @@ def layouts(sizes: SceneSizes) -> tuple[RowLayout, RowLayout]:
 
 
 def iterate_kernel(
-    start: JointSolverState,
-    carried_normal: Array,
-    carried_tangent: Array,
-    rows: ContactRows,
-    jrows: JointRows,
-    joints: Joints,
-    params: SimParams,
-    sizes: SceneSizes,
-    interpret: bool = False,
-) -> tuple[JointSolverState, Array, Array]:
+    start: JointSolverState, carried: Impulses, context: StepContext, interpret: bool = False
+) -> tuple[JointSolverState, Impulses]:
     """`step.iterate_phased` for one scene (vmap it: batches run as blocks of scenes): the solved joint state and
     the accumulated contact impulses in slot order."""
+    rows, jrows, joints, params = context.contact_rows, context.joint_rows, context.joints, context.params
     state_fields = {
         "position": start.position, "velocity": start.velocity, "angular_velocity": start.angular_velocity,
         "acc_impulse": start.acc_impulse, "acc_r_impulse": start.acc_r_impulse, "anchor": start.anchor,
-        "normal_impulse": carried_normal, "tangent_impulse": carried_tangent,
+        "normal_impulse": carried.normal, "tangent_impulse": carried.tangent,
     }
     constant_fields = {f"contact_{name}": value for name, value in zip(CONTACT_FIELDS, rows, strict=True)}
     constant_fields |= {
@@ -107,18 +99,18 @@ def iterate_kernel(
         "params": jnp.stack([jnp.asarray(getattr(params, name), jnp.float32) for name in SOLVER_PARAMS]),
     }
     constant_fields = {name: jnp.asarray(value, jnp.float32) for name, value in constant_fields.items()}
-    solved = _batched_solver(sizes, interpret)(state_fields, constant_fields)
+    solved = _batched_solver(context.sizes, context.options.iterations, interpret)(state_fields, constant_fields)
     joint_state = JointSolverState(
         position=solved["position"], velocity=solved["velocity"], angular_velocity=solved["angular_velocity"],
         acc_impulse=solved["acc_impulse"], acc_r_impulse=solved["acc_r_impulse"], anchor=solved["anchor"],
     )
-    return joint_state, solved["normal_impulse"], solved["tangent_impulse"]
+    return joint_state, Impulses(solved["normal_impulse"], solved["tangent_impulse"])
 
 
 @functools.cache
-def _batched_solver(sizes: SceneSizes, interpret: bool) -> Callable[[dict, dict], dict]:
+def _batched_solver(sizes: SceneSizes, iterations: int, interpret: bool) -> Callable[[dict, dict], dict]:
     """One scene's fields in, solved fields out; under vmap, the whole batch goes to the kernel at once."""
-    run = functools.partial(run_blocks, sizes=sizes, interpret=interpret)
+    run = functools.partial(run_blocks, sizes=sizes, iterations=iterations, interpret=interpret)
 
     @jax.custom_batching.custom_vmap
     def solve(state_fields: dict, constant_fields: dict) -> dict:
@@ -137,7 +129,7 @@ def _batched_solver(sizes: SceneSizes, interpret: bool) -> Callable[[dict, dict]
     return solve
 
 
-def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, interpret: bool) -> dict:
+def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, iterations: int, interpret: bool) -> dict:
     """The kernel over a batch of scenes (leading axis of every field), in blocks of up to MAX_LANES scenes."""
     state_layout, constant_layout = layouts(sizes)
     scenes = state_fields["position"].shape[0]
@@ -151,7 +143,7 @@ def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, int
 
     state_in = lanes_of(state_layout, state_fields)
     constants = lanes_of(constant_layout, constant_fields)
-    kernel = functools.partial(solver_kernel, sizes=sizes, tables=pair_tables(sizes))
+    kernel = functools.partial(solver_kernel, sizes=sizes, iterations=iterations)
     block = functools.partial(pl.BlockSpec, index_map=lambda i: (0, i))
     state_out = pl.pallas_call(
         kernel,
@@ -166,9 +158,10 @@ def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, int
     return {name: solved[name].reshape(shapes[name]) for name in shapes}
 
 
-def solver_kernel(state_ref, constants_ref, out_ref, *, sizes: SceneSizes, tables: PairTables) -> None:
-    """All solver iterations of one block of scenes (see the module docstring)."""
+def solver_kernel(state_ref, constants_ref, out_ref, *, sizes: SceneSizes, iterations: int) -> None:
+    """All `iterations` solver sweeps of one block of scenes (see the module docstring)."""
     state_layout, constant_layout = layouts(sizes)
+    tables = pair_tables(sizes)
 
     def constant(name: str, index: int) -> Row:
         return constant_layout.row(constants_ref, name, index)
@@ -197,7 +190,7 @@ def solver_kernel(state_ref, constants_ref, out_ref, *, sizes: SceneSizes, table
         return position, velocity, spin, acc, acc_r, anchor, normal, tangent
 
     position, velocity, spin, acc, acc_r, anchor, normal, tangent = jax.lax.fori_loop(
-        0, sizes.num_solver_iterations, iteration, carry
+        0, iterations, iteration, carry
     )
     state_layout.store(out_ref, {
         "position": flatten(position), "velocity": flatten(velocity), "angular_velocity": list(spin),

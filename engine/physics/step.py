@@ -1,46 +1,49 @@
-"""One physics step of one scene: `step(state, params, actions, sizes)`; jit it with `sizes` static, vmap it over
-scenes.
+"""One physics step of one scene: `step(state, params, actions, sizes, options)`; jit it with `sizes` and `options`
+static, vmap it over scenes.
 
 The step is a sequence of named stages, in Jax2D's order:
 
 1. `apply_gravity`;
-2. `prepare_contacts`: detection, per-contact solver constants, last step's impulses where contacts persist;
+2. `prepare_constraints`: detection, per-contact and per-joint solver constants (the step's `StepContext`), last
+   step's impulses where contacts persist;
 3. motors and thrusters (actuators.py);
 4. `warm_start_all`: last step's contact and joint impulses re-applied;
-5. `num_solver_iterations` sweeps of `solve_joints` (slot order) then the contacts;
+5. `solve`: `options.iterations` sweeps of `solve_joints` (slot order) then the contacts;
 6. `integrate`: velocity clamps, symplectic Euler, position clamp;
 7. `store_impulses`: what the next step warm-starts from.
 
-`sizes.solver` picks how contacts are swept in stage 5: phase by phase with per-step lever arms (`iterate_phased`,
-the default, faster) or as Jax2D does, in sorted Jacobi batches with lever arms that follow the joints' position
-corrections (`iterate_jax2d`, see docs/engine.md; "jax2d_wipe" adds Jax2D's padding bug, for comparisons
-only). `sizes.backend="pallas"` runs the phased iterations as one
-fused GPU kernel (`iterate_fused`, solver_kernel.py). Which slot is which, and how values reach bodies, is
-slots.py's.
+Every stage after the second reads the step's constants from one `StepContext` (context.py). `options.schedule`
+picks how contacts are swept in stage 5: phase by phase with per-step lever arms (`iterate_phased`, the default,
+faster) or as Jax2D does, in sorted Jacobi batches with lever arms that follow the joints' position corrections
+(`iterate_jax2d`, see docs/engine.md; "jax2d_wipe" adds Jax2D's padding bug, for comparisons only).
+`options.backend="pallas"` runs the phased iterations as one fused GPU kernel (`iterate_fused`, solver_kernel.py).
+Which slot is which, and how values reach bodies, is slots.py's.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from engine.physics.actuators import apply_motors, apply_thrusters, thruster_positions
-from engine.physics.batched_contacts import ContactConstants, batch_slots, solve_contacts
+from engine.physics.batched_contacts import batch_slots, solve_contacts
 from engine.physics.contact_solver import ContactRows, contact_rows, solve_phase, warm_start
-from engine.physics.joint_solver import JointRows, JointSolverState, joint_rows, solve_joint, warm_start_joints
-from engine.physics.narrowphase import Contacts, detect_contacts
-from engine.physics.pairs import PairTables, pair_tables
+from engine.physics.context import Impulses, StepContext
+from engine.physics.joint_solver import JointSolverState, joint_rows, solve_joint, warm_start_joints
+from engine.physics.narrowphase import detect_contacts
+from engine.physics.options import SolverOptions
+from engine.physics.pairs import pair_tables
 from engine.physics.params import SimParams
 from engine.physics.sizes import SceneSizes
 from engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
 from engine.physics.solver_kernel import iterate_kernel
-from engine.physics.state import ContactCache, Joints, SimState
+from engine.physics.state import ContactCache, SimState
 
 Array = jax.Array
+
+DEFAULT_OPTIONS = SolverOptions()
 
 
 class StepContacts(NamedTuple):
@@ -53,53 +56,30 @@ class StepContacts(NamedTuple):
     normal_impulse: Array  # [num_pairs] accumulated normal impulse of point 0
 
 
-@functools.partial(jax.jit, static_argnames="sizes")
-def jit_step(state: SimState, params: SimParams, actions: Array, sizes: SceneSizes):
-    return step(state, params, actions, sizes)
-
-
-class Impulses(NamedTuple):
-    """Accumulated contact impulses, one entry per contact slot (or per slot of one phase)."""
-
-    normal: Array
-    tangent: Array
-
-
 def step(
-    state: SimState, params: SimParams, actions: Array, sizes: SceneSizes
+    state: SimState,
+    params: SimParams,
+    actions: Array,
+    sizes: SceneSizes,
+    options: SolverOptions = DEFAULT_OPTIONS,
 ) -> tuple[SimState, StepContacts]:
     """Advance one scene by params.dt.
 
     `actions` has num_joints motor actions (Kinetix clips them to [-1, 1]) followed by num_thrusters thruster
     actions ([0, 1]).
     """
-    tables = pair_tables(sizes)
     actions = jnp.asarray(actions, dtype=jnp.float32)
     motor_actions, thruster_actions = actions[: sizes.num_joints], actions[sizes.num_joints :]
 
     velocity = apply_gravity(state, params)
-    contacts, rows, enabled, carried = prepare_contacts(state, velocity, tables, params, sizes)
-    jrows = joint_rows(state)
-    angular_velocity = apply_motors(state.bodies.angular_velocity, state, jrows, motor_actions, params)
+    context, carried = prepare_constraints(state, velocity, params, sizes, options)
+    angular_velocity = apply_motors(state.bodies.angular_velocity, state, context.joint_rows, motor_actions, params)
     velocity, angular_velocity = apply_thrusters(velocity, angular_velocity, state, thruster_actions, params)
-    start = warm_start_all(velocity, angular_velocity, state, rows, carried, jrows, tables, sizes)
-    if sizes.solver in ("jax2d", "jax2d_wipe"):
-        solved, impulses = iterate_jax2d(start, carried, contacts, rows, enabled, jrows, state.joints, params,
-                                         sizes, tables)
-    elif sizes.backend == "xla":
-        solved, impulses = iterate_phased(start, carried, rows, jrows, state.joints, params, sizes, tables)
-    else:
-        solved, impulses = iterate_fused(start, carried, rows, jrows, state.joints, params, sizes, tables)
+    start = warm_start_all(velocity, angular_velocity, state, carried, context)
+    solved, impulses = solve(start, carried, context)
     new_state = integrate(state, solved, params)
-    cache = store_impulses(impulses, contacts, rows, params, tables)
-    first = point0_slots(tables)
-    step_contacts = StepContacts(
-        touching=contacts.touching[first],
-        normal=contacts.normal[first],
-        point=contacts.point[first],
-        normal_impulse=cache.normal_impulse[first],
-    )
-    return new_state.replace(contacts=cache), step_contacts
+    cache = store_impulses(impulses, context)
+    return new_state.replace(contacts=cache), pair_contacts(cache, context)
 
 
 def apply_gravity(state: SimState, params: SimParams) -> Array:
@@ -109,37 +89,37 @@ def apply_gravity(state: SimState, params: SimParams) -> Array:
     return bodies.velocity + jnp.where(falls[:, None], state.gravity * params.dt, 0.0)
 
 
-def prepare_contacts(
-    state: SimState, velocity: Array, tables: PairTables, params: SimParams, sizes: SceneSizes
-) -> tuple[Contacts, ContactRows, Array, Impulses]:
-    """Detect every contact slot, compute its solver constants, and carry over last step's impulses where the
-    contact persists (and warm starting is on)."""
+def prepare_constraints(
+    state: SimState, velocity: Array, params: SimParams, sizes: SceneSizes, options: SolverOptions
+) -> tuple[StepContext, Impulses]:
+    """Detect every contact slot and compute the per-contact and per-joint constants the later stages read (the
+    step's context); carry over last step's contact impulses where the contact persists (and warm starting is
+    on)."""
+    tables = pair_tables(sizes)
     contacts = detect_contacts(state, tables)
     rows, enabled = contact_rows(state, velocity, contacts, tables, params)
-    carried = enabled & state.contacts.active & sizes.warm_starting
-    return contacts, rows, enabled, Impulses(
+    carried = enabled & state.contacts.active & options.warm_starting
+    impulses = Impulses(
         normal=jnp.where(carried, state.contacts.normal_impulse, 0.0),
         tangent=jnp.where(carried, state.contacts.tangent_impulse, 0.0),
     )
+    context = StepContext(
+        params=params, joints=state.joints, joint_rows=joint_rows(state), contacts=contacts, contact_rows=rows,
+        enabled=enabled, sizes=sizes, options=options,
+    )
+    return context, impulses
 
 
 def warm_start_all(
-    velocity: Array,
-    angular_velocity: Array,
-    state: SimState,
-    rows: ContactRows,
-    carried: Impulses,
-    jrows: JointRows,
-    tables: PairTables,
-    sizes: SceneSizes,
+    velocity: Array, angular_velocity: Array, state: SimState, carried: Impulses, context: StepContext
 ) -> JointSolverState:
     """Re-apply last step's contact and joint impulses; the solver's starting state."""
-    joints = state.joints
-    if sizes.warm_starting:
+    joints = context.joints
+    if context.options.warm_starting:
         velocity, angular_velocity = warm_start(
-            velocity, angular_velocity, rows, carried.normal, carried.tangent, tables
+            velocity, angular_velocity, context.contact_rows, carried.normal, carried.tangent, context.tables
         )
-        velocity, angular_velocity = warm_start_joints(velocity, angular_velocity, jrows, joints)
+        velocity, angular_velocity = warm_start_joints(velocity, angular_velocity, context.joint_rows, joints)
         acc_impulse, acc_r_impulse = joints.acc_impulse, joints.acc_r_impulse
     else:
         acc_impulse, acc_r_impulse = jnp.zeros_like(joints.acc_impulse), jnp.zeros_like(joints.acc_r_impulse)
@@ -153,58 +133,56 @@ def warm_start_all(
     )
 
 
-def solve_joints(
-    joint_state: JointSolverState, jrows: JointRows, joints: Joints, params: SimParams, sizes: SceneSizes
-) -> JointSolverState:
+def solve(start: JointSolverState, carried: Impulses, context: StepContext) -> tuple[JointSolverState, Impulses]:
+    """The solver iterations, in the schedule and on the backend that `context.options` pick."""
+    options = context.options
+    if options.schedule in ("jax2d", "jax2d_wipe"):
+        return iterate_jax2d(start, carried, context)
+    if options.backend == "xla":
+        return iterate_phased(start, carried, context)
+    return iterate_fused(start, carried, context)
+
+
+def solve_joints(joint_state: JointSolverState, context: StepContext) -> JointSolverState:
     """One Gauss-Seidel sweep over the joints in slot order."""
-    for j in range(sizes.num_joints):
-        joint_state = solve_joint(joint_state, j, jrows, joints, params)
+    for j in range(context.sizes.num_joints):
+        joint_state = solve_joint(joint_state, j, context.joint_rows, context.joints, context.params)
     return joint_state
 
 
 def solve_contacts_phased(
-    velocity: Array,
-    angular_velocity: Array,
-    phase_rows: list[ContactRows],
-    bodies_of_phase: list[tuple[np.ndarray, np.ndarray]],
-    impulses: list[Impulses],
-) -> tuple[Array, Array, list[Impulses]]:
-    """One Gauss-Seidel sweep over the contacts, phase after phase (the contacts of a phase side by side)."""
+    joint_state: JointSolverState, impulses: list[Impulses], phase_rows: list[ContactRows], context: StepContext
+) -> tuple[JointSolverState, list[Impulses]]:
+    """One Gauss-Seidel sweep over the contacts, phase after phase (the contacts of a phase side by side);
+    `impulses` and `phase_rows` hold one entry per phase."""
+    velocity, angular_velocity = joint_state.velocity, joint_state.angular_velocity
     solved = []
+    bodies_of_phase = phase_bodies(context.tables)
     for rows, (body_a, body_b), (normal, tangent) in zip(phase_rows, bodies_of_phase, impulses, strict=True):
         velocity, angular_velocity, normal, tangent = solve_phase(
             velocity, angular_velocity, rows, body_a, body_b, normal, tangent
         )
         solved.append(Impulses(normal, tangent))
-    return velocity, angular_velocity, solved
+    return joint_state._replace(velocity=velocity, angular_velocity=angular_velocity), solved
 
 
 def iterate_phased(
-    start: JointSolverState,
-    carried: Impulses,
-    rows: ContactRows,
-    jrows: JointRows,
-    joints: Joints,
-    params: SimParams,
-    sizes: SceneSizes,
-    tables: PairTables,
+    start: JointSolverState, carried: Impulses, context: StepContext
 ) -> tuple[JointSolverState, Impulses]:
     """The default schedule: per iteration, joints in slot order, then contacts phase by phase, with lever arms
     and effective masses fixed per step (cheaper; the joints' position projection does not reach them)."""
-    phase_rows = [ContactRows(*fields) for fields in zip(*(by_phase(field, tables) for field in rows), strict=True)]
-    bodies_of_phase = phase_bodies(tables)
+    tables = context.tables
+    split = (by_phase(field, tables) for field in context.contact_rows)
+    phase_rows = [ContactRows(*fields) for fields in zip(*split, strict=True)]
 
     def iteration(_, carry):
         joint_state, impulses = carry
-        joint_state = solve_joints(joint_state, jrows, joints, params, sizes)
-        v, w, impulses = solve_contacts_phased(
-            joint_state.velocity, joint_state.angular_velocity, phase_rows, bodies_of_phase, impulses
-        )
-        return joint_state._replace(velocity=v, angular_velocity=w), impulses
+        joint_state = solve_joints(joint_state, context)
+        return solve_contacts_phased(joint_state, impulses, phase_rows, context)
 
     per_phase = [Impulses(*pair) for pair in zip(by_phase(carried.normal, tables), by_phase(carried.tangent, tables),
                                                  strict=True)]
-    solved, per_phase = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, (start, per_phase))
+    solved, per_phase = jax.lax.fori_loop(0, context.options.iterations, iteration, (start, per_phase))
     if not tables.num_contacts:
         return solved, carried
     return solved, Impulses(
@@ -214,79 +192,36 @@ def iterate_phased(
 
 
 def iterate_fused(
-    start: JointSolverState,
-    carried: Impulses,
-    rows: ContactRows,
-    jrows: JointRows,
-    joints: Joints,
-    params: SimParams,
-    sizes: SceneSizes,
-    tables: PairTables,
+    start: JointSolverState, carried: Impulses, context: StepContext
 ) -> tuple[JointSolverState, Impulses]:
     """`iterate_phased` as the fused Pallas kernel where the step is compiled for a CUDA GPU, and as itself on
     every other platform (the kernel is written for Triton); with `backend="pallas_interpret"`, the kernel through
     Pallas's interpreter everywhere."""
+    if context.options.backend == "pallas_interpret":
+        return iterate_kernel(start, carried, context, interpret=True)
 
-    def kernel(interpret: bool):
-        def run(start, carried, rows, jrows, joints, params):
-            solved, normal, tangent = iterate_kernel(
-                start, carried.normal, carried.tangent, rows, jrows, joints, params, sizes, interpret
-            )
-            return solved, Impulses(normal, tangent)
+    def kernel(start: JointSolverState, carried: Impulses, context: StepContext):
+        return iterate_kernel(start, carried, context, interpret=False)
 
-        return run
-
-    def xla(start, carried, rows, jrows, joints, params):
-        return iterate_phased(start, carried, rows, jrows, joints, params, sizes, tables)
-
-    args = (start, carried, rows, jrows, joints, params)
-    if sizes.backend == "pallas_interpret":
-        return kernel(interpret=True)(*args)
-    return jax.lax.platform_dependent(*args, cuda=kernel(interpret=False), default=xla)
+    return jax.lax.platform_dependent(start, carried, context, cuda=kernel, default=iterate_phased)
 
 
 def iterate_jax2d(
-    start: JointSolverState,
-    carried: Impulses,
-    contacts: Contacts,
-    rows: ContactRows,
-    enabled: Array,
-    jrows: JointRows,
-    joints: Joints,
-    params: SimParams,
-    sizes: SceneSizes,
-    tables: PairTables,
+    start: JointSolverState, carried: Impulses, context: StepContext
 ) -> tuple[JointSolverState, Impulses]:
     """Jax2D's schedule (batched_contacts.py): per iteration, joints in slot order, then contacts in sorted Jacobi
     batches of 16, kind by kind, with lever arms and effective masses taken from the current positions at every
     visit."""
-    constants = ContactConstants(
-        point=contacts.point,
-        normal=rows.normal,
-        tangent=rows.tangent,
-        inverse_mass_a=rows.inverse_mass_a,
-        inverse_mass_b=rows.inverse_mass_b,
-        inverse_inertia_a=rows.inverse_inertia_a,
-        inverse_inertia_b=rows.inverse_inertia_b,
-        friction=rows.friction,
-        target_velocity=rows.target_velocity,
-        enabled=enabled,
-    )
-    wipe = sizes.solver == "jax2d_wipe"
-    batches = batch_slots(tables, contacts.touching, wipe) if tables.num_contacts else []
+    tables = context.tables
+    wipe = context.options.schedule == "jax2d_wipe"
+    batches = batch_slots(tables, context.contacts.touching, wipe) if tables.num_contacts else []
 
     def iteration(_, carry):
-        joint_state, normals, tangents = carry
-        joint_state = solve_joints(joint_state, jrows, joints, params, sizes)
-        v, w, normals, tangents = solve_contacts(
-            joint_state.position, joint_state.velocity, joint_state.angular_velocity, normals, tangents,
-            batches, constants, tables, wipe,
-        )
-        return joint_state._replace(velocity=v, angular_velocity=w), normals, tangents
+        joint_state, impulses = carry
+        joint_state = solve_joints(joint_state, context)
+        return solve_contacts(joint_state, impulses, batches, context)
 
-    carry = (start, carried.normal, carried.tangent)
-    solved, normal, tangent = jax.lax.fori_loop(0, sizes.num_solver_iterations, iteration, carry)
-    return solved, Impulses(normal, tangent)
+    return jax.lax.fori_loop(0, context.options.iterations, iteration, (start, carried))
 
 
 def integrate(state: SimState, solved: JointSolverState, params: SimParams) -> SimState:
@@ -311,18 +246,29 @@ def integrate(state: SimState, solved: JointSolverState, params: SimParams) -> S
     )
 
 
-def store_impulses(
-    impulses: Impulses, contacts: Contacts, rows: ContactRows, params: SimParams, tables: PairTables
-) -> ContactCache:
+def store_impulses(impulses: Impulses, context: StepContext) -> ContactCache:
     """What the next step's warm start reads: the accumulated impulses and which contacts touched.
 
     What is carried is capped at the impulse that takes the contact across the whole velocity clamp: more can
     never be applied, and letting it accumulate (bodies pressed together on the position clamp) grows it
     geometrically into inf/NaN. Inactive in ordinary contact, where impulses are tiny."""
     normal, tangent = impulses
-    if tables.num_contacts:
+    rows, params = context.contact_rows, context.params
+    if context.tables.num_contacts:
         reach = jnp.sqrt((rows.lever_a**2).sum(-1)) + jnp.sqrt((rows.lever_b**2).sum(-1))
         cap = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
         normal = jnp.minimum(normal, cap)
         tangent = jnp.clip(tangent, -rows.friction * normal, rows.friction * normal)
-    return ContactCache(normal_impulse=normal, tangent_impulse=tangent, active=contacts.touching)
+    return ContactCache(normal_impulse=normal, tangent_impulse=tangent, active=context.contacts.touching)
+
+
+def pair_contacts(cache: ContactCache, context: StepContext) -> StepContacts:
+    """What the task layer reads after the step: point 0 of every pair, with its stored normal impulse."""
+    first = point0_slots(context.tables)
+    contacts = context.contacts
+    return StepContacts(
+        touching=contacts.touching[first],
+        normal=contacts.normal[first],
+        point=contacts.point[first],
+        normal_impulse=cache.normal_impulse[first],
+    )

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from engine.physics.building import arena_polygon_count, connected_by_joints
 from engine.physics.pairs import pair_tables
-from engine.physics.scene import arena_polygon_count, connected_by_joints
 from engine.physics.sizes import SceneSizes
 from engine.physics.state import SimState
 

@@ -7,6 +7,7 @@ back."""
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import jax
 import pytest
@@ -20,10 +21,11 @@ from bus.session import Bus
 from bus.stamp import Stamp
 from bus.weights import encode_weights
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from engine.env.spec import env_from_config
 from engine.pytree import tree_arrays
 from learner.agent import make_agent
-from learner.config import TrainConfig
+from learner.curriculum_inputs import batch_level_results
 
 pytestmark = pytest.mark.heavy
 
@@ -41,7 +43,7 @@ def cycle_until(actor: Actor, condition, timeout_s: float, what: str) -> float:
 
 def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off():
     port = free_port()
-    config = resolve_config(TrainConfig, QUICK_LAUNCH, [
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [
         f"bus.hub=tcp/127.0.0.1:{port}", f"actors.credit_timeout_s={TIMEOUT_S}", "ppo.num_envs=8",
         "ppo.num_steps=8", "ppo.num_minibatches=1"])
     spec, env_params = env_from_config(config.env)
@@ -57,7 +59,10 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
         weights.put(weights_frame(5))
         trajectories = learner.inbox(learner.keys.traj_all, 16)
         with Bus(config.bus, RUN, "actor", "actor-0") as bus:
-            actor = Actor(config, 0, bus, agent, env_params, LocalLevels(config.env, spec.sizes))
+            actor = Actor(config.actors, num_envs=config.ppo.num_envs, num_steps=config.ppo.num_steps,
+                          seed=config.seed, index=0, bus=bus, agent=agent, env_params=env_params,
+                          levels=LocalLevels(config.env, spec.sizes),
+                          level_results=partial(batch_level_results, agent, config.ppo))
             cycle_until(actor, lambda: actor.counts["sent"] == 1, 120, "the first batch")
             assert actor.version == 5 and actor.in_flight == 1
             for _ in range(20):

@@ -7,7 +7,8 @@ from __future__ import annotations
 import socket
 
 from actors.levels import CurriculumLevels
-from bus.session import Bus, BusConfig, Hub
+from bus.config import BusConfig
+from bus.session import Bus, Hub
 from curriculum.wire import level_batch_template
 from engine.physics.sizes import SceneSizes
 

@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from bus.codec import Kind, Rejected, decode, encode
+from bus.config import BusConfig
 from bus.keys import OPERATOR
-from bus.session import Bus, BusConfig, run_hub
+from bus.session import Bus, run_hub
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PEER_ROLE = OPERATOR

@@ -9,9 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from bus.router import CredentialsError, RouterConfig, access_rules, router_zenoh_config
+from bus.config import RouterConfig
+from bus.router import CredentialsError, access_rules, router_zenoh_config
 
 REPO = Path(__file__).resolve().parents[2]
+
+CERT_SCRIPT = REPO / "deploy" / "cluster" / "security" / "make-test-certs.sh"
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +22,7 @@ def credentials(tmp_path_factory: pytest.TempPathFactory) -> Path:
     if shutil.which("openssl") is None:
         pytest.skip("openssl is needed to make test certificates")
     directory = tmp_path_factory.mktemp("credentials")
-    subprocess.run(["bash", str(REPO / "deploy" / "security" / "make-test-certs.sh"), str(directory)], check=True,
+    subprocess.run(["bash", str(CERT_SCRIPT), str(directory)], check=True,
                    capture_output=True)
     return directory
 

@@ -17,8 +17,9 @@ import zenoh
 from bus_procs import BusProcess
 
 from bus.codec import Kind, decode, encode
+from bus.config import BusConfig
 from bus.inbox import AliveWatcher
-from bus.session import PEER_LISTEN, Bus, BusConfig, Hub, zenoh_config
+from bus.session import PEER_LISTEN, Bus, Hub, zenoh_config
 
 pytestmark = pytest.mark.heavy
 

@@ -12,9 +12,10 @@ from checkpoint_damage import corrupt_newest
 from launch_procs import free_port
 
 from bus.codec import Kind, decode, encode
+from bus.config import BusConfig
 from bus.control import control_reply, control_request
 from bus.levels import encode_level_results
-from bus.session import Bus, BusConfig
+from bus.session import Bus
 from curriculum.algorithms import Curriculum
 from curriculum.config import CurriculumConfig
 from curriculum.service import CurriculumService
@@ -61,7 +62,7 @@ def serve_until(service: CurriculumService, asked, timeout_s: float = 30.0):
     deadline = time.monotonic() + timeout_s
     while thread.is_alive():
         assert time.monotonic() < deadline, "the service did not answer"
-        service.poll()
+        service.cycle()
         time.sleep(0.002)
     thread.join()
     return box["answer"]
@@ -109,7 +110,7 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
         deadline = time.monotonic() + 20
         while service.result_messages < 1 or sum(bus.rejects.counts().values()) < 2:
             assert time.monotonic() < deadline, (service.result_messages, bus.rejects.counts())
-            service.poll()
+            service.cycle()
             time.sleep(0.01)
         assert sorted(bus.rejects.counts()) == ["schema", "truncated"]
         buffered = set(level_id_values(np.asarray(service.state.buffer.levels.level_id))[

@@ -16,7 +16,7 @@ from curriculum.results import results_from_host
 from curriculum.state import empty_state, knobs_from_config
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import level_from_scene, level_id_words
-from engine.physics.scene import empty_scene
+from engine.physics.building import empty_scene
 from engine.physics.sizes import SIZE_S
 
 SPEC = EnvSpec()

@@ -15,8 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from bus.codec import Rejected
+from bus.config import BusConfig
 from bus.keys import OPERATOR
-from bus.session import Bus, BusConfig
+from bus.session import Bus
 from bus.status import read_status
 
 REPO = Path(__file__).resolve().parents[2]

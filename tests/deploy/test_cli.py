@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy import bench
 from deploy.cli import main
+from deploy.commands import bench
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

@@ -9,9 +9,10 @@ from typing import Literal
 import pytest
 
 from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from deploy.run_config import RunConfig
 from engine.env import config as env_config
 from engine.env.config import EnvConfig
-from learner.config import PPOConfig, TrainConfig
+from learner.config import PPOConfig
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -37,8 +38,8 @@ class Outer:
 
 
 def test_defaults_are_kinetix_ppo() -> None:
-    config = resolve_config(TrainConfig, None, [])
-    assert config == TrainConfig()
+    config = resolve_config(RunConfig, None, [])
+    assert config == RunConfig()
     assert config.ppo.num_envs == 2048 and config.ppo.num_steps == 256
     assert config.ppo.learning_rate == 1e-4 and config.ppo.anneal_lr
     assert (config.ppo.gamma, config.ppo.gae_lambda, config.ppo.clip_eps) == (0.995, 0.9, 0.2)
@@ -52,7 +53,7 @@ def test_defaults_are_kinetix_ppo() -> None:
 def test_toml_file_then_overrides(tmp_path: Path) -> None:
     path = tmp_path / "run.toml"
     path.write_text('name = "big"\nseed = 3\n[ppo]\nnum_envs = 4096\ngamma = 0.99\n[env]\nsize = "l"\n')
-    config = resolve_config(TrainConfig, path, ["ppo.gamma=0.9"])
+    config = resolve_config(RunConfig, path, ["ppo.gamma=0.9"])
     assert (config.name, config.seed, config.env.size) == ("big", 3, "l")
     assert config.ppo.num_envs == 4096
     assert config.ppo.gamma == 0.9  # the command line wins over the file
@@ -62,7 +63,7 @@ def test_toml_file_then_overrides(tmp_path: Path) -> None:
 
 def test_dotted_overrides_coerce_types() -> None:
     config = resolve_config(
-        TrainConfig, None,
+        RunConfig, None,
         ["ppo.learning_rate=3e-4", "env.size=m", "ppo.anneal_lr=false", "ppo.clip_eps=1",
          "total_env_steps=1e9", "name=123", "env.levels=\"random\""],
     )
@@ -91,13 +92,13 @@ def test_generic_types() -> None:
 
 
 def test_inline_table_override() -> None:
-    config = resolve_config(TrainConfig, None, ["ppo={gamma = 0.5, num_steps = 64}"])
+    config = resolve_config(RunConfig, None, ["ppo={gamma = 0.5, num_steps = 64}"])
     assert (config.ppo.gamma, config.ppo.num_steps) == (0.5, 64)
 
 
 def test_unknown_key_suggests_close_match() -> None:
     with pytest.raises(ConfigError) as info:
-        resolve_config(TrainConfig, None, ["ppo.learning_rat=1"])
+        resolve_config(RunConfig, None, ["ppo.learning_rat=1"])
     message = str(info.value)
     assert "unknown config key 'ppo.learning_rat'" in message
     assert "did you mean 'ppo.learning_rate'" in message
@@ -105,41 +106,41 @@ def test_unknown_key_suggests_close_match() -> None:
 
 def test_key_in_wrong_section_suggests_full_path(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"'gamma'.*did you mean 'ppo\.gamma'"):
-        resolve_config(TrainConfig, None, ["gamma=0.9"])
+        resolve_config(RunConfig, None, ["gamma=0.9"])
     path = tmp_path / "bad.toml"
     path.write_text("[env]\nsise = 'm'\n")
     with pytest.raises(ConfigError, match=r"'env\.sise' \(from .*bad\.toml\); did you mean 'env\.size'"):
-        resolve_config(TrainConfig, path, [])
+        resolve_config(RunConfig, path, [])
 
 
 def test_unknown_key_without_match_lists_valid_keys() -> None:
     with pytest.raises(ConfigError, match=r"unknown config key 'network\.zzz'.*valid keys in \[network\]: kind"):
-        resolve_config(TrainConfig, None, ["network.zzz=1"])
+        resolve_config(RunConfig, None, ["network.zzz=1"])
     with pytest.raises(ConfigError, match=r"'seed' is a value, not a table"):
-        resolve_config(TrainConfig, None, ["seed.x=1"])
+        resolve_config(RunConfig, None, ["seed.x=1"])
 
 
 def test_wrong_type_names_key_type_and_value() -> None:
     with pytest.raises(ConfigError) as info:
-        resolve_config(TrainConfig, None, ["ppo.num_envs=many"])
+        resolve_config(RunConfig, None, ["ppo.num_envs=many"])
     assert str(info.value) == (
         "config key 'ppo.num_envs' expects int, got 'many' (from override 'ppo.num_envs=many')"
     )
     with pytest.raises(ConfigError, match=r"'ppo\.num_steps' expects int, got 2\.5"):
-        resolve_config(TrainConfig, None, ["ppo.num_steps=2.5"])
+        resolve_config(RunConfig, None, ["ppo.num_steps=2.5"])
     with pytest.raises(ConfigError, match=r"'ppo\.anneal_lr' expects bool, got 1"):
-        resolve_config(TrainConfig, None, ["ppo.anneal_lr=1"])
+        resolve_config(RunConfig, None, ["ppo.anneal_lr=1"])
     with pytest.raises(ConfigError, match=r"'env\.size' expects one of 's', 'm', 'l', got 'xl'.*did you mean"):
-        resolve_config(TrainConfig, None, ["env.size=xl"])
+        resolve_config(RunConfig, None, ["env.size=xl"])
     with pytest.raises(ConfigError, match=r"'sizes' expects tuple\[int, \.\.\.\], got \[1, 'a'\]"):
         resolve_config(Outer, None, ["sizes=[1, 'a']"])
     with pytest.raises(ConfigError, match=r"'ppo' expects a table of PPOConfig keys"):
-        resolve_config(TrainConfig, None, ["ppo=3"])
+        resolve_config(RunConfig, None, ["ppo=3"])
 
 
 def test_cross_field_check_becomes_config_error() -> None:
     with pytest.raises(ConfigError, match=r"invalid config \[ppo\]: num_minibatches \(7\) must divide"):
-        resolve_config(TrainConfig, None, ["ppo.num_minibatches=7"])
+        resolve_config(RunConfig, None, ["ppo.num_minibatches=7"])
 
 
 # (key, a refused value): counts, sizes, rates and probabilities outside the range the code can use.
@@ -215,18 +216,18 @@ OUT_OF_RANGE = [
 @pytest.mark.parametrize(("key", "bad"), OUT_OF_RANGE)
 def test_out_of_range_value_is_refused_naming_the_dotted_key(key: str, bad: str) -> None:
     with pytest.raises(ConfigError, match=r"invalid config \[") as info:
-        resolve_config(TrainConfig, None, [f"{key}={bad}"])
+        resolve_config(RunConfig, None, [f"{key}={bad}"])
     assert f"{key} must be" in str(info.value)
 
 
 def test_range_message_states_the_rule() -> None:
     with pytest.raises(ConfigError) as info:
-        resolve_config(TrainConfig, None, ["checkpoint.keep_last=0"])
+        resolve_config(RunConfig, None, ["checkpoint.keep_last=0"])
     assert str(info.value) == "invalid config [checkpoint]: checkpoint.keep_last must be >= 1, got 0"
     with pytest.raises(ConfigError, match=r"ppo\.gamma must be in \[0, 1\], got 1\.5"):
-        resolve_config(TrainConfig, None, ["ppo.gamma=1.5"])
+        resolve_config(RunConfig, None, ["ppo.gamma=1.5"])
     with pytest.raises(ConfigError, match=r"actors\.memory_fraction must be in \[0, 1\), got 1\.0"):
-        resolve_config(TrainConfig, None, ["actors.memory_fraction=1"])
+        resolve_config(RunConfig, None, ["actors.memory_fraction=1"])
 
 
 @pytest.mark.parametrize("override", [
@@ -246,13 +247,13 @@ def test_range_message_states_the_rule() -> None:
     "curriculum={max_edits = 0, num_edits = 0}",  # ACCEL without edits
 ])
 def test_documented_zero_and_edge_values_are_accepted(override: str) -> None:
-    resolve_config(TrainConfig, None, [override])
+    resolve_config(RunConfig, None, [override])
 
 
 def test_type_column_needs_a_token_wider_than_one() -> None:
-    resolve_config(TrainConfig, None, ["network.transformer_encoder_size=1"])
+    resolve_config(RunConfig, None, ["network.transformer_encoder_size=1"])
     with pytest.raises(ConfigError, match=r"network\.transformer_encoder_size must be >= 2, got 1"):
-        resolve_config(TrainConfig, None, ["network.transformer_encoder_size=1", "network.shape_type_column=type"])
+        resolve_config(RunConfig, None, ["network.transformer_encoder_size=1", "network.shape_type_column=type"])
 
 
 def test_screen_size_matches_the_pixel_renderer() -> None:
@@ -263,26 +264,26 @@ def test_screen_size_matches_the_pixel_renderer() -> None:
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.toml")), ids=lambda p: p.name)
 def test_shipped_configs_load(path: Path) -> None:
-    config = resolve_config(TrainConfig, path, [])
+    config = resolve_config(RunConfig, path, [])
     assert config.name == path.stem
 
 
 def test_malformed_inputs(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="not of the form key=value"):
-        resolve_config(TrainConfig, None, ["seed"])
+        resolve_config(RunConfig, None, ["seed"])
     with pytest.raises(ConfigError, match="config file not found"):
-        resolve_config(TrainConfig, tmp_path / "missing.toml", [])
+        resolve_config(RunConfig, tmp_path / "missing.toml", [])
     bad = tmp_path / "bad.toml"
     bad.write_text("seed = = 1\n")
     with pytest.raises(ConfigError, match="invalid TOML"):
-        resolve_config(TrainConfig, bad, [])
+        resolve_config(RunConfig, bad, [])
 
 
 def test_resolved_config_round_trips(tmp_path: Path) -> None:
-    config = resolve_config(TrainConfig, None, ["ppo.gamma=0.9", "env.size=l", "seed=5"])
+    config = resolve_config(RunConfig, None, ["ppo.gamma=0.9", "env.size=l", "seed=5"])
     path = write_resolved_config(config, tmp_path / "runs" / "x")
     assert path == tmp_path / "runs" / "x" / "config.toml"
-    assert resolve_config(TrainConfig, path, []) == config
+    assert resolve_config(RunConfig, path, []) == config
     assert "[ppo]" in config_to_toml(config)
 
     odd = resolve_config(Outer, None, ["maybe.rate=2", "sizes=[]"])
@@ -294,5 +295,5 @@ def test_resolved_config_round_trips(tmp_path: Path) -> None:
 @pytest.mark.parametrize("hub", ["tcp/0.0.0.0:7447", "tcp/10.0.0.5:7447", "tls/hostA.example.org:7447"])
 def test_the_open_hub_listens_on_loopback_only(hub: str) -> None:
     with pytest.raises(ConfigError, match="not a loopback address"):
-        resolve_config(TrainConfig, overrides=[f"bus.hub={hub}"])
-    assert resolve_config(TrainConfig, overrides=["bus.hub=tcp/[::1]:7447"]).bus.hub == "tcp/[::1]:7447"
+        resolve_config(RunConfig, overrides=[f"bus.hub={hub}"])
+    assert resolve_config(RunConfig, overrides=["bus.hub=tcp/[::1]:7447"]).bus.hub == "tcp/[::1]:7447"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from deploy.config import ConfigError, resolve_config
-from deploy.devices import VISIBLE, restrict_gpus, visible_gpus
-from learner.config import TrainConfig
+from deploy.run_config import RunConfig
+from deploy.runtime.devices import VISIBLE, restrict_gpus, visible_gpus
 
 
 def test_positions_are_gpu_numbers_when_nothing_is_inherited() -> None:
@@ -31,10 +31,10 @@ def test_restrict_sets_the_variable_only_when_asked() -> None:
                                       "curriculum.devices=[0,1]", "curriculum.devices=[-2]"])
 def test_bad_device_lists_are_named(override: str) -> None:
     with pytest.raises(ConfigError, match=override.split("=")[0]):
-        resolve_config(TrainConfig, None, [override])
+        resolve_config(RunConfig, None, [override])
 
 
 def test_device_lists_load() -> None:
-    config = resolve_config(TrainConfig, None, ["learner.devices=[0,1]", "actors.devices=[2,3]",
+    config = resolve_config(RunConfig, None, ["learner.devices=[0,1]", "actors.devices=[2,3]",
                                                 "curriculum.devices=[1]"])
     assert config.learner.devices == (0, 1) and config.actors.devices == (2, 3) and config.curriculum.devices == (1,)

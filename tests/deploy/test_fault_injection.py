@@ -33,10 +33,10 @@ from launch_procs import (
 )
 
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from engine.env.spec import env_from_config
 from learner.agent import make_agent
 from learner.checkpoint import TRAIN, Checkpointer
-from learner.config import TrainConfig
 from learner.update import TrainState, make_optimizer
 
 pytestmark = pytest.mark.heavy
@@ -63,7 +63,7 @@ def has_checkpoint(directory) -> bool:
 
 def learner_checkpoints_restore(run_dir) -> list[int]:
     """Every learner checkpoint kept, restored with a template of the run's train state; the steps."""
-    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     spec, _ = env_from_config(config.env)
     params = make_agent(config.network, spec).init(jax.random.PRNGKey(0))
     template = TrainState(params, make_optimizer(config.ppo, 1).init(params), np.asarray(0, np.int32))

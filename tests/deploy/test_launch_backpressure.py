@@ -41,9 +41,9 @@ from bus.codec import Kind, decode
 from curriculum.state import ORIGIN_REPLAY
 from curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from engine.env.spec import EnvSpec
 from learner.checkpoint import Checkpointer
-from learner.config import TrainConfig
 
 pytestmark = pytest.mark.heavy
 
@@ -158,7 +158,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     finally:
         watcher.close()
         stop_launch(launch, run_dir, ("learner", "actor", "curriculum", "view"))
-    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == last_update(run_dir), "the final checkpoint holds the last update"
     assert not any(service_pids(run_dir, role) for role in ("learner", "actor", "curriculum"))

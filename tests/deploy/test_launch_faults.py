@@ -32,11 +32,11 @@ from rerun.chunk import RrdReader
 from bus.codec import Kind, decode, encode
 from bus.keys import LEARNER, SCHEMA_MAJOR
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from engine.env.spec import env_from_config
 from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.checkpoint import Checkpointer
-from learner.config import TrainConfig
 from learner.service import batch_template
 
 pytestmark = pytest.mark.heavy
@@ -48,7 +48,7 @@ STEPS_PER_UPDATE = 64 * 64
 
 def zero_batch_arrays() -> dict[str, np.ndarray]:
     """A well-formed trajectory batch of the quick config, all zeros."""
-    config = resolve_config(TrainConfig, QUICK_LAUNCH)
+    config = resolve_config(RunConfig, QUICK_LAUNCH)
     spec, env_params = env_from_config(config.env)
     template = batch_template(make_agent(config.network, spec), env_params, config.ppo.num_envs,
                               config.ppo.num_steps)
@@ -201,7 +201,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     assert last.get("rejected/actor/stale", 0) >= 2 and last.get("rejected/actor/digest", 0) >= 2, last
     scores = json.loads((run_dir / "eval.json").read_text())
     assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores
-    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
     # `impulse eval` reads the learner's train-only checkpoint; --record draws one episode per level to an .rrd.

@@ -1,5 +1,6 @@
-"""`impulse launch` fails fast: what every process would die of is found before anything starts (`deploy.preflight`),
-and processes that keep failing the same way stop the run instead of crash-looping (`deploy.supervisor`).
+"""`impulse launch` fails fast: what every process would die of is found before anything starts
+(`deploy.runtime.preflight`), and processes that keep failing the same way stop the run instead of crash-looping
+(`deploy.runtime.supervisor`).
 
 The launches here are real (`python -m deploy.cli launch` on configs/quick-launch.toml, their own hub port); the
 preflight checks of checkpoints run in this process on checkpoints written from zeros (no training)."""
@@ -18,9 +19,9 @@ import pytest
 from launch_procs import QUICK_LAUNCH, REPO, free_port, service_pids
 
 from deploy.config import config_to_toml, resolve_config, write_resolved_config
-from deploy.preflight import PreflightError, run_preflight
+from deploy.run_config import RunConfig
+from deploy.runtime.preflight import PreflightError, run_preflight
 from learner.checkpoint import CURRICULUM, TRAIN, Checkpointer
-from learner.config import TrainConfig
 
 ROLES = ("learner", "actor", "curriculum")
 
@@ -34,8 +35,8 @@ def launch(run_dir: Path, *overrides: str, env: dict[str, str] | None = None,
                           check=False)
 
 
-def config_for(run_dir: Path, *overrides: str) -> TrainConfig:
-    return resolve_config(TrainConfig, QUICK_LAUNCH, [f"run_dir={run_dir}", f"name={run_dir.name}", *overrides])
+def config_for(run_dir: Path, *overrides: str) -> RunConfig:
+    return resolve_config(RunConfig, QUICK_LAUNCH, [f"run_dir={run_dir}", f"name={run_dir.name}", *overrides])
 
 
 def zeros_like(template):

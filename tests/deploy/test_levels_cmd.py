@@ -14,10 +14,10 @@ from monitor_scenes import BLUE_AT, GREEN_AT, small_level
 from PIL import Image
 
 from deploy.cli import main
+from engine.levels.drawing import ROLE_COLOURS
 from engine.levels.kinetix_json import level_to_json_dict, load_kinetix_level, save_kinetix_level
 from engine.levels.level import level_from_scene
-from engine.levels.scene import ROLE_COLOURS
-from engine.physics.scene import empty_scene
+from engine.physics.building import empty_scene
 from engine.physics.sizes import SIZE_M, SIZE_S
 from monitor.png import world_to_pixel
 

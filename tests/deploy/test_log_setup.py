@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from deploy.log_setup import configure_logging
+from deploy.runtime.log_setup import configure_logging
 
 
 @pytest.fixture(autouse=True)

@@ -26,8 +26,9 @@ from launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_po
 from namespaces import Hosts, why_not
 
 from bus.codec import Kind, Rejected, decode, encode
+from bus.config import BusConfig
 from bus.keys import Keys
-from bus.session import BusConfig, zenoh_config
+from bus.session import zenoh_config
 
 pytestmark = pytest.mark.heavy
 
@@ -35,6 +36,8 @@ RUN = "multihost"
 FORGED_VERSION = 1_000_000
 PARTITION_S = 8.0
 """Longer than the bus lease (3 s): both sides declare the other gone before the link comes back."""
+
+CERT_SCRIPT = REPO / "deploy" / "cluster" / "security" / "make-test-certs.sh"
 
 
 @dataclass
@@ -90,7 +93,7 @@ class Cluster:
 
 
 def make_credentials(directory: Path, *router_hosts: str) -> Path:
-    made = subprocess.run(["bash", str(REPO / "deploy" / "security" / "make-test-certs.sh"), str(directory),
+    made = subprocess.run(["bash", str(CERT_SCRIPT), str(directory),
                            *router_hosts], capture_output=True, text=True)
     if made.returncode != 0 and "openssl" in made.stderr:
         pytest.skip(f"openssl is needed to make test certificates: {made.stderr.strip()}")

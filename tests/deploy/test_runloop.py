@@ -7,16 +7,18 @@ from __future__ import annotations
 import io
 import json
 
-from deploy.runloop import run_loop
-from learner.progress import CycleReport, ProgressLine
+from bus.service import CycleReport, Progress
+from deploy.runtime.progress import ProgressLine
+from deploy.runtime.runloop import LoopOptions, run_loop
 
 
 class CountingService:
     """A service that makes one update per cycle until `updates` and records the updates it was saved at."""
 
     def __init__(self, updates: int, done: int = 0):
-        self.update = done
+        self.update = self.start = done
         self.target = done + updates
+        self.closed = 0
         self.saved_at: list[int] = []
 
     def cycle(self) -> CycleReport:
@@ -29,11 +31,17 @@ class CountingService:
     def finished(self) -> bool:
         return self.update >= self.target
 
+    def progress(self) -> Progress:
+        return Progress(env_steps_done=10 * self.start, updates_done=self.start, total_env_steps=1000)
 
-def run(service: CountingService, *, every: int, stop_after: int | None = None, done: int = 0) -> None:
-    run_loop(service, metrics_path=None, checkpoint_every=every, total_env_steps=1000, updates_done=done,
-             env_steps_done=10 * done, progress=ProgressLine(1000, stream=io.StringIO()),
-             should_stop=None if stop_after is None else lambda: service.update >= stop_after)
+    def close(self) -> None:
+        self.closed += 1
+
+
+def run(service: CountingService, *, every: int, stop_after: int | None = None) -> None:
+    run_loop(service, LoopOptions(checkpoint_every=every, progress=ProgressLine(1000, stream=io.StringIO()),
+                                  should_stop=None if stop_after is None else lambda: service.update >= stop_after))
+    assert service.closed == 1, "the loop closes the service once, whatever ended it"
 
 
 def test_a_service_stopped_before_its_first_update_writes_no_checkpoint() -> None:
@@ -41,7 +49,7 @@ def test_a_service_stopped_before_its_first_update_writes_no_checkpoint() -> Non
     run(service, every=2, stop_after=0)
     assert service.saved_at == []
     resumed = CountingService(updates=5, done=4)
-    run(resumed, every=2, stop_after=4, done=4)
+    run(resumed, every=2, stop_after=4)
     assert resumed.saved_at == [], "nothing new since the checkpoint it resumed"
 
 
@@ -59,13 +67,11 @@ def test_a_resumed_run_has_one_metrics_row_per_update(tmp_path) -> None:
     dead rows (and a line cut short by the kill) are set aside, never deleted, and each update has one row."""
     path = tmp_path / "metrics.jsonl"
     first = CountingService(updates=5)
-    run_loop(first, metrics_path=path, checkpoint_every=3, total_env_steps=1000,
-             progress=ProgressLine(1000, stream=io.StringIO()))
+    run_loop(first, LoopOptions(metrics_path=path, checkpoint_every=3, progress=ProgressLine(1000, io.StringIO())))
     with path.open("a") as file:
         file.write('{"update": 6, "env_st')  # killed mid-line
     resumed = CountingService(updates=4, done=3)
-    run_loop(resumed, metrics_path=path, checkpoint_every=3, total_env_steps=1000, updates_done=3,
-             env_steps_done=30, progress=ProgressLine(1000, stream=io.StringIO()))
+    run_loop(resumed, LoopOptions(metrics_path=path, checkpoint_every=3, progress=ProgressLine(1000, io.StringIO())))
     rows = [json.loads(line) for line in path.read_text().splitlines()]
     assert [row["update"] for row in rows] == [1, 2, 3, 4, 5, 6, 7]
     aside = (tmp_path / "metrics-superseded.jsonl").read_text().splitlines()

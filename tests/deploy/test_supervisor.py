@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.status_display import render
-from deploy.supervisor import Child, Supervisor, error_line, is_failure
+from deploy.runtime.status_display import render
+from deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
 
 FAST = {"give_up_after": 3, "backoff_s": (0.05,)}
 

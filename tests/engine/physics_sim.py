@@ -14,12 +14,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from engine.physics import SceneSizes, SimParams, SimState, empty_scene, step
+from engine.physics import SceneSizes, SimParams, SimState, SolverOptions, empty_scene, step
 from engine.physics.pairs import pair_tables
 
 SIZES = SceneSizes(num_polygons=8, num_circles=3, num_joints=2, num_thrusters=2)
 NUM_ACTIONS = SIZES.num_joints + SIZES.num_thrusters
 PARAMS = SimParams()
+OPTIONS = SolverOptions()
 DT = PARAMS.dt
 G = 9.81
 FLOOR_TOP = 0.4
@@ -37,11 +38,13 @@ class Trace(NamedTuple):
     normal_impulse: np.ndarray  # [T, num_pairs]
 
 
-def _scan_steps(state: SimState, params: SimParams, actions: jax.Array, sizes: SceneSizes):
+def _scan_steps(
+    state: SimState, params: SimParams, actions: jax.Array, sizes: SceneSizes, options: SolverOptions = OPTIONS
+):
     """Step once per row of `actions` [T, A]; return the final state and the per-step records."""
 
     def body(s, a):
-        s, contacts = step(s, params, a, sizes)
+        s, contacts = step(s, params, a, sizes, options)
         b = s.bodies
         record = (
             b.position,
@@ -56,7 +59,7 @@ def _scan_steps(state: SimState, params: SimParams, actions: jax.Array, sizes: S
     return jax.lax.scan(body, state, actions)
 
 
-run = jax.jit(_scan_steps, static_argnames=("sizes",))
+run = jax.jit(_scan_steps, static_argnames=("sizes", "options"))
 # A batch of scenes [B, ...] with actions [B, T, A]: the scan of the vmapped step (vmap outside the scan).
 run_batch = jax.jit(jax.vmap(_scan_steps, in_axes=(0, None, 0, None)), static_argnames=("sizes",))
 # One step of a batch of scenes, exactly `jax.vmap(step)`.

@@ -26,9 +26,7 @@ from engine.levels.kinetix_json import (
     save_kinetix_level,
 )
 from engine.levels.level import Level, level_from_scene, with_content_id
-from engine.physics.pairs import pair_tables
-from engine.physics.params import SimParams
-from engine.physics.scene import (
+from engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,
@@ -38,6 +36,9 @@ from engine.physics.scene import (
     empty_scene,
     refresh_collision_filter,
 )
+from engine.physics.options import SolverOptions
+from engine.physics.pairs import pair_tables
+from engine.physics.params import SimParams
 from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -168,8 +169,20 @@ def test_fuzzed_level_round_trip_is_bitwise_exact(tmp_path: Path, seed: int) -> 
     loaded = load_kinetix_level(path, validate=False)
     assert_bitwise_equal(loaded.level, level)
     # Saving what was loaded writes the same file again.
-    again = save_kinetix_level(tmp_path / "again.json", loaded.level, loaded.sizes, loaded.params, loaded.frame_skip)
+    again = save_kinetix_level(tmp_path / "again.json", loaded.level, loaded.sizes, loaded.params, loaded.frame_skip,
+                               loaded.options)
     assert again.read_text() == path.read_text()
+
+
+def test_solver_options_of_a_file_round_trip_apart_from_its_sizes(tmp_path: Path) -> None:
+    # A file's num_solver_iterations and do_warm_starting are solver options, not slot counts: they come back as
+    # `options`, the sizes stay the preset, and saving with them writes them again.
+    options = SolverOptions(iterations=4, warm_starting=False)
+    path = save_kinetix_level(tmp_path / "solver.json", build_level(SIZE_S), SIZE_S, options=options)
+    static = json.loads(path.read_text())["static_env_params"]
+    assert (static["num_solver_iterations"], static["do_warm_starting"]) == (4, False)
+    loaded = load_kinetix_level(path)
+    assert loaded.options == options and loaded.sizes == SIZE_S == loaded.file_sizes
 
 
 def test_contact_cache_goes_to_kinetix_manifolds_interleaved() -> None:
@@ -243,7 +256,8 @@ def test_shared_levels_import_export_round_trip(tmp_path: Path) -> None:
         loaded = load_kinetix_level(path)
         exported = level_to_json_dict(loaded.level, loaded.sizes, loaded.params, loaded.frame_skip)
         assert _without_unread(exported) == _without_unread(raw), path.name
-        out = save_kinetix_level(tmp_path / path.name, loaded.level, loaded.sizes, loaded.params, loaded.frame_skip)
+        out = save_kinetix_level(tmp_path / path.name, loaded.level, loaded.sizes, loaded.params, loaded.frame_skip,
+                                 loaded.options)
         assert_bitwise_equal(load_kinetix_level(out).level, loaded.level)
 
 

@@ -1,4 +1,4 @@
-"""The fused solver kernel (`SceneSizes.backend="pallas"`, engine/physics/solver_kernel.py) against the XLA step.
+"""The fused solver kernel (`SolverOptions.backend="pallas"`, engine/physics/solver_kernel.py) against the XLA step.
 
 Its numbers are checked through Pallas's interpreter on CPU (`backend="pallas_interpret"`, on a vmapped batch);
 that it is a kernel Triton accepts, batched and for one scene, is checked by lowering the step for a CUDA GPU,
@@ -8,7 +8,6 @@ level and 1,000 random levels per size is `impulse bench kernel_check` on a GPU 
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -20,8 +19,8 @@ from benchmarks.kernel_check import compare, shared_levels
 from engine.env.config import EnvConfig
 from engine.env.spec import env_from_config
 from engine.levels.generator import sample_random_levels
-from engine.physics import step
-from engine.physics.sizes import SIZE_S, SceneSizes
+from engine.physics import SolverOptions, step
+from engine.physics.sizes import SIZE_S
 
 # Measured: 1.3e-5 m on the shared S levels after 120 steps, 3e-6 m on random S levels after 60 (float rounding,
 # the same arithmetic evaluated in another order); a wrong term in a visit parts them by millimetres at once.
@@ -48,12 +47,12 @@ def test_kernel_follows_the_xla_step_for_120_steps_on_shared_and_random_levels()
 
 
 def test_the_step_lowers_to_one_triton_kernel_for_cuda_batched_or_not_and_to_plain_xla_for_cpu() -> None:
-    states, params, level_sizes = _levels_of_size_s()
-    sizes = dataclasses.replace(level_sizes, backend="pallas")
+    states, params, sizes = _levels_of_size_s()
+    options = SolverOptions(backend="pallas")
     scenes = jax.tree.map(lambda x: x[:4], states)
     actions = jnp.zeros((4, sizes.num_joints + sizes.num_thrusters))
-    batched = jax.jit(jax.vmap(lambda s, a: step(s, params, a, sizes)[0]))
-    one = jax.jit(lambda s, a: step(s, params, a, sizes)[0])
+    batched = jax.jit(jax.vmap(lambda s, a: step(s, params, a, sizes, options)[0]))
+    one = jax.jit(lambda s, a: step(s, params, a, sizes, options)[0])
     lowered = {
         "batched for cuda": batched.trace(scenes, actions).lower(lowering_platforms=("cuda",)).as_text(),
         "one scene for cuda": one.trace(jax.tree.map(lambda x: x[0], scenes), actions[0]).lower(
@@ -65,11 +64,11 @@ def test_the_step_lowers_to_one_triton_kernel_for_cuda_batched_or_not_and_to_pla
     assert "triton" not in lowered["batched for cpu"]
 
 
-def test_backend_setting_is_checked_and_reaches_the_physics_sizes() -> None:
+def test_backend_setting_is_checked_and_reaches_the_solver_options() -> None:
     with pytest.raises(ValueError, match="unknown physics backend"):
-        SceneSizes(backend="cuda")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="phased solver only"):
-        SceneSizes(backend="pallas", solver="jax2d")
+        SolverOptions(backend="cuda")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="phased schedule only"):
+        SolverOptions(backend="pallas", schedule="jax2d")
     spec, _ = env_from_config(EnvConfig(physics_backend="pallas"))
-    assert spec.sizes.backend == "pallas"
-    assert env_from_config(EnvConfig())[0].sizes.backend == "xla"
+    assert spec.solver.backend == "pallas"
+    assert env_from_config(EnvConfig())[0].solver.backend == "xla"

@@ -1,10 +1,8 @@
-"""The `solver="jax2d"` schedule (SceneSizes.solver): its batch layout, conservation, and agreement with the
-default schedule where the visiting order cannot matter; and `solver="jax2d_wipe"`, which adds Jax2D's padding
-bug B1."""
+"""The `schedule="jax2d"` solver option (SolverOptions.schedule): its batch layout, conservation, and agreement with
+the default schedule where the visiting order cannot matter; and `schedule="jax2d_wipe"`, which adds Jax2D's
+padding bug B1."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
@@ -25,27 +23,28 @@ from physics_sim import (
     zero_gravity,
 )
 
-from engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint
+from engine.physics import SolverOptions, add_circle, add_rectangle, add_revolute_joint
 from engine.physics.batched_contacts import BATCH, batch_slots
 from engine.physics.pairs import pair_tables
 
-JAX2D = dataclasses.replace(SIZES, solver="jax2d")
-JAX2D_WIPE = dataclasses.replace(SIZES, solver="jax2d_wipe")
+PHASED = SolverOptions()
+JAX2D = SolverOptions(schedule="jax2d")
+JAX2D_WIPE = SolverOptions(schedule="jax2d_wipe")
 
 
-def _positions(state, sizes: SceneSizes, chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def _positions(state, options: SolverOptions, chunks: int = 3) -> tuple[np.ndarray, np.ndarray]:
     actions = jnp.zeros((CHUNK, NUM_ACTIONS), jnp.float32)
     positions, velocities = [], []
     for _ in range(chunks):
-        state, record = run(state, PARAMS, actions, sizes)
+        state, record = run(state, PARAMS, actions, SIZES, options)
         positions.append(np.asarray(record[0]))
         velocities.append(np.asarray(record[2]))
     return np.concatenate(positions), np.concatenate(velocities)
 
 
-def test_unknown_solver_is_refused() -> None:
-    with pytest.raises(ValueError, match="unknown solver"):
-        SceneSizes(solver="jacobi")  # type: ignore[arg-type]
+def test_unknown_schedule_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown solver schedule"):
+        SolverOptions(schedule="jacobi")  # type: ignore[arg-type]
 
 
 def test_batches_put_touching_pairs_last_and_deal_them_round_robin() -> None:
@@ -92,7 +91,7 @@ def test_without_joints_or_shared_bodies_the_two_schedules_agree() -> None:
     state = arena_scene()
     state, box = add_rectangle(state, (1.5, 0.8), 0.6, 0.3, rotation=0.2)
     state, ball = add_circle(state, (3.0, 0.9), 0.25, velocity=(0.5, 0.0))
-    phased, _ = _positions(state, SIZES)
+    phased, _ = _positions(state, PHASED)
     jax2d, _ = _positions(state, JAX2D)
     assert phased[-1, int(box), 1] < 0.8 - 0.1, "the box did not fall onto the floor"
     np.testing.assert_allclose(jax2d[:, [int(box), int(ball)]], phased[:, [int(box), int(ball)]], atol=1e-4)
@@ -127,13 +126,13 @@ def test_the_wipe_drops_the_last_pairs_resting_impulse() -> None:
     pair = pair_index(lower, upper)
     actions = jnp.zeros((CHUNK, NUM_ACTIONS), jnp.float32)
     stored = {}
-    for sizes in (JAX2D, JAX2D_WIPE):
+    for options in (JAX2D, JAX2D_WIPE):
         s = state
         for _ in range(3):
-            s, record = run(s, PARAMS, actions, sizes)
+            s, record = run(s, PARAMS, actions, SIZES, options)
         touching, impulse = np.asarray(record[4])[:, pair], np.asarray(record[5])[:, pair]
-        assert touching.all(), f"{sizes.solver}: the stack came apart"
-        stored[sizes.solver] = impulse
+        assert touching.all(), f"{options.schedule}: the stack came apart"
+        stored[options.schedule] = impulse
     weight_impulse = mass(state, int(upper)) * G * DT
     np.testing.assert_allclose(stored["jax2d"], weight_impulse, rtol=0.1)
     np.testing.assert_array_equal(stored["jax2d_wipe"], 0.0)

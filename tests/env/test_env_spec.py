@@ -28,7 +28,7 @@ def test_bad_spec_is_refused(kwargs):
         EnvSpec(**kwargs)
 
 
-def test_solver_setting_reaches_the_physics_sizes():
+def test_solver_setting_reaches_the_solver_options():
     spec, _ = env_from_config(EnvConfig(size="m", solver="jax2d"))
-    assert spec.sizes.solver == "jax2d" and spec.sizes.num_polygons == SIZE_M.num_polygons
-    assert env_from_config(EnvConfig())[0].sizes.solver == "phased"
+    assert spec.solver.schedule == "jax2d" and spec.sizes == SIZE_M
+    assert env_from_config(EnvConfig())[0].solver.schedule == "phased"

@@ -190,15 +190,15 @@ def test_pickles_cannot_run_code(tmp_path):
 def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     from deploy.cli import main
     from deploy.config import resolve_config
+    from deploy.run_config import RunConfig
     from learner.checkpoint import TRAIN, Checkpointer
-    from learner.config import TrainConfig
     from learner.run import FusedRun, build
 
     out = tmp_path / "run"
     level = Path(__file__).resolve().parents[2] / "engine" / "levels" / "handmade" / "s_lander.json"
     assert main(["import-kinetix", str(FIXTURES / "flat"), "--out", str(out), "ppo.num_envs=8",
                  "ppo.num_minibatches=2", "ppo.num_steps=8", f"env.levels={level}"]) == 0
-    config = resolve_config(TrainConfig, out / "config.toml")
+    config = resolve_config(RunConfig, out / "config.toml")
     assert (config.network.kind, config.env.observation, config.env.size) == ("flat", "symbolic", "s")
     assert json.loads((out / "kinetix_import.json").read_text())["source"].endswith("params.safetensors")
     trainer, _, _, levels = build(config)  # the template `impulse eval` restores with

@@ -9,9 +9,9 @@ from pathlib import Path
 import jax
 import pytest
 
+from deploy.commands.train import train_run
 from deploy.config import config_to_toml, resolve_config
-from deploy.train_cmd import train_run
-from learner.config import TrainConfig
+from deploy.run_config import RunConfig
 from learner.evaluate import evaluate
 from learner.run import build
 
@@ -22,7 +22,7 @@ QUICK = REPO / "configs" / "quick-cpu.toml"
 
 
 def test_quick_cpu_config_learns_the_easy_car(tmp_path):
-    config = resolve_config(TrainConfig, QUICK)
+    config = resolve_config(RunConfig, QUICK)
     trainer, agent, names, levels = build(config)
     untrained = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), levels)
     before = evaluate(agent, untrained.train.params, trainer.env_params, levels, jax.random.PRNGKey(5), attempts=20)
@@ -39,7 +39,7 @@ def test_quick_cpu_config_learns_the_easy_car(tmp_path):
 
 
 def test_evaluation_is_reproducible_with_a_fixed_seed():
-    config = resolve_config(TrainConfig, QUICK)
+    config = resolve_config(RunConfig, QUICK)
     trainer, agent, _, levels = build(config)
     carry = jax.jit(trainer.init)(jax.random.PRNGKey(1), levels)
     runs = [evaluate(agent, carry.train.params, trainer.env_params, levels, jax.random.PRNGKey(7), attempts=8)

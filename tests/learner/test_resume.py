@@ -19,8 +19,8 @@ import pytest
 from checkpoint_damage import corrupt_newest
 
 from deploy.config import resolve_config
+from deploy.run_config import RunConfig
 from learner.checkpoint import Checkpointer
-from learner.config import TrainConfig
 from learner.run import build, fused_checkpoint_items
 
 pytestmark = pytest.mark.heavy
@@ -52,7 +52,7 @@ def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
 
 
 def _final_params(run_dir: Path):
-    config = resolve_config(TrainConfig, run_dir / "config.toml")
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     trainer, _, _, levels = build(config)
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), levels)
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:

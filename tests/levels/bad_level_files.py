@@ -15,7 +15,7 @@ import numpy as np
 
 from engine.levels.kinetix_json import level_to_json_dict
 from engine.levels.level import level_from_scene
-from engine.physics.scene import empty_scene
+from engine.physics.building import empty_scene
 from engine.physics.sizes import SIZE_S
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -2,7 +2,7 @@
 controllers that solve the levels within an episode where doing nothing does not.
 
 The controller runs compile once per size: every (level, controller) pair of a size is played in one vmapped
-batch (`engine.env.scripted.play_batch`).
+batch (`engine.env.play.play_batch`).
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import jax
 import numpy as np
 import pytest
 
-from engine.env.scripted import play_batch
+from engine.env.play import play_batch
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels import handmade
-from engine.levels.handmade import scripted
+from engine.levels.handmade import controllers
 from engine.levels.handmade.files import check, level_differences
 from engine.levels.kinetix_json import load_kinetix_level
 from engine.levels.level import ROLE_BLUE, ROLE_GREEN, stack_levels
@@ -83,12 +83,12 @@ def test_handmade_level_set_resolves():
 
 def _play_size(size: str):
     """(names, solved/failed/steps under the scripted controller, the same under no-op) for one size."""
-    names = [n for n in NAMES if handmade.LEVELS[n].size == size and n in scripted.SOLUTIONS]
+    names = [n for n in NAMES if handmade.LEVELS[n].size == size and n in controllers.SOLUTIONS]
     sizes = handmade.LEVELS[names[0]].sizes
     levels = stack_levels([handmade.build(n) for n in names] * 2)
-    controllers = tuple(scripted.SOLUTIONS[n] for n in names) + (scripted.noop,)
+    played = tuple(controllers.SOLUTIONS[n] for n in names) + (controllers.noop,)
     which = np.array(list(range(len(names))) + [len(names)] * len(names), np.int32)
-    out = play_batch(EnvSpec(sizes=sizes), EnvParams(), levels, controllers, which, MAX_STEPS)
+    out = play_batch(EnvSpec(sizes=sizes), EnvParams(), levels, played, which, MAX_STEPS)
     out = jax.tree.map(np.asarray, out)
     k = len(names)
     return names, jax.tree.map(lambda x: x[:k], out), jax.tree.map(lambda x: x[k:], out)
@@ -105,6 +105,6 @@ def test_scripted_controllers_solve_and_noop_does_not(size):
 
 
 def test_enough_levels_have_scripted_solutions():
-    assert len(scripted.SOLUTIONS) >= 6
-    assert set(scripted.SOLUTIONS) <= set(NAMES)
-    assert {n for n in NAMES if "easy" in n} <= set(scripted.SOLUTIONS)
+    assert len(controllers.SOLUTIONS) >= 6
+    assert set(controllers.SOLUTIONS) <= set(NAMES)
+    assert {n for n in NAMES if "easy" in n} <= set(controllers.SOLUTIONS)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from bad_level_files import good_level_text, write_bad_inputs
 
+from deploy.run_config import RunConfig
 from engine.levels.sets import (
     KINETIX_LEVELS_ENV,
     MAX_LISTED_PROBLEMS,
@@ -22,7 +23,6 @@ from engine.levels.sets import (
     load_level_set,
 )
 from engine.physics.sizes import SIZE_L, SIZE_S
-from learner.config import TrainConfig
 from learner.run import RunError, _eval_levels, _levels, format_scores, kinetix_groups
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "kinetix-levels"
@@ -148,7 +148,7 @@ def test_training_and_evaluation_level_errors_name_the_file(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path, _ = write_bad_inputs(tmp_path)["truncated JSON"]
-    config = TrainConfig()
+    config = RunConfig()
     bad_env = dataclasses.replace(config, env=dataclasses.replace(config.env, levels=str(path)))
     with pytest.raises(RunError) as info:  # what `impulse train env.levels=FILE` prints after "impulse train: "
         _levels(bad_env, SIZE_S)

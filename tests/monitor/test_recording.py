@@ -22,8 +22,8 @@ from rerun.chunk import RrdReader
 
 from actors.rollout import rollout, start_rollout
 from engine.env.spec import EnvParams, EnvSpec
+from engine.levels.drawing import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
 from engine.levels.level import stack_levels
-from engine.levels.scene import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
 from engine.physics.sizes import SIZE_S
 from monitor.draw import SCENE_PARTS
 from monitor.metrics import log_scalars

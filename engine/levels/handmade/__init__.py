@@ -2,7 +2,7 @@
 
 The designs live in `designs` (Python builders, the source of truth); `python -m engine.levels.handmade.build`
 exports each one as a Kinetix JSON file next to this module (`<name>.json`), so Kinetix and other tools can load
-them too. `scripted` holds controllers that solve some of them (played by `engine.env.scripted`), used by the
+them too. `controllers` holds controllers that solve some of them (played by `engine.env.play`), used by the
 tests.
 
     from engine.levels import handmade

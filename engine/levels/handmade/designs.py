@@ -4,7 +4,7 @@ Each builder takes the scene sizes to build into (default: the smallest Kinetix 
 `Level`. Geometry is in metres: the arena spans x, y in [0, 5] and the floor's top is at y = 0.4. Roles: green is
 the object to deliver, blue the goal, red kills on contact. Motors are driven by motor binding 0 and thrusters by
 thruster binding 0 unless a design says otherwise. Body indices are fixed by the order shapes are added (polygons
-from 4, circles from the size's polygon count); `engine.levels.handmade.scripted` relies on them.
+from 4, circles from the size's polygon count); `engine.levels.handmade.controllers` relies on them.
 """
 
 from __future__ import annotations

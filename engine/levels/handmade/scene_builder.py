@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from engine.levels.level import ROLE_NEUTRAL, Level, level_from_scene
-from engine.physics.scene import (
+from engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,

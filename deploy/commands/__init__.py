@@ -1,0 +1,142 @@
+"""The table of `impulse` subcommands: what each does, which config it resolves, and which issue builds it.
+
+Kept apart from argument parsing so that building a command later means filling in one row: its config class
+and its `run` function. A command without `run` says which issue brings it and exits with status 2, so nothing
+pretends to work before it does.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from deploy.commands import curriculum, import_kinetix, launch, levels, services, view
+from deploy.commands.router import add_router_arguments, run_router_command
+from deploy.commands.train import add_eval_arguments, add_train_arguments, run_eval, run_train
+from deploy.run_config import RunConfig
+
+RunFn = Callable[[argparse.Namespace, Any], int | None]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One `impulse` subcommand."""
+
+    name: str
+    summary: str
+    """One line for `impulse --help`."""
+    description: str
+    """What the command does, for `impulse NAME --help`."""
+    run: RunFn
+    config: type | None = None
+    """The config dataclass it resolves from --config and key=value overrides; None if it takes none."""
+    arguments: Callable[[argparse.ArgumentParser], None] | None = None
+    """Adds the command's own options (beyond --config, --print-config and key=value overrides)."""
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command(
+        "train",
+        "train a policy in one process: fused rollout, PPO and curriculum",
+        "Fused single-process training: rollouts, PPO updates and the curriculum in one jitted loop on one "
+        "device. Writes checkpoints and the resolved config.toml to the run directory.",
+        config=RunConfig,
+        run=run_train,
+        arguments=add_train_arguments,
+    ),
+    Command(
+        "launch",
+        "run learner, curriculum and actors as local processes",
+        "Local multi-process run: one learner, actors.num_actors actors and, when env.levels is random, the "
+        "curriculum service (and, with --view, the Rerun viewer) as separate processes talking over Zenoh, with a "
+        "live status display. A "
+        "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
+        "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
+        config=RunConfig,
+        run=launch.run_launch,
+        arguments=launch.add_launch_arguments,
+    ),
+    Command(
+        "learner",
+        "run the learner process alone (multi-host)",
+        "The learner service: receives trajectories, applies corrected PPO updates, publishes weights, "
+        "checkpoints.",
+        config=RunConfig,
+        run=services.run_learner,
+        arguments=services.add_learner_arguments,
+    ),
+    Command(
+        "actor",
+        "run one actor process alone (multi-host)",
+        "An actor service: runs batched rollouts with the newest weights and publishes trajectories and level "
+        "results.",
+        config=RunConfig,
+        run=services.run_actor,
+        arguments=services.add_actor_arguments,
+    ),
+    Command(
+        "curriculum",
+        "run the curriculum service alone (multi-host)",
+        "The curriculum service and its live controls. `serve` runs the service (it keeps the level buffer, "
+        "scores actors' level results, serves level batches and checkpoints itself; `impulse launch` starts it "
+        "when env.levels is random). `set KEY=VALUE ... --run RUN_DIR` changes live knobs (replay_prob, "
+        "temperature, staleness_coef, score, num_edits, sfl_ratio, ...), applied at the next sample; `get` "
+        "prints them; `inspect` prints the buffer (histograms, top levels, lineage; --json, --render DIR).",
+        run=curriculum.run,
+        arguments=curriculum.add_arguments,
+    ),
+    Command(
+        "router",
+        "run a Zenoh router for a multi-host run",
+        "A Zenoh router for a multi-host run: learner, curriculum and actors on any machine connect to it "
+        "(--connect ENDPOINT). Its [router] config section sets where it listens, the routers of other hosts it "
+        "links to, and TLS, passwords and access control from a credentials directory (docs/multi-host.md).",
+        config=RunConfig,
+        run=run_router_command,
+        arguments=add_router_arguments,
+    ),
+    Command(
+        "eval",
+        "evaluate a checkpoint on the hand-made levels",
+        "Evaluate a checkpoint: solve rate, mean return and episode length per level over K episodes each, as "
+        "a table (and JSON with --json). Uses the config saved in the run directory.",
+        config=RunConfig,
+        run=run_eval,
+        arguments=add_eval_arguments,
+    ),
+    Command(
+        "import-kinetix",
+        "import a policy trained with Kinetix as a run directory",
+        "Read a Kinetix 3.0.x checkpoint (full_model.pbz2, params.pbz2 or model.pbz2 from its training scripts, or a "
+        "pretrained directory with params.safetensors and config.json), map its network exactly onto Impulse's "
+        "(entity transformer, permutation-invariant MLP or flat MLP; anything that cannot be reproduced exactly "
+        "is refused with the reason) and write RUN_DIR with config.toml and a checkpoint that `impulse eval "
+        "--checkpoint RUN_DIR` evaluates. Settings a .pbz2 does not record take Kinetix's defaults unless given "
+        "with --kinetix-config or --kinetix-option; the ones used are printed and kept in kinetix_import.json.",
+        config=RunConfig,
+        run=import_kinetix.run_import,
+        arguments=import_kinetix.add_import_arguments,
+    ),
+    Command(
+        "levels",
+        "inspect, validate, convert and render level files",
+        "Level file tools for Kinetix JSON files (also Impulse's own level format): `validate FILE...` prints "
+        "every problem, `show FILE` describes a level, `render FILE -o OUT.png` draws it, `convert IN OUT --size "
+        "s|m|l` re-sizes and normalises it.",
+        run=levels.run,
+        arguments=levels.add_arguments,
+    ),
+    Command(
+        "view",
+        "open the Rerun viewer on a run",
+        "The Rerun viewer for a run, live: starts the server the run's processes stream to (monitor.url) and "
+        "the native viewer when there is a display, else the web viewer, whose address it prints. --record "
+        "FILE.rrd also writes everything streamed to a file (open it later with `rerun FILE.rrd`). `impulse "
+        "launch --view` starts it for you.",
+        config=RunConfig,
+        run=view.run_view,
+        arguments=view.add_view_arguments,
+    ),
+)

@@ -1,0 +1,260 @@
+"""`impulse curriculum serve|set|get|inspect`: run the curriculum service, and talk to a live one.
+
+`serve` runs the service process (`impulse launch` starts it with `--run RUN_DIR` when the run trains on random
+levels). `set`, `get` and `inspect` find a running service through the run directory's config (run name and bus
+hub) and query it over the bus; they print what it answered and exit 1 if no service answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import sys
+from contextlib import nullcontext
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from deploy.config import ConfigError, apply_overrides, config_to_toml
+from deploy.run_config import RunConfig
+from deploy.runtime.run_dirs import open_run_for
+
+if TYPE_CHECKING:
+    from bus.session import Bus
+
+log = logging.getLogger("impulse.curriculum")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+ANSWER_TIMEOUT_S = 30.0
+CURRICULUM_SECTION = "curriculum."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="curriculum_action", metavar="ACTION", required=True)
+    serve = actions.add_parser("serve", help="run the curriculum service", allow_abbrev=False)
+    serve.add_argument("--run", type=Path, metavar="RUN_DIR", help="use the config saved in RUN_DIR")
+    serve.add_argument("--config", type=Path, metavar="FILE.toml", help="TOML config (without --run)")
+    serve.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint to connect to instead of bus.hub")
+    serve.add_argument("--resume", action="store_true", help="continue from the service's newest checkpoint")
+    serve.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+
+    set_ = actions.add_parser("set", help="change live knobs: KEY=VALUE ... (e.g. replay_prob=0.8)",
+                              allow_abbrev=False)
+    set_.add_argument("assignments", nargs="+", metavar="KEY=VALUE",
+                      help="curriculum knobs, with or without the 'curriculum.' prefix")
+    get = actions.add_parser("get", help="print the live knobs", allow_abbrev=False)
+    inspect = actions.add_parser("inspect", help="print the level buffer", allow_abbrev=False)
+    inspect.add_argument("--top", type=int, default=10, metavar="K", help="levels to list (default 10)")
+    inspect.add_argument("--json", action="store_true", help="print the whole report as JSON")
+    inspect.add_argument("--render", type=Path, metavar="DIR", help="draw the top K levels as PNG files in DIR")
+    for p in (set_, get, inspect):
+        p.add_argument("--run", type=Path, metavar="RUN_DIR", required=True, help="the run's directory")
+        p.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint instead of the run's bus.hub")
+
+
+def run(args: argparse.Namespace, _config: object) -> int:
+    if args.curriculum_action == "serve":
+        return serve(args)
+    opened = open_run_for("curriculum", None, run_dir=args.run, connect=args.connect)
+    if opened is None:
+        return EXIT_USAGE
+    config, _ = opened
+    if args.curriculum_action == "inspect":
+        return inspect(args, config)
+    request: dict[str, Any] = {}
+    if args.curriculum_action == "set":
+        request["set"] = [a[len(CURRICULUM_SECTION):] if a.startswith(CURRICULUM_SECTION) else a
+                          for a in args.assignments]
+    reply = _ask_knobs(config, request)
+    if reply is None:
+        return EXIT_FAILED
+    if not reply.get("ok"):
+        print(f"impulse curriculum {args.curriculum_action}: refused: {reply.get('error')}", file=sys.stderr)
+        return EXIT_USAGE
+    for name, (old, new) in reply.get("changed", {}).items():
+        print(f"{name}: {old} -> {new}")
+    if args.curriculum_action == "set" and not reply.get("changed"):
+        print("nothing changed")
+    if args.curriculum_action == "get":
+        print(f"method = {reply.get('method')}")
+        for name, value in reply["knobs"].items():
+            print(f"{name} = {json.dumps(value)}")
+    return 0
+
+
+def _ask(bus: Bus, key: str, payload: bytes) -> list[bytes]:
+    """The service's replies to one query. Waits first until this new session knows the service's queryable: a
+    query sent before that finds nobody and returns at once, which happens on a busy machine."""
+    if not bus.wait_queryable(key, ANSWER_TIMEOUT_S):
+        return []
+    return bus.get(key, payload=payload, timeout_s=ANSWER_TIMEOUT_S)
+
+
+def _client(config: RunConfig):
+    from bus.keys import OPERATOR
+    from bus.session import Bus
+
+    return Bus(config.bus, config.name, OPERATOR, f"cli-{os.getpid()}")
+
+
+def _no_answer(config: RunConfig, key: str) -> None:
+    print(f"impulse curriculum: no curriculum service answered on {key} within {ANSWER_TIMEOUT_S:.0f} s (is run "
+          f"{config.name!r} running with env.levels=random, on hub {config.bus.connect or config.bus.hub}?)",
+          file=sys.stderr)
+
+
+def _ask_knobs(config: RunConfig, request: dict[str, Any]) -> dict[str, Any] | None:
+    from bus.control import control_reply, control_request
+
+    with _client(config) as bus:
+        replies = _ask(bus, bus.keys.curriculum_knobs, control_request(**request))
+        if not replies:
+            _no_answer(config, bus.keys.curriculum_knobs)
+            return None
+        try:
+            return control_reply(replies[0])
+        except ValueError as err:
+            print(f"impulse curriculum: unreadable answer: {err}", file=sys.stderr)
+            return None
+
+
+def inspect(args: argparse.Namespace, config: RunConfig) -> int:
+    from bus.codec import Rejected
+    from bus.control import control_request, decode_report
+
+    with _client(config) as bus:
+        replies = _ask(bus, bus.keys.curriculum_inspect, control_request(top=args.top, levels=bool(args.render)))
+        if not replies:
+            _no_answer(config, bus.keys.curriculum_inspect)
+            return EXIT_FAILED
+        try:
+            reply = decode_report(replies[0], config.name)
+        except Rejected as err:
+            print(f"impulse curriculum inspect: unreadable answer: {err}", file=sys.stderr)
+            return EXIT_FAILED
+        if reply.error is not None:
+            print(f"impulse curriculum inspect: refused: {reply.error}", file=sys.stderr)
+            return EXIT_USAGE
+        report = reply.report
+        if args.render:
+            _render(config, reply.arrays, report, args.render)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(format_report(report))
+    return 0
+
+
+def _render(config: RunConfig, arrays: dict, report: dict, out: Path) -> None:
+    import jax
+    import numpy as np
+
+    from engine.env.spec import env_from_config
+    from engine.levels.generator import sample_random_level
+    from engine.pytree import tree_from_arrays
+    from monitor.png import render_level, save_png
+
+    spec, _ = env_from_config(config.env)
+    template = jax.eval_shape(lambda key: sample_random_level(key, spec.sizes), jax.random.PRNGKey(0))  # no compile
+    out.mkdir(parents=True, exist_ok=True)
+    for i, row in enumerate(report["top"]):
+        level = tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template)
+        path = out / f"{i:02d}-{row['level_id']:016x}.png"
+        save_png(render_level(level), path)
+        print(f"wrote {path}")
+
+
+def _bar(count: int, most: int, width: int = 30) -> str:
+    return "#" * (round(width * count / most) if most else 0)
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The inspect report for a terminal: summary, histograms, top levels, lineage."""
+    s = report["summary"]
+    lines = [f"curriculum {report['method']}: {s.get('buffer_fill', 0):.0%} of {s['buffer_size']} slots filled, "
+             f"{s.get('staged', 0)} candidates staged, policy version {report['policy_version']}"]
+    for key in ("score_mean", "score_replay_weighted", "staleness_replay_weighted", "score_lag_mean", "learnable",
+                "never_solved", "always_solved", "generation_mean", "shapes_mean", "joints_mean", "thrusters_mean"):
+        if s.get(key) is not None and key in s:
+            lines.append(f"  {key:<26} {s[key]:.3f}")
+    lines.append("  turnover: " + ", ".join(f"{k[6:]} {v}" for k, v in s.items() if k.startswith("count_")))
+    for name, hist in report["histograms"].items():
+        if not hist["counts"]:
+            continue
+        lines.append(f"{name} histogram:")
+        most = max(hist["counts"])
+        for lo, hi, count in zip(hist["edges"][:-1], hist["edges"][1:], hist["counts"], strict=True):
+            lines.append(f"  {lo:>9.3g} .. {hi:<9.3g} {count:>5} {_bar(count, most)}")
+    lines.append("top levels:")
+    lines.append(f"  {'level id':<18} {'score':>8} {'solved':>7} {'eps':>6} {'age':>6} {'replays':>7} {'gen':>4}")
+    for row in report["top"]:
+        solved = "-" if row["solve_rate"] is None else f"{row['solve_rate']:.0%}"
+        lines.append(f"  {row['level_id']:016x}   {row['score']:>8.4f} {solved:>7} {row['episodes']:>6.1f} "
+                     f"{row['age']:>6} {row['replays']:>7} {row['generation']:>4}")
+    if report["lineage"]:
+        lines.append("lineage of mutated levels (child <- parent, generation):")
+        for row in report["lineage"]:
+            lines.append(f"  {row['level_id']:016x} <- {row['parent_id']:016x}  gen {row['generation']}")
+    return "\n".join(lines)
+
+
+def serve(args: argparse.Namespace) -> int:
+    opened = open_run_for("curriculum serve", None, run_dir=args.run, toml=args.config, overrides=args.overrides,
+                          connect=args.connect)
+    if opened is None:
+        return EXIT_USAGE
+    config, run_dir = opened
+    from deploy.runtime.devices import restrict_gpus
+
+    try:
+        restrict_gpus(config.curriculum.devices)
+    except ValueError as err:
+        print(f"impulse curriculum serve: curriculum.devices: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    from deploy.runtime.compile_cache import enable_compile_cache
+
+    enable_compile_cache()
+    from bus.session import Bus
+    from curriculum.algorithms import Curriculum
+    from curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
+    from deploy.runtime.monitoring import CurriculumLogger, open_monitor
+    from deploy.runtime.runloop import LoopOptions, run_loop
+    from engine.env.spec import env_from_config
+    from learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
+
+    spec, env_params = env_from_config(config.env)
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    checkpoint_dir = run_dir / "curriculum" / config.checkpoint.directory
+    checkpoint_config = dataclasses.replace(config.checkpoint, keep_best=False)
+
+    def resolve_knobs(current, assignments):
+        try:
+            return apply_overrides(current, assignments, source="live knob change")
+        except ConfigError as err:
+            raise ValueError(str(err)) from None
+
+    with Checkpointer(checkpoint_dir, checkpoint_config) as checkpoints, \
+            Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
+        if args.resume and checkpoints.latest_step() is None and checkpoints.set_aside():
+            log.warning("%s: the curriculum starts with an empty buffer", checkpoints.nothing_usable())
+        try:
+            service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
+                                        item=CURRICULUM, seed=config.seed, resume=args.resume,
+                                        status_every_s=config.actors.status_every_s)
+        except CheckpointError as err:
+            print(f"impulse curriculum serve: cannot resume: {err}", file=sys.stderr)
+            return EXIT_FAILED
+        service.warm_up()
+        log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
+                 config.curriculum.buffer_size, curriculum.batch_size)
+        watcher = CurriculumLogger(monitor, service, config) if monitor is not None else None
+        # Checkpoints count result messages applied; with checkpoint.every_updates = 0, after every one.
+        run_loop(service, LoopOptions(checkpoint_every=max(config.checkpoint.every_updates, 1), idle_wait_s=0.002,
+                                      every_turn=watcher.poll if watcher is not None else None))
+    log.info("curriculum stopped: %d samples served, %d result messages applied", service.samples,
+             service.result_messages)
+    return 0

@@ -1,0 +1,249 @@
+"""`impulse launch`: a whole distributed run on this machine, as separate processes.
+
+The launcher itself is the bus hub (a zenoh peer listening on `bus.hub`), so the learner and each actor can die
+and come back without breaking the others' connections. It starts the learner, `actors.num_actors` actors
+(`impulse learner --run RUN_DIR`, `impulse actor --run RUN_DIR --index N`) and, for runs on random levels, the
+curriculum service (`impulse curriculum serve --run RUN_DIR --resume`), shows their status lines, restarts a
+process that dies (the learner with `--resume`, from its newest checkpoint) after a back-off, and ends when the
+learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first, then the curriculum and the learner,
+which write final checkpoints; a second Ctrl-C kills everything at once.
+
+Before it writes or starts anything, the launcher checks what every process will need (`deploy.runtime.preflight`: level
+sets, the checkpoints a resume restores, credentials) and exits 1 with one error if something is wrong. A process
+that fails the same way 3 times in a row at start-up is not restarted again (`deploy.runtime.supervisor`): if it is the
+learner, the curriculum service or the last actor, the run is stopped in order and the launcher exits 1 naming
+the process, its exit status and its error line; without some of its actors, the run goes on.
+
+`--view` turns monitoring on for every process (`monitor.enabled`) and starts `impulse view RUN_DIR` first, so
+the run streams its rollouts, curves and curriculum to a Rerun viewer from the start (`--record FILE.rrd` also
+writes them to a file); the viewer is stopped last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+from bus.codec import Rejected
+from bus.inbox import Received
+from bus.keys import OPERATOR
+from bus.session import Bus
+from bus.status import read_status
+from deploy.config import write_resolved_config
+from deploy.run_config import RunConfig
+from deploy.runtime.monitoring import viewer_config
+from deploy.runtime.preflight import PreflightError, run_preflight
+from deploy.runtime.run_dirs import open_run_for
+from deploy.runtime.runloop import StopFlag
+from deploy.runtime.status_display import StatusDisplay, render
+from deploy.runtime.supervisor import Child, Supervisor, describe_failure
+from learner.run_directory import existing_run, holds_checkpoints
+
+log = logging.getLogger("impulse.launch")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+LEARNER = "learner"
+CURRICULUM = "curriculum"
+VIEWER = "viewer"
+POLL_S = 0.2
+ACTOR_STOP_TIMEOUT_S = 20.0
+LEARNER_STOP_TIMEOUT_S = 180.0
+
+
+def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--resume", type=Path, metavar="RUN_DIR",
+                        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there")
+    parser.add_argument("--status-every", type=float, default=10.0, metavar="SECONDS",
+                        help="when the output is not a terminal, log the status lines this often (default 10)")
+    parser.add_argument("--view", action="store_true",
+                        help="stream to a Rerun viewer: starts `impulse view` (native with a display, else the web "
+                        "viewer, whose address is logged) and turns monitoring on in every process")
+    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
+                        help="with --view: also write everything streamed to FILE.rrd")
+
+
+def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
+    command = [role] if action is None else [role, action]
+    return [sys.executable, "-m", "deploy.cli", *command, "--run", str(run_dir), *extra]
+
+
+def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
+    opened = open_run_for("launch", config, run_dir=args.resume, overrides=args.overrides)
+    if opened is None:
+        return EXIT_USAGE
+    config, run_dir = opened
+    if args.resume is None and holds_checkpoints(run_dir / config.checkpoint.directory):
+        print(f"impulse launch: {existing_run(run_dir)}", file=sys.stderr)
+        return EXIT_FAILED
+    if config.curriculum.method != "dr" and not config.uses_curriculum_service:
+        print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
+              f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
+        return EXIT_USAGE
+    expected_lag = config.actors.num_actors * config.actors.credits
+    if expected_lag > config.ppo.max_policy_lag:
+        log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "
+                    "ppo.max_policy_lag=%d: a learner-bound run will drop batches as stale", config.actors.num_actors,
+                    config.actors.credits, expected_lag, config.ppo.max_policy_lag)
+    if args.record is not None and not args.view:
+        print("impulse launch: --record needs --view (it records what the processes stream to the viewer)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    if args.view:
+        config = viewer_config(config)
+    try:  # before anything is written or started: a problem every process would hit is one error, not a crash loop
+        run_preflight(config, run_dir, resume=args.resume is not None,
+                      curriculum_service=config.uses_curriculum_service, cpu_only=True)
+    except PreflightError as err:
+        print(f"impulse launch: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_resolved_config(config, run_dir)
+
+    resume_first = args.resume is not None
+    children = []
+    if args.view:
+        record = ["--record", str(args.record)] if args.record is not None else []
+        children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "deploy.cli", "view", str(run_dir),
+                                                       *record], run_dir / "logs" / "viewer.log"))
+    children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
+                                                             *(["--resume"] if restart or resume_first else [])),
+                      run_dir / "logs" / "learner.log"))
+    if config.uses_curriculum_service:
+        # Always --resume: its own checkpoints hold every buffered level (none yet on a fresh run).
+        children.append(Child(CURRICULUM, lambda restart: _service_argv("curriculum", run_dir, "--resume",
+                                                                        action="serve"),
+                              run_dir / "logs" / "curriculum.log"))
+    for index in range(config.actors.num_actors):
+        children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
+                                                                                        str(i)),
+                              run_dir / "logs" / f"actor-{index}.log"))
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    supervisor = Supervisor(children, env)
+    display = StatusDisplay(log_every_s=args.status_every)
+    log.info("run %s in %s: learner, %s%d actors; logs in %s", config.name, run_dir,
+             f"curriculum ({config.curriculum.method}), " if config.uses_curriculum_service else "",
+             config.actors.num_actors, run_dir / "logs")
+    with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
+        statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
+        presence = bus.watch_alive(bus.keys.alive_pattern())
+        statuses: dict[str, dict] = {}
+        for child in children:
+            supervisor.start(child.name)
+        if args.view:
+            from monitor.viewer import has_display, web_viewer_address
+
+            where = "the native viewer" if has_display() else web_viewer_address(config.monitor.url,
+                                                                                  config.monitor.web_port)
+            log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
+        finished = False
+        actors = [c for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
+        failed: list[Child] = []  # given up on, and the run cannot go on without them
+        with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
+            while not stop.stop:
+                for received in statuses_inbox.poll():
+                    _read_status(received, bus, statuses)
+                for key, alive in presence.poll():
+                    role, ident = bus.keys.parse_alive(key)
+                    if role != OPERATOR:  # command-line tools and watchers come and go
+                        log.info("%s %s the bus", ident, "joined" if alive else "left")
+                        display.forget()
+                for child, code in supervisor.exited():
+                    if child.name == LEARNER and code == 0:
+                        finished = True
+                        break
+                    if code == 0 and child.name not in (CURRICULUM, VIEWER):
+                        log.info("%s ended: the learner finished the run", child.name)  # actors stop on their own
+                        continue
+                    display.forget()
+                    if child.gave_up:
+                        failed = _gave_up(child, actors)
+                        if failed:
+                            break
+                        continue
+                    delay = supervisor.restart_later(child)
+                    log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_failure(child), delay,
+                                " with --resume" if child.name == LEARNER else "")
+                if failed:
+                    log.error("stopping the run: %s", f"the {failed[0].name} gave up"
+                              if failed[0].name in (LEARNER, CURRICULUM) else "every actor gave up")
+                    break
+                if finished:
+                    log.info("the learner finished the run; stopping the actors")
+                    display.forget()
+                    break
+                if supervisor.restart_due():
+                    display.forget()  # Child.start logged a line
+                if display.due():
+                    display.show(render(statuses, children, LEARNER))
+                time.sleep(POLL_S)
+            interrupted = stop.stop
+            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
+            supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
+            if config.uses_curriculum_service:
+                supervisor.stop([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
+            if not finished:
+                log.info("stopping the learner (it writes a final checkpoint)")
+                supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
+            if args.view:
+                supervisor.stop([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
+            display.forget()
+            display.show(render(statuses, children, LEARNER))
+    if failed:
+        print(_failure_message(failed), file=sys.stderr)
+        return EXIT_FAILED
+    scores = run_dir / "eval.json"
+    if finished and scores.is_file():
+        from learner.run import format_scores  # JAX loads here only, for the table's helper
+
+        log.info("evaluation of the final policy (%s):\n%s", scores, format_scores(json.loads(scores.read_text())))
+    return 0 if finished or interrupted else EXIT_FAILED
+
+
+def _gave_up(child: Child, actors: list[Child]) -> list[Child]:
+    """Say that the launcher gave up on `child`; returns the children without which the run cannot go on (the
+    learner, the curriculum service, or every actor once all have given up), or [] when it goes on without it."""
+    log.error("%s failed %d times in a row the same way (%s): not restarting it; its log: %s", child.name,
+              child.streak, describe_failure(child), child.log_path)
+    if child.name in (LEARNER, CURRICULUM):
+        return [child]
+    if child.name not in {actor.name for actor in actors}:
+        log.warning("the run goes on without the %s", child.name)
+        return []
+    if all(actor.gave_up for actor in actors):
+        return actors
+    log.warning("the run goes on with %d of %d actors", sum(not actor.gave_up for actor in actors), len(actors))
+    return []
+
+
+def _failure_message(failed: list[Child]) -> str:
+    """The launcher's last words when it stopped a run because of `failed`: one line per distinct failure, naming
+    the processes, the exit status, the error line and the logs."""
+    by_failure: dict[str, list[Child]] = {}
+    for child in failed:
+        by_failure.setdefault(describe_failure(child), []).append(child)
+    lines = []
+    for failure, children in by_failure.items():
+        names = ", ".join(c.name for c in children[:-1]) + " and " * (len(children) > 1) + children[-1].name
+        each = " each" if len(children) > 1 else ""
+        logs = f"its log: {children[0].log_path}" if len(children) == 1 else \
+            f"their logs are in {children[0].log_path.parent}"
+        lines.append(f"impulse launch: stopped the run: {names}{each} failed {children[0].streak} times in a row the "
+                     f"same way: {failure} ({logs})")
+    return "\n".join(lines)
+
+
+def _read_status(received: Received, bus: Bus, statuses: dict[str, dict]) -> None:
+    """Keep the newest status of each process; a malformed one is counted and logged like any bad message."""
+
+    try:
+        heard = read_status(received, bus.keys)
+    except Rejected as err:
+        bus.rejects.record(err.reason, received.key, err.detail)
+        return
+    statuses[heard.ident] = heard.status

@@ -1,0 +1,176 @@
+"""`impulse levels`: validate, show, render and convert level files (Kinetix JSON, also Impulse's own format).
+
+Engine imports happen inside the actions, so `impulse --help` stays free of JAX. Exit status: 0 when everything
+worked, 1 when a file is invalid or cannot be processed (every problem is printed), 2 for usage errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+EXIT_INVALID = 1
+EXIT_USAGE = 2
+_SIZES = ("s", "m", "l")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="levels_action", metavar="ACTION")
+
+    validate = actions.add_parser(
+        "validate", help="check level files and print every problem",
+        description="Check level files: the JSON structure, every field's shape and value, roles, bindings, "
+        "indices, the fit into --size, and the scene itself. Prints every problem per file; exits 1 if any file "
+        "is invalid. Folders are searched for *.json files.",
+    )
+    validate.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="level files or folders")
+    validate.add_argument("--size", choices=_SIZES, type=str.lower, help="also check that each file fits this size")
+
+    show = actions.add_parser(
+        "show", help="describe a level: shapes, roles, joints, thrusters, controls",
+        description="Print a readable summary of a level file: its size class, every shape (role, kind, position, "
+        "size, fixed or dynamic), joints (type, motor, binding), thrusters and what each action dimension does.",
+    )
+    show.add_argument("path", type=Path, metavar="FILE")
+    show.add_argument("--size", choices=_SIZES, type=str.lower, help="load into this size first")
+
+    render = actions.add_parser(
+        "render", help="draw a level's initial scene as a PNG",
+        description="Draw the level's initial scene (the 5 m x 5 m arena, y up) as a PNG: shapes in role colours, "
+        "fixed shapes darker, joints as dots (fixed joints as squares) and thrusters as triangles pointing the way "
+        "they push, coloured by binding.",
+    )
+    render.add_argument("path", type=Path, metavar="FILE")
+    render.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.png", help="PNG file to write")
+    render.add_argument(
+        "--scale", type=float, default=1.0,
+        help="image size as a multiple of Kinetix's 500 x 500 screen (default 1: 100 pixels per metre)",
+    )
+
+    convert = actions.add_parser(
+        "convert", help="load a level into a size and save it (resize, normalise)",
+        description="Load a level file into the given size (at least the file's own size: slots are added, never "
+        "removed) and save it in the normalised Kinetix format.",
+    )
+    convert.add_argument("source", type=Path, metavar="IN")
+    convert.add_argument("target", type=Path, metavar="OUT")
+    convert.add_argument("--size", choices=_SIZES, type=str.lower, required=True, help="target size")
+
+    parser.set_defaults(levels_parser=parser)
+
+
+def run(args: argparse.Namespace, _config: object) -> int:
+    action = getattr(args, "levels_action", None)
+    if action is None:
+        args.levels_parser.print_usage(sys.stderr)
+        print("impulse levels: choose an action: validate, show, render or convert", file=sys.stderr)
+        return EXIT_USAGE
+    return {"validate": _validate, "show": _show, "render": _render, "convert": _convert}[action](args)
+
+
+def _sizes(name: str | None):
+    from engine.physics.sizes import size_preset
+
+    return size_preset(name) if name else None
+
+
+def _level_files(paths: list[Path]) -> tuple[list[Path], list[str]]:
+    """(the files to check, one "PATH: problem" line per path that names nothing to check). Folders are searched
+    for *.json files (folders named like one are skipped); anything else that exists is checked as a file, so a
+    pipe, a device or an unreadable file is reported by the loader, naming it."""
+    files, missing = [], []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(file for file in path.rglob("*.json") if not file.is_dir())
+            if not found:
+                missing.append(f"{path}: no .json files in this folder")
+            files += found
+        elif path.exists():
+            files.append(path)
+        else:
+            missing.append(f"{path}: no such file or folder")
+    return files, missing
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from engine.levels.kinetix_json import level_file_problems
+
+    files, missing = _level_files(args.paths)
+    for line in missing:
+        print(f"error  {line}")
+    sizes = _sizes(args.size)
+    invalid = 0
+    for file in files:
+        problems = level_file_problems(file, sizes)
+        if problems:
+            invalid += 1
+            print(f"INVALID  {file}")
+            for problem in problems:
+                print(f"    {problem}")
+        else:
+            print(f"ok       {file}")
+    total = len(files)
+    unfound = f", {len(missing)} paths with no level file" if missing else ""
+    print(f"{total - invalid} of {total} level files valid{unfound}")
+    return EXIT_INVALID if invalid or missing else 0
+
+
+def _load(path: Path, size: str | None, validate: bool = True):
+    from engine.levels.kinetix_json import LevelFileError, load_kinetix_level
+
+    try:
+        return load_kinetix_level(path, _sizes(size), validate=validate)
+    except LevelFileError as err:
+        print(f"impulse levels: {err}", file=sys.stderr)
+        return None
+
+
+def _show(args: argparse.Namespace) -> int:
+    from engine.levels.summary import describe_level
+    from engine.physics.validate import validate_scene
+
+    loaded = _load(args.path, args.size, validate=False)
+    if loaded is None:
+        return EXIT_INVALID
+    print(f"level: {args.path}")
+    print(describe_level(loaded.level, loaded.sizes, file_sizes=loaded.file_sizes, params=loaded.params,
+                         frame_skip=loaded.frame_skip))
+    problems = validate_scene(loaded.state)
+    for problem in problems:
+        print(f"problem: {problem}")
+    return EXIT_INVALID if problems else 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from monitor.png import render_level, save_png
+
+    if not args.scale > 0:
+        print(f"impulse levels render: --scale must be positive, got {args.scale}", file=sys.stderr)
+        return EXIT_USAGE
+    loaded = _load(args.path, None, validate=False)
+    if loaded is None:
+        return EXIT_INVALID
+    image = render_level(loaded.level, scale=args.scale)
+    try:
+        save_png(image, args.output)
+    except OSError as err:
+        print(f"impulse levels render: cannot write {args.output}: {err}", file=sys.stderr)
+        return EXIT_INVALID
+    print(f"wrote {args.output} ({image.shape[1]} x {image.shape[0]} pixels)")
+    return 0
+
+
+def _convert(args: argparse.Namespace) -> int:
+    from engine.levels.kinetix_json import save_kinetix_level
+
+    loaded = _load(args.source, args.size)
+    if loaded is None:
+        return EXIT_INVALID
+    try:
+        save_kinetix_level(args.target, loaded.level, loaded.sizes, loaded.params, loaded.frame_skip, loaded.options)
+    except OSError as err:
+        print(f"impulse levels convert: cannot write {args.target}: {err}", file=sys.stderr)
+        return EXIT_INVALID
+    print(f"wrote {args.target} (size {args.size.upper()})")
+    return 0

@@ -1,0 +1,172 @@
+"""`impulse learner` and `impulse actor`: one distributed service per process, driven by the shared run loop
+(the curriculum service is `impulse curriculum serve`, in `deploy.commands.curriculum`).
+
+`impulse launch` starts these as child processes on one machine (`--run RUN_DIR`, reading the config it wrote
+there); they can also be started by hand, on one machine or several (`--connect ENDPOINT`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Callable
+from contextlib import nullcontext
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from deploy.config import config_to_toml, write_resolved_config
+from deploy.run_config import RunConfig
+from deploy.runtime.compile_cache import enable_compile_cache
+from deploy.runtime.devices import restrict_gpus
+from deploy.runtime.monitoring import MetricsLogger, open_monitor
+from deploy.runtime.run_dirs import open_run_for
+
+log = logging.getLogger("impulse.service")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def add_service_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
+                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
+                        "overrides still apply")
+    parser.add_argument("--connect", metavar="ENDPOINT",
+                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tcp/10.0.0.5:7447")
+
+
+def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the newest checkpoint in the run directory (fresh if there is none)")
+    parser.add_argument("--hub", action="store_true",
+                        help="also be the bus hub (listen on bus.hub) when no `impulse launch` provides one")
+
+
+def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--index", type=int, default=0, metavar="N", help="this actor's number (default 0)")
+
+
+def _resolve(args: argparse.Namespace, config: RunConfig, command: str) -> tuple[RunConfig, Path] | None:
+    return open_run_for(command, config, run_dir=args.run, toml=getattr(args, "config", None),
+                        overrides=args.overrides, connect=args.connect)
+
+
+def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
+    resolved = _resolve(args, config, "learner")
+    if resolved is None:
+        return EXIT_USAGE
+    config, run_dir = resolved
+    try:
+        restrict_gpus(config.learner.devices)
+    except ValueError as err:
+        print(f"impulse learner: learner.devices: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    enable_compile_cache()
+    from bus.session import Bus
+    from deploy.runtime.runloop import LoopOptions, run_loop
+    from engine.env.spec import env_from_config
+    from learner.agent import make_agent
+    from learner.run import final_evaluation
+    from learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if args.run is None:
+        write_resolved_config(config, run_dir)
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    with Bus(config.bus, config.name, LEARNER_ROLE, LEARNER_ID, listen=args.hub) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
+        try:
+            service = LearnerService(
+                config.ppo, config.learner, config.checkpoint, seed=config.seed, num_updates=config.num_updates,
+                batches_in_flight=config.actors.num_actors * config.actors.credits,
+                status_every_s=config.actors.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
+                bus=bus, agent=agent, env_params=env_params, resume=args.resume)
+        except LearnerError as err:
+            print(f"impulse learner: {err}", file=sys.stderr)
+            return EXIT_FAILED
+        log.info("learner up: run %s, epoch %d, policy version %d, %d of %d updates done", config.name,
+                 service.epoch, service.version, service.update, service.num_updates)
+        run_loop(service, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
+                                      checkpoint_every=config.checkpoint.every_updates,
+                                      window_size=config.checkpoint.every_updates,
+                                      on_cycle=_learner_on_cycle(service, monitor)))
+        finished = service.finished()
+        params = service.train.params
+    if finished:
+        final_evaluation(config, agent, env_params, params, run_dir)
+        log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
+    elif service.update > service.updates_at_start:
+        log.info("learner stopped at update %d of %d, checkpointed; --resume continues from there", service.update,
+                 service.num_updates)
+    else:
+        log.info("learner stopped at update %d of %d before an update of its own: nothing new to checkpoint",
+                 service.update, service.num_updates)
+    return 0
+
+
+def _learner_on_cycle(service: Any, monitor: Any) -> Callable[[dict[str, Any], dict[str, float]], None]:
+    """The learner notes the window for its status line; with a monitor, the metrics go to Rerun too."""
+
+    def note(record: dict[str, Any], window: dict[str, float]) -> None:
+        service.note_window(window)
+
+    if monitor is None:
+        return note
+    return MetricsLogger(monitor, "learner", service.status, step_timeline="update", then=note)
+
+
+def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
+    resolved = _resolve(args, config, "actor")
+    if resolved is None:
+        return EXIT_USAGE
+    config, _ = resolved
+    if config.actors.memory_fraction > 0:
+        # Read by JAX's GPU backend when it starts, so it must be set before the first import of jax.
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{config.actors.memory_fraction:g}")
+    if config.actors.devices:
+        try:
+            restrict_gpus([config.actors.devices[args.index % len(config.actors.devices)]])
+        except ValueError as err:
+            print(f"impulse actor: actors.devices: {err}", file=sys.stderr)
+            return EXIT_USAGE
+    enable_compile_cache()
+    from actors.levels import CurriculumLevels, LevelSource, LocalLevels
+    from actors.process import ACTOR_ROLE, Actor, actor_name
+    from bus.session import Bus
+    from curriculum.wire import level_batch_template
+    from deploy.runtime.runloop import LoopOptions, run_loop
+    from engine.env.spec import env_from_config
+    from engine.levels.sets import LevelSetError
+    from learner.agent import make_agent
+    from learner.curriculum_inputs import batch_level_results
+
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus, \
+            open_monitor(config) or nullcontext() as monitor:
+        levels: LevelSource
+        if config.uses_curriculum_service:
+            template = level_batch_template(spec.sizes, config.ppo.num_envs)
+            levels = CurriculumLevels(bus, template, config.curriculum.method)
+        else:
+            try:
+                levels = LocalLevels(config.env, spec.sizes)
+            except LevelSetError as err:
+                print(f"impulse actor: env.levels: {err}", file=sys.stderr)
+                return EXIT_FAILED
+        actor = Actor(config.actors, num_envs=config.ppo.num_envs, num_steps=config.ppo.num_steps,
+                      seed=config.seed, index=args.index, bus=bus, agent=agent, env_params=env_params,
+                      levels=levels, level_results=partial(batch_level_results, agent, config.ppo),
+                      env_steps_goal=config.total_env_steps // config.actors.num_actors, monitor=monitor,
+                      monitor_config=config.monitor)
+        log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
+                 config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)
+        on_cycle = MetricsLogger(monitor, actor.name, actor.status) if monitor is not None else None
+        run_loop(actor, LoopOptions(on_cycle=on_cycle))
+    return 0

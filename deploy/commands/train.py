@@ -1,0 +1,179 @@
+"""`impulse train` and `impulse eval`: the fused run (`learner.run.FusedRun`) driven by the shared run loop, and
+evaluation of a checkpoint."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import re
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from deploy.run_config import RunConfig
+from deploy.runtime.compile_cache import enable_compile_cache
+from deploy.runtime.run_dirs import open_run_for
+
+log = logging.getLogger("impulse.train")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+@dataclass
+class RunSummary:
+    updates: int
+    env_steps: int
+    compile_s: float
+    steps_per_s: float
+    """Env steps per second of this process's training (rollout and update, after compiling)."""
+    final_metrics: dict[str, float]
+    eval_scores: dict[str, dict[str, float]] | None
+
+
+def train_run(
+    config: RunConfig,
+    run_dir: Path,
+    config_toml: str,
+    resume: bool = False,
+    stop_after_updates: int | None = None,
+) -> RunSummary:
+    """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
+    checkpointing on the configured cadence and when stopped, then evaluate if the run is complete."""
+    from deploy.runtime.runloop import LoopOptions, run_loop
+    from learner.run import FusedRun
+
+    run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates)
+    loop = run_loop(run, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
+                                     checkpoint_every=config.checkpoint.every_updates,
+                                     window_size=config.checkpoint.every_updates))
+    scores = run.evaluate_at_end()
+    return RunSummary(
+        updates=run.update,
+        env_steps=run.env_steps,
+        compile_s=run.compile_s,
+        steps_per_s=loop.steps_per_s,
+        final_metrics=loop.last,
+        eval_scores=scores,
+    )
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--resume", type=Path, metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there "
+        "(key=value overrides still apply, e.g. total_env_steps to train longer)",
+    )
+    parser.add_argument(
+        "--updates", type=int, metavar="N",
+        help="stop after N more updates (checkpointing), even if total_env_steps is not reached",
+    )
+
+
+def run_train(args: argparse.Namespace, config: RunConfig) -> int:
+    from learner.run import RunError  # JAX loads only when a run starts
+
+    enable_compile_cache()
+    opened = open_run_for("train", config, run_dir=args.resume, overrides=args.overrides)
+    if opened is None:
+        return EXIT_USAGE
+    config, run_dir = opened
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_resolved_config(config, run_dir)
+    log.info("run directory %s", run_dir)
+    try:
+        summary = train_run(config, run_dir, config_to_toml(config), resume=args.resume is not None,
+                            stop_after_updates=args.updates)
+    except RunError as err:
+        print(f"impulse train: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    log.info(
+        "done: %d updates, %s env steps, %.0f env steps/s (rollout and update, after compiling), compile %.1f s",
+        summary.updates, f"{summary.env_steps:,}", summary.steps_per_s, summary.compile_s,
+    )
+    return 0
+
+
+EVAL_SECONDS_PER_STEP = 1 / 30
+"""Evaluation episodes are recorded as if played at 30 agent steps per second of `wall` time."""
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
+                        help="a run directory (its newest checkpoint) or one checkpoint's directory")
+    parser.add_argument("--levels", metavar="SET",
+                        help='"handmade", "kinetix:s|m|l|all" (Kinetix\'s hand-made sets, found as '
+                        '$IMPULSE_KINETIX_LEVELS says), a level file, a folder or a glob (default: eval.levels, else '
+                        'the training levels)')
+    parser.add_argument("--attempts", type=int, metavar="K", help="episodes per level (default: eval.attempts)")
+    parser.add_argument("--seed", type=int, default=0, help="evaluation seed (same seed, same numbers)")
+    parser.add_argument("--greedy", action="store_true", help="take the most likely action instead of sampling")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores as JSON here")
+    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
+                        help="also play one episode per level and write it to a Rerun recording (open it with "
+                        "`rerun FILE.rrd`), drawn as live rollouts are")
+
+
+def _run_dir_of(path: Path) -> Path:
+    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder."""
+    for candidate in (path, path.parent, path.parent.parent):
+        if (candidate / "config.toml").is_file():
+            return candidate
+    raise FileNotFoundError(f"no config.toml in {path} or above it; --checkpoint takes a run directory")
+
+
+def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
+    from learner.run import RunError, evaluate_run, format_scores
+
+    enable_compile_cache()
+    try:
+        run_dir = _run_dir_of(args.checkpoint)
+        config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
+    except (FileNotFoundError, ConfigError) as err:
+        print(f"impulse eval: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+    try:
+        table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
+                             seed=args.seed, greedy=args.greedy,
+                             recorder=_recorder(config.name, args.record) if args.record is not None else None)
+    except RunError as err:
+        print(f"impulse eval: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    print(format_scores(table))
+    if args.record is not None:
+        print(f"recorded one episode per level in {args.record} (open it with `rerun {args.record}`)")
+    if args.json is not None:
+        args.json.write_text(json.dumps(table, indent=2))
+    return 0
+
+
+def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
+    """Writes evaluation episodes to an .rrd file, under rollouts/eval/<level name>."""
+
+    def record(names: list[str], episodes: Any, policy_version: int) -> None:
+        import numpy as np
+
+        from monitor.blueprint import episodes_blueprint
+        from monitor.rollouts import RolloutFrames, log_rollout
+        from monitor.stream import open_recording
+
+        entity_names = tuple(re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem or name) for name in names)
+        steps, first = episodes.steps, episodes.first
+        frames = RolloutFrames(
+            source="eval", states=episodes.watched.state, actuation=episodes.watched.actuation,
+            reward=np.asarray(steps.reward), done=np.asarray(steps.done), solved=np.asarray(steps.solved),
+            truncated=np.asarray(steps.truncated), episode_return=np.asarray(steps.episode_return),
+            policy_version=policy_version, first_step=0, episodes_before=np.zeros(len(names), np.int64),
+            started_at=time.time(), seconds=first.shape[0] * EVAL_SECONDS_PER_STEP, names=entity_names, keep=first)
+        recording = open_recording(run, path=path, blueprint=episodes_blueprint("eval", entity_names))
+        log_rollout(recording, frames)
+        recording.flush()
+        recording.disconnect()
+
+    return record

@@ -1,0 +1,153 @@
+"""The live status display of `impulse launch`: one line per process, from the status messages they publish.
+
+On a terminal the block is redrawn in place once a second; otherwise (a log file, CI) it is written as log lines
+every `log_every_s` seconds, so a long run's log stays readable. A process that has exited shows how (exit status
+or signal), what happens next (a restart, or that the launcher gave up on it) and the error line it ended with,
+the line cut to the terminal's width.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+import time
+from typing import Any, TextIO
+
+from deploy.runtime.supervisor import Child, describe_exit
+
+log = logging.getLogger("impulse.launch")
+
+
+def _number(value: Any, fmt: str = "{:,.0f}") -> str:
+    return "-" if value is None else fmt.format(value)
+
+
+def _total(counts: Any) -> int:
+    """All refusals of a status's `rejected` counts by reason."""
+    return sum(v for v in counts.values() if isinstance(v, int)) if isinstance(counts, dict) else 0
+
+
+STARTING = "starting (importing JAX, compiling; cached after the first run)"
+COLUMNS_WITHOUT_TERMINAL = 200
+"""The width lines of exited processes are cut to when the output is not a terminal (a log file)."""
+
+
+def learner_line(status: dict[str, Any] | None) -> str:
+    if status is None:
+        return STARTING
+    drops = " ".join(f"{label} {status.get(key, 0)}" for label, key in (
+        ("stale", "dropped_stale"), ("old-epoch", "dropped_old_epoch"), ("overflow", "dropped_overflow"),
+        ("inbox-full", "dropped_inbox_full"), ("lost", "lost")))
+    rejected = _total(status.get("rejected"))
+    return (f"v{status['policy_version']} epoch {status['epoch']} | update {status['update']:,}/"
+            f"{status['num_updates']:,} | {_number(status.get('updates_per_s'), '{:.2f}')} upd/s | "
+            f"{_number(status.get('consumed_steps_per_s'))} steps/s consumed | queue {status.get('queue', 0)} | "
+            f"dropped {drops} | rejected {rejected} | solved {_number(status.get('solve_rate'), '{:.0%}')}")
+
+
+def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
+    if status is None:
+        return STARTING
+    waiting = f" | waiting for {status['waiting']}" if status.get("waiting") else ""
+    return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']} | lag "
+            f"{'-' if lag is None else lag} | in flight {status.get('in_flight', 0)} | dropped "
+            f"{status.get('dropped_no_credit', 0)} written off {status.get('written_off', 0)} | rejected "
+            f"{_total(status.get('rejected'))} | levels {status.get('levels', '?')}{waiting}"
+            f"{streaming_part(status.get('monitor'))}")
+
+
+def streaming_part(monitor: dict[str, Any] | None) -> str:
+    """What an actor streams to Rerun, for its status line ("" when monitoring is off)."""
+    if not monitor:
+        return ""
+    if not monitor.get("viewer"):
+        return " | stream: no viewer"
+    return (f" | stream: {monitor.get('frames_logged', 0):,} frames, {monitor.get('rollouts_dropped', 0)} rollouts "
+            "dropped")
+
+
+def curriculum_line(status: dict[str, Any] | None) -> str:
+    if status is None:
+        return STARTING
+    rejected = _total(status.get("rejected"))
+    return (f"{status.get('method', '?')} | buffer {_number(status.get('buffer_fill'), '{:.0%}')} full, score "
+            f"{_number(status.get('score_mean'), '{:.3f}')}, learnable {_number(status.get('learnable'), '{:.0%}')} | "
+            f"staged {status.get('staged', 0)} | served {status.get('samples', 0):,} | results "
+            f"{status.get('results', 0):,} | dropped {status.get('dropped_inbox_full', 0)} | rejected {rejected}")
+
+
+def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
+           curriculum_name: str = "curriculum", viewer_name: str = "viewer", columns: int | None = None) -> list[str]:
+    """The display's lines: every child with its process state, then its latest status. The line of a child that
+    has exited ends with its error line and is cut to `columns` (default: the terminal's width)."""
+    if columns is None:
+        columns = shutil.get_terminal_size((COLUMNS_WITHOUT_TERMINAL, 24)).columns
+    learner = statuses.get(learner_name)
+    lags = learner.get("actor_lag", {}) if isinstance(learner, dict) else {}
+    width = max(len(c.name) for c in children)
+    lines = []
+    for child in children:
+        if child.pid is None:
+            lines.append(_cut(f"{child.name:<{width}}  {exited_state(child)}", columns))
+            continue
+        status = statuses.get(child.name)
+        try:
+            if child.name == learner_name:
+                body = learner_line(status)
+            elif child.name == curriculum_name:
+                body = curriculum_line(status)
+            elif child.name == viewer_name:
+                body = f"Rerun viewer (its address is logged above and in {child.log_path})"
+            else:
+                body = actor_line(status, lags.get(child.name) if isinstance(lags, dict) else None)
+        except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types
+            body = "malformed status"
+        lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")
+    return lines
+
+
+def exited_state(child: Child) -> str:
+    """A child that is not running: how it ended, what happens next, then its error line."""
+    if child.last_exit is None:
+        return f"stopped (restarts {child.restarts})"
+    state = describe_exit(child.last_exit)
+    if child.gave_up:
+        state += f"; gave up after {child.streak} identical failures"
+    elif child.restart_at is not None:
+        state += f"; restarting in {max(child.restart_at - time.monotonic(), 0):.0f} s"
+    state += f" (restarts {child.restarts})"
+    return f"{state} | {child.error_line}" if child.error_line else state
+
+
+def _cut(line: str, columns: int) -> str:
+    """`line` no wider than `columns` ("..." marks a cut), so a redrawn block never wraps."""
+    return line if len(line) <= columns else line[:max(columns - 3, 0)] + "..."
+
+
+class StatusDisplay:
+    def __init__(self, stream: TextIO | None = None, redraw_every_s: float = 1.0, log_every_s: float = 10.0):
+        self.stream = stream or sys.stdout
+        self.interactive = self.stream.isatty()
+        self.every_s = redraw_every_s if self.interactive else log_every_s
+        self._last = -float("inf")
+        self._drawn = 0
+
+    def due(self) -> bool:
+        return time.monotonic() - self._last >= self.every_s
+
+    def show(self, lines: list[str]) -> None:
+        self._last = time.monotonic()
+        if not self.interactive:
+            log.info("status\n  %s", "\n  ".join(lines))
+            return
+        if self._drawn:
+            self.stream.write(f"\x1b[{self._drawn}F")
+        for line in lines:
+            self.stream.write(line + "\x1b[K\n")
+        self.stream.flush()
+        self._drawn = len(lines)
+
+    def forget(self) -> None:
+        """Start the next block below whatever was printed since (a log line), instead of over it."""
+        self._drawn = 0
