@@ -1,8 +1,8 @@
 """Settings for the whole test run.
 
-Each test folder keeps its shared helper modules beside its tests (`tests/engine/physics_sim.py`,
-`tests/env/env_scenes.py`, ...); every folder is put on `sys.path` here, so the tests import them by name under
-any pytest import mode. Helper module names are unique across folders for that reason.
+The folders mirror the rooms (`tests/engine/physics`, `tests/engine/env`, `tests/bus`, ...). Helpers shared by
+tests live in one package, `tests.support` (scenes, level samples, launched processes, paths), imported by its
+full name; pytest's `pythonpath` puts the checkout on `sys.path`, nothing else is added to it.
 
 JAX's persistent compilation cache lives under `<repo>/.cache/jax` (ignored by git), so a second `make test` on
 the same machine, or CI after a developer's run, skips recompiling the engine's jitted functions; only
@@ -17,18 +17,12 @@ The marks balance the two streams (each about half of the suite's time on a 2-co
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import jax
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-for _folder in [REPO_ROOT, *sorted(p for p in Path(__file__).resolve().parent.iterdir() if p.is_dir())]:
-    if not _folder.name.startswith((".", "_")) and str(_folder) not in sys.path:
-        sys.path.insert(0, str(_folder))
+from tests.support.paths import REPO
 
-jax.config.update("jax_compilation_cache_dir", str(REPO_ROOT / ".cache" / "jax"))
+jax.config.update("jax_compilation_cache_dir", str(REPO / ".cache" / "jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 

@@ -9,8 +9,8 @@ stores them once. The per-contact constants stay in the block's input and are re
 What it computes is `step.iterate_phased`, visit for visit: per iteration the joints in slot order
 (joint_solver.solve_joint), then the contacts phase by phase (contact_solver.solve_phase; a phase's contacts
 share no body, so visiting them one after another gives what solving them side by side gives). The formulas are
-those two functions' written over lanes instead of slots; tests/engine/test_physics_kernel.py holds the kernel to
-the XLA schedule on levels and random scenes.
+those two functions' written over lanes instead of slots; tests/engine/physics/test_physics_kernel.py holds the
+kernel to the XLA schedule on levels and random scenes.
 
 Layout (lanes.py): every body, joint and contact slot is a row, indices are unrolled at trace time, a joint's
 bodies (scene data) are picked by one-hot weights over the bodies as in joint_solver. The kernel is written for

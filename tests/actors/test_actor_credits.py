@@ -11,7 +11,6 @@ from functools import partial
 
 import jax
 import pytest
-from launch_procs import QUICK_LAUNCH, free_port
 
 from actors.levels import LocalLevels
 from actors.process import Actor
@@ -26,6 +25,7 @@ from engine.env.spec import env_from_config
 from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.curriculum_inputs import batch_level_results
+from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
 pytestmark = pytest.mark.heavy
 

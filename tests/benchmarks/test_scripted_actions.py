@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.scripted_actions import engine_actions
+from tests.support.paths import REPO
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+BENCHMARKS = REPO / "benchmarks"
 
 
 def test_layout_and_dtype() -> None:

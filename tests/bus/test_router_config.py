@@ -11,8 +11,7 @@ import pytest
 
 from bus.config import RouterConfig
 from bus.router import CredentialsError, access_rules, router_zenoh_config
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.support.paths import REPO
 
 CERT_SCRIPT = REPO / "deploy" / "cluster" / "security" / "make-test-certs.sh"
 

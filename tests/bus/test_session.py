@@ -14,12 +14,12 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 import zenoh
-from bus_procs import BusProcess
 
 from bus.codec import Kind, decode, encode
 from bus.config import BusConfig
 from bus.inbox import AliveWatcher
 from bus.session import PEER_LISTEN, Bus, Hub, zenoh_config
+from tests.support.bus_procs import BusProcess
 
 pytestmark = pytest.mark.heavy
 

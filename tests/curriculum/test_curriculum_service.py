@@ -8,8 +8,6 @@ import time
 
 import numpy as np
 import pytest
-from checkpoint_damage import corrupt_newest
-from launch_procs import free_port
 
 from bus.codec import Kind, decode, encode
 from bus.config import BusConfig
@@ -29,6 +27,8 @@ from deploy.config import ConfigError, apply_overrides
 from engine.env.spec import EnvParams, EnvSpec
 from engine.levels.level import level_id_values, level_id_words
 from learner.checkpoint import CURRICULUM, Checkpointer
+from tests.support.checkpoint_damage import corrupt_newest
+from tests.support.launch_procs import free_port
 
 pytestmark = pytest.mark.heavy
 

@@ -13,8 +13,9 @@ import pytest
 
 from deploy.cli import main
 from deploy.commands import bench
+from tests.support.paths import REPO
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = REPO
 
 
 def impulse(*args: str) -> subprocess.CompletedProcess[str]:

@@ -13,8 +13,7 @@ from deploy.run_config import RunConfig
 from engine.env import config as env_config
 from engine.env.config import EnvConfig
 from learner.config import PPOConfig
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.support.paths import REPO
 
 
 @dataclass(frozen=True)

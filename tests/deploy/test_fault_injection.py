@@ -19,8 +19,15 @@ import time
 import jax
 import numpy as np
 import pytest
-from checkpoint_damage import corrupt_newest
-from launch_procs import (
+
+from deploy.config import resolve_config
+from deploy.run_config import RunConfig
+from engine.env.spec import env_from_config
+from learner.agent import make_agent
+from learner.checkpoint import TRAIN, Checkpointer
+from learner.update import TrainState, make_optimizer
+from tests.support.checkpoint_damage import corrupt_newest
+from tests.support.launch_procs import (
     SMALL_BATCH,
     StatusWatcher,
     free_port,
@@ -31,13 +38,6 @@ from launch_procs import (
     stop_launch,
     wait_for,
 )
-
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import env_from_config
-from learner.agent import make_agent
-from learner.checkpoint import TRAIN, Checkpointer
-from learner.update import TrainState, make_optimizer
 
 pytestmark = pytest.mark.heavy
 

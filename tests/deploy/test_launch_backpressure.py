@@ -22,7 +22,16 @@ import time
 
 import numpy as np
 import pytest
-from launch_procs import (
+from rerun.chunk import RrdReader
+
+from bus.codec import Kind, decode
+from curriculum.state import ORIGIN_REPLAY
+from curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
+from deploy.config import resolve_config
+from deploy.run_config import RunConfig
+from engine.env.spec import EnvSpec
+from learner.checkpoint import Checkpointer
+from tests.support.launch_procs import (
     REPO,
     SMALL_BATCH,
     StatusWatcher,
@@ -35,15 +44,6 @@ from launch_procs import (
     tail,
     wait_for,
 )
-from rerun.chunk import RrdReader
-
-from bus.codec import Kind, decode
-from curriculum.state import ORIGIN_REPLAY
-from curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import EnvSpec
-from learner.checkpoint import Checkpointer
 
 pytestmark = pytest.mark.heavy
 

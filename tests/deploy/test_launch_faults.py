@@ -16,17 +16,6 @@ import time
 import jax
 import numpy as np
 import pytest
-from launch_procs import (
-    QUICK_LAUNCH,
-    StatusWatcher,
-    free_port,
-    last_update,
-    metrics,
-    start_launch,
-    stop_launch,
-    tail,
-    wait_for,
-)
 from rerun.chunk import RrdReader
 
 from bus.codec import Kind, decode, encode
@@ -38,6 +27,17 @@ from engine.pytree import tree_arrays
 from learner.agent import make_agent
 from learner.checkpoint import Checkpointer
 from learner.service import batch_template
+from tests.support.launch_procs import (
+    QUICK_LAUNCH,
+    StatusWatcher,
+    free_port,
+    last_update,
+    metrics,
+    start_launch,
+    stop_launch,
+    tail,
+    wait_for,
+)
 
 pytestmark = pytest.mark.heavy
 

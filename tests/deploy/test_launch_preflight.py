@@ -16,12 +16,12 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from launch_procs import QUICK_LAUNCH, REPO, free_port, service_pids
 
 from deploy.config import config_to_toml, resolve_config, write_resolved_config
 from deploy.run_config import RunConfig
 from deploy.runtime.preflight import PreflightError, run_preflight
 from learner.checkpoint import CURRICULUM, TRAIN, Checkpointer
+from tests.support.launch_procs import QUICK_LAUNCH, REPO, free_port, service_pids
 
 ROLES = ("learner", "actor", "curriculum")
 

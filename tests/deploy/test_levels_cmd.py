@@ -9,8 +9,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from bad_level_files import write_bad_inputs
-from monitor_scenes import BLUE_AT, GREEN_AT, small_level
 from PIL import Image
 
 from deploy.cli import main
@@ -20,6 +18,8 @@ from engine.levels.level import level_from_scene
 from engine.physics.building import empty_scene
 from engine.physics.sizes import SIZE_M, SIZE_S
 from monitor.png import world_to_pixel
+from tests.support.bad_level_files import write_bad_inputs
+from tests.support.monitor_scenes import BLUE_AT, GREEN_AT, small_level
 
 
 @pytest.fixture(scope="module")

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
-from namespaces import Hosts, why_not
 
 from bus.codec import Kind, Rejected, decode, encode
 from bus.config import BusConfig
 from bus.keys import Keys
 from bus.session import zenoh_config
+from tests.support.launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
+from tests.support.namespaces import Hosts, why_not
 
 pytestmark = pytest.mark.heavy
 

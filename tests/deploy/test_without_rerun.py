@@ -7,7 +7,8 @@ import subprocess
 import sys
 
 import pytest
-from launch_procs import REPO
+
+from tests.support.launch_procs import REPO
 
 pytestmark = pytest.mark.heavy
 

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from checkpoint_damage import largest_file, truncate
 
 from learner.checkpoint import Checkpointer, CheckpointError, CorruptCheckpointError
+from tests.support.checkpoint_damage import largest_file, truncate
 
 
 @pytest.fixture(autouse=True)

@@ -32,8 +32,10 @@ from learner.kinetix_import import (
     read_pickle,
 )
 from learner.networks import make_network
+from tests.support.paths import FIXTURES as TEST_FIXTURES
+from tests.support.paths import REPO
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "kinetix"
+FIXTURES = TEST_FIXTURES / "kinetix"
 TOLERANCE = 1e-5
 # variant -> Kinetix settings the checkpoint file does not record (the .pbz2 files carry parameters only)
 VARIANTS = {
@@ -195,7 +197,7 @@ def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     from learner.run import FusedRun, build
 
     out = tmp_path / "run"
-    level = Path(__file__).resolve().parents[2] / "engine" / "levels" / "handmade" / "s_lander.json"
+    level = REPO / "engine" / "levels" / "handmade" / "s_lander.json"
     assert main(["import-kinetix", str(FIXTURES / "flat"), "--out", str(out), "ppo.num_envs=8",
                  "ppo.num_minibatches=2", "ppo.num_steps=8", f"env.levels={level}"]) == 0
     config = resolve_config(RunConfig, out / "config.toml")

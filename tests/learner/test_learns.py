@@ -4,7 +4,6 @@ reaches a 90% solve rate on CPU, starting from a policy that rarely solves the l
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import jax
 import pytest
@@ -14,10 +13,11 @@ from deploy.config import config_to_toml, resolve_config
 from deploy.run_config import RunConfig
 from learner.evaluate import evaluate
 from learner.run import build
+from tests.support.paths import REPO
 
 pytestmark = pytest.mark.heavy
 
-REPO = Path(__file__).resolve().parents[2]
+
 QUICK = REPO / "configs" / "quick-cpu.toml"
 
 

@@ -12,7 +12,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from learner_dummies import SIZES, dummy_observation, permute_shapes, scramble_inactive
 
 from engine.env.actions import action_space
 from engine.env.observations import observation_shape
@@ -21,6 +20,7 @@ from engine.physics.sizes import size_preset
 from learner.config import NetworkConfig
 from learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
 from learner.networks import count_parameters, describe_parameters, make_network, parameter_counts
+from tests.support.learner_dummies import SIZES, dummy_observation, permute_shapes, scramble_inactive
 
 MULTI = MultiCategorical((3, 3, 3, 3, 2, 2))
 SMALL_TRANSFORMER = NetworkConfig(

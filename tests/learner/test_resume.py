@@ -16,16 +16,17 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from checkpoint_damage import corrupt_newest
 
 from deploy.config import resolve_config
 from deploy.run_config import RunConfig
 from learner.checkpoint import Checkpointer
 from learner.run import build, fused_checkpoint_items
+from tests.support.checkpoint_damage import corrupt_newest
+from tests.support.paths import REPO
 
 pytestmark = pytest.mark.heavy
 
-REPO = Path(__file__).resolve().parents[2]
+
 QUICK = REPO / "configs" / "quick-cpu.toml"
 UPDATES = 8
 # The README's quick learner on random levels with a small SFL curriculum, at a quarter of its batch (32 envs x

@@ -1,6 +1,6 @@
 """The learner's PPO update sharded over 2 and 4 simulated CPU devices gives the parameters of the single-device
 update on the same batch. XLA fixes the device count when it starts, so the comparison runs in a process of its own
-(`sharded_update_check.py`)."""
+(`tests/support/sharded_update_check.py`)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,13 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
+from tests.support.paths import REPO
+
 pytestmark = pytest.mark.heavy
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
 PARAM_TOLERANCE = 1e-6
 """Float32 summation order only: measured differences are about 3e-8, against parameter changes of about 1e-3."""
 
@@ -23,8 +22,8 @@ PARAM_TOLERANCE = 1e-6
 @pytest.fixture(scope="module")
 def comparisons() -> dict[int, dict]:
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": os.pathsep.join([str(REPO), str(HERE)])}
-    done = subprocess.run([sys.executable, str(HERE / "sharded_update_check.py"), "2", "4"], env=env, cwd=REPO,
+           "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-m", "tests.support.sharded_update_check", "2", "4"], env=env, cwd=REPO,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]

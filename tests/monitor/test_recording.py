@@ -16,8 +16,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from launch_procs import free_port, wait_for
-from monitor_scenes import small_level
 from rerun.chunk import RrdReader
 
 from actors.rollout import rollout, start_rollout
@@ -30,6 +28,9 @@ from monitor.metrics import log_scalars
 from monitor.png import render_scene, world_to_pixel
 from monitor.rollouts import RolloutFrames, contact_points, log_rollout
 from monitor.stream import Monitor, open_recording
+from tests.support.launch_procs import free_port, wait_for
+from tests.support.monitor_scenes import small_level
+from tests.support.paths import REPO
 
 pytestmark = pytest.mark.heavy
 
@@ -38,7 +39,7 @@ STEPS = 6
 ENVS = 2
 DRIVE = np.array([0, 1, 0, 0, 1, 0], np.int32)  # motor binding 1 forward, thruster binding 0 on
 ENTITY = "/rollouts/actor-7/env-0"
-REPO = Path(__file__).resolve().parents[2]
+
 
 
 def drive_policy(params, obs, key):

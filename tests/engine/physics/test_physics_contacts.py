@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from physics_sim import (
+
+from engine.physics import add_circle, add_rectangle, add_revolute_joint
+from tests.support.physics_sim import (
     DT,
     FLOOR_TOP,
     PARAMS,
@@ -16,8 +18,6 @@ from physics_sim import (
     simulate,
     zero_gravity,
 )
-
-from engine.physics import add_circle, add_rectangle, add_revolute_joint
 
 
 def test_box_rests_on_floor():

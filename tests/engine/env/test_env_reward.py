@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from env_scenes import (
+
+from engine.env.state import UNSET_DISTANCE
+from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_from_scene
+from engine.physics import add_circle, add_rectangle, add_revolute_joint, empty_scene
+from tests.support.env_scenes import (
     BOX,
     CHUNK,
     GREEN_BALL,
@@ -17,10 +21,6 @@ from env_scenes import (
     rollout,
     start,
 )
-
-from engine.env.state import UNSET_DISTANCE
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_from_scene
-from engine.physics import add_circle, add_rectangle, add_revolute_joint, empty_scene
 
 NOOP = np.zeros((2, 6), np.int32)
 

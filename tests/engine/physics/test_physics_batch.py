@@ -8,8 +8,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from physics_random_scenes import build_scenes, draw_actions, draw_parameters
-from physics_sim import (
+
+from engine.physics import (
+    add_circle,
+    add_rectangle,
+    add_revolute_joint,
+    add_thruster,
+    validate_scene,
+)
+from tests.support.physics_random_scenes import build_scenes, draw_actions, draw_parameters
+from tests.support.physics_sim import (
     CHUNK,
     NUM_ACTIONS,
     PARAMS,
@@ -22,14 +30,6 @@ from physics_sim import (
     step_batch,
     take,
     zero_gravity,
-)
-
-from engine.physics import (
-    add_circle,
-    add_rectangle,
-    add_revolute_joint,
-    add_thruster,
-    validate_scene,
 )
 
 

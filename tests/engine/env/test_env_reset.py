@@ -5,7 +5,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from env_scenes import (
+
+from engine.env import env
+from engine.env.observations import observe
+from engine.levels.level import ROLE_BLUE, stack_levels
+from tests.support.env_scenes import (
     BATCH,
     GREEN_BALL,
     NUM_LEVELS,
@@ -18,10 +22,6 @@ from env_scenes import (
     start,
     take,
 )
-
-from engine.env import env
-from engine.env.observations import observe
-from engine.levels.level import ROLE_BLUE, stack_levels
 
 NOOP = np.zeros((BATCH, 6), np.int32)
 XS = (1.0, 2.0, 3.0)  # ball x position of reset level k (identifies it)

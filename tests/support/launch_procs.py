@@ -19,8 +19,8 @@ from bus.config import BusConfig
 from bus.keys import OPERATOR
 from bus.session import Bus
 from bus.status import read_status
+from tests.support.paths import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"
 SMALL_BATCH = ("ppo.num_envs=32", "ppo.num_steps=32", "ppo.num_minibatches=2")
 """Overrides for tests of the runtime rather than of learning: a quarter of quick-launch's batch, so that the

@@ -7,7 +7,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from physics_sim import SIZES, arena_scene, non_finite_leaves, run, set_body_field
 
 from engine.physics import (
     SceneError,
@@ -19,8 +18,10 @@ from engine.physics import (
     check_scene,
     validate_scene,
 )
+from tests.support.paths import SHARED_LEVELS
+from tests.support.physics_sim import SIZES, arena_scene, non_finite_leaves, run, set_body_field
 
-LEVELS = Path(__file__).resolve().parents[2] / ".." / "shared" / "kinetix-levels"
+LEVELS = SHARED_LEVELS
 
 
 def _valid_scene():

@@ -15,7 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from bad_level_files import good_level_text, truncation_point, write_bad_inputs
 
 from engine.levels.kinetix_json import (
     MAX_LEVEL_FILE_BYTES,
@@ -40,8 +39,10 @@ from engine.physics.options import SolverOptions
 from engine.physics.pairs import pair_tables
 from engine.physics.params import SimParams
 from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+from tests.support.bad_level_files import good_level_text, truncation_point, write_bad_inputs
+from tests.support.paths import REPO
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = REPO
 LEVELS = REPO_ROOT / ".." / "shared" / "kinetix-levels"
 PRESETS = (("s", SIZE_S), ("m", SIZE_M), ("l", SIZE_L))
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from level_samples import SIZES, random_levels
 
 from engine.levels.kinetix_json import load_kinetix_level, save_kinetix_level
 from engine.levels.level import (
@@ -16,6 +15,7 @@ from engine.levels.level import (
     with_content_id,
 )
 from engine.levels.sets import load_level_set
+from tests.support.level_samples import SIZES, random_levels
 
 
 def test_words_and_values_round_trip_every_bit():

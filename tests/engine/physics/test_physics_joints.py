@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from physics_sim import (
+
+from engine.physics import add_circle, add_fixed_joint, add_rectangle
+from tests.support.physics_sim import (
     PARAMS,
     arena_scene,
     non_finite_leaves,
@@ -12,8 +14,6 @@ from physics_sim import (
     pair_index,
     simulate,
 )
-
-from engine.physics import add_circle, add_fixed_joint, add_rectangle
 
 
 def _welded_pair(bend: float, spin: float, height: float):

@@ -13,7 +13,6 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from physics_sim import SIZES, arena_scene
 
 from engine.physics import (
     SimState,
@@ -24,6 +23,7 @@ from engine.physics import (
     add_thruster,
 )
 from engine.physics.geometry import rotate
+from tests.support.physics_sim import SIZES, arena_scene
 
 NUM_FREE_POLYGONS = SIZES.num_polygons - SIZES.num_static_polygons
 NUM_CIRCLES = SIZES.num_circles

@@ -1,4 +1,4 @@
-"""Bus processes for the session tests, run as `python tests/bus/bus_procs.py <role> [args]`, and the test-side
+"""Bus processes for the session tests, run as `python tests/support/bus_procs.py <role> [args]`, and the test-side
 handle that starts them and reads what they report.
 
 Each process prints one JSON object per line on stdout ({"event": ...}), stops when a line "stop" arrives on
@@ -24,7 +24,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,8 +32,9 @@ from bus.codec import Kind, Rejected, decode, encode
 from bus.config import BusConfig
 from bus.keys import OPERATOR
 from bus.session import Bus, run_hub
+from tests.support.paths import REPO
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = REPO
 PEER_ROLE = OPERATOR
 SEND_EVERY_S = 0.05
 

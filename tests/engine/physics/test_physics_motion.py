@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from physics_sim import (
+
+from engine.physics import add_circle, add_rectangle, add_revolute_joint, add_thruster
+from tests.support.physics_sim import (
     DT,
     PARAMS,
     G,
@@ -14,8 +16,6 @@ from physics_sim import (
     simulate,
     zero_gravity,
 )
-
-from engine.physics import add_circle, add_rectangle, add_revolute_joint, add_thruster
 
 
 def test_free_fall_matches_semi_implicit_euler():

@@ -7,7 +7,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from physics_sim import (
+
+from engine.physics import SolverOptions, add_circle, add_rectangle, add_revolute_joint
+from engine.physics.batched_contacts import BATCH, batch_slots
+from engine.physics.pairs import pair_tables
+from tests.support.physics_sim import (
     CHUNK,
     DT,
     FLOOR_TOP,
@@ -22,10 +26,6 @@ from physics_sim import (
     run,
     zero_gravity,
 )
-
-from engine.physics import SolverOptions, add_circle, add_rectangle, add_revolute_joint
-from engine.physics.batched_contacts import BATCH, batch_slots
-from engine.physics.pairs import pair_tables
 
 PHASED = SolverOptions()
 JAX2D = SolverOptions(schedule="jax2d")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from env_scenes import GREEN_BALL, SPEC, quiet_scene, rollout, start
 
 from engine.env.observation_types import (
     ATTENTION_CHANNELS,
@@ -30,6 +29,7 @@ from engine.physics import (
     add_thruster,
     empty_scene,
 )
+from tests.support.env_scenes import GREEN_BALL, SPEC, quiet_scene, rollout, start
 
 observe_jit = jax.jit(observe, static_argnums=0)
 GRAVITY_FEATURE = -0.981

@@ -5,7 +5,9 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from env_scenes import (
+
+from engine.env.actions import action_space, engine_actions, noop_action, random_action, unified_action
+from tests.support.env_scenes import (
     CONTINUOUS_SPEC,
     DISCRETE_SPEC,
     SECOND_CIRCLE,
@@ -15,8 +17,6 @@ from env_scenes import (
     rollout,
     start,
 )
-
-from engine.env.actions import action_space, engine_actions, noop_action, random_action, unified_action
 
 WHEEL = SECOND_CIRCLE - 1
 BALL = SECOND_CIRCLE

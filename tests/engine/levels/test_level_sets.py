@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bad_level_files import good_level_text, write_bad_inputs
 
 from deploy.run_config import RunConfig
 from engine.levels.sets import (
@@ -24,8 +23,10 @@ from engine.levels.sets import (
 )
 from engine.physics.sizes import SIZE_L, SIZE_S
 from learner.run import RunError, _eval_levels, _levels, format_scores, kinetix_groups
+from tests.support.bad_level_files import good_level_text, write_bad_inputs
+from tests.support.paths import SHARED_LEVELS
 
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "kinetix-levels"
+SHARED = SHARED_LEVELS
 needs_levels = pytest.mark.skipif(not (SHARED / "s").is_dir(), reason=f"Kinetix's level files are not at {SHARED}")
 
 
