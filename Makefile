@@ -42,13 +42,13 @@ bench-gpu: $(if $(filter $(VENV)/bin/python,$(BENCH_PYTHON)),$(STAMP))
 	status=0; ref=; \
 	$(BENCH_PYTHON) benchmarks/reference_env.py > /dev/null \
 		|| { echo "bench-gpu: no reference venv: engine and env run without Jax2D and Kinetix" >&2; ref=--no-reference; status=1; }; \
-	$(call GPU_LIMIT,420) benchmarks.engine --num-envs 1,32768 --backend xla,pallas $$ref >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,180) benchmarks.kernel_check --random 1000 --steps 120 >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,180) benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,300) benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,120) benchmarks.train --sizes s --kinetix-settings --physics-backend pallas >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,120) benchmarks.profile --sizes s --kinetix-settings >> $(GPU_RESULTS) || status=1; \
-	$(call GPU_LIMIT,330) benchmarks.distributed --parts runs costs --size s --kinetix-settings \
+	$(call GPU_LIMIT,420) impulse.benchmarks.engine --num-envs 1,32768 --backend xla,pallas $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,180) impulse.benchmarks.kernel_check --random 1000 --steps 120 >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,180) impulse.benchmarks.env --num-envs 32768 $$ref >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,300) impulse.benchmarks.train --sizes s m l --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,120) impulse.benchmarks.train --sizes s --kinetix-settings --physics-backend pallas >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,120) impulse.benchmarks.profile --sizes s --kinetix-settings >> $(GPU_RESULTS) || status=1; \
+	$(call GPU_LIMIT,330) impulse.benchmarks.distributed --parts runs costs --size s --kinetix-settings \
 		--set network.width=128 --set network.depth=5 --set bus.shm_pool_mib=512 \
 		--actors 1 2 4 --updates 20 --no-fused-after --timeout 200 >> $(GPU_RESULTS) || status=1; \
 	echo "bench-gpu: JSON lines appended to $(GPU_RESULTS)"; exit $$status

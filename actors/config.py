@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from engine.config_checks import check_device_list, check_range
+from impulse.engine.config_checks import check_device_list, check_range
 
 
 @dataclass(frozen=True)

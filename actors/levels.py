@@ -14,16 +14,15 @@ from typing import Protocol
 
 import jax
 import jax.numpy as jnp
-
-from bus.codec import Rejected
-from bus.levels import decode_level_batch
-from bus.session import Bus
-from curriculum.state import ORIGIN_NEW, LevelBatch
-from curriculum.wire import level_batch_from_message, level_batch_schema
-from engine.env.config import EnvConfig
-from engine.levels.level import Level
-from engine.levels.sets import RANDOM, load_level_set
-from engine.physics.sizes import SceneSizes
+from impulse.bus.codec import Rejected
+from impulse.bus.levels import decode_level_batch
+from impulse.bus.session import Bus
+from impulse.curriculum.state import ORIGIN_NEW, LevelBatch
+from impulse.curriculum.wire import level_batch_from_message, level_batch_schema
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.levels.level import Level
+from impulse.engine.levels.sets import RANDOM, load_level_set
+from impulse.engine.physics.sizes import SceneSizes
 
 Array = jax.Array
 log = logging.getLogger(__name__)

@@ -45,31 +45,30 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 import numpy as np
-
-from actors.config import ActorConfig
-from actors.levels import LevelSource
-from actors.rollout import rollout, start_rollout
-from actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
-from actors.wire import weights_schema
-from bus.codec import Rejected
-from bus.credits import decode_credit
-from bus.keys import ACTOR, LEARNER
-from bus.levels import encode_level_results
-from bus.schema import check
-from bus.service import CycleReport, Progress
-from bus.session import Bus
-from bus.status import StatusPublisher, read_status
-from bus.trajectories import encode_trajectory
-from bus.weights import Weights, decode_weights
-from curriculum.results import LevelResults
-from curriculum.wire import results_arrays
-from engine.env.spec import EnvParams, EnvSpec
-from engine.pytree import tree_arrays, tree_from_arrays
-from monitor.config import MonitorConfig
+from impulse.actors.config import ActorConfig
+from impulse.actors.levels import LevelSource
+from impulse.actors.rollout import rollout, start_rollout
+from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
+from impulse.actors.wire import weights_schema
+from impulse.bus.codec import Rejected
+from impulse.bus.credits import decode_credit
+from impulse.bus.keys import ACTOR, LEARNER
+from impulse.bus.levels import encode_level_results
+from impulse.bus.schema import check
+from impulse.bus.service import CycleReport, Progress
+from impulse.bus.session import Bus
+from impulse.bus.status import StatusPublisher, read_status
+from impulse.bus.trajectories import encode_trajectory
+from impulse.bus.weights import Weights, decode_weights
+from impulse.curriculum.results import LevelResults
+from impulse.curriculum.wire import results_arrays
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.pytree import tree_arrays, tree_from_arrays
+from impulse.monitor.config import MonitorConfig
 
 if TYPE_CHECKING:
-    from monitor.rollouts import RolloutStream
-    from monitor.stream import Monitor
+    from impulse.monitor.rollouts import RolloutStream
+    from impulse.monitor.stream import Monitor
 
 log = logging.getLogger("impulse.actor")
 
@@ -178,7 +177,9 @@ class Actor:
         self._steps_done = 0
         self._stream: RolloutStream | None = None
         if monitor is not None and self.watch:
-            from monitor.rollouts import RolloutStream  # rerun only with a monitor (deploy/runtime/monitoring.py)
+            from impulse.monitor.rollouts import (
+                RolloutStream,  # rerun only with a monitor (deploy/runtime/monitoring.py)
+            )
 
             self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps, monitor_config.contacts)
         self._started = time.monotonic()

@@ -31,14 +31,13 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from actors.trajectory import EpisodeStats, Trajectory
-from engine.env.actions import actuation
-from engine.env.env import reset_batch
-from engine.env.episodes import LoopCarry, Step, episode_loop
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import EnvState
-from engine.levels.level import Level
+from impulse.actors.trajectory import EpisodeStats, Trajectory
+from impulse.engine.env.actions import actuation
+from impulse.engine.env.env import reset_batch
+from impulse.engine.env.episodes import LoopCarry, Step, episode_loop
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.level import Level
 
 Array = jax.Array
 Policy = Callable[[Any, Any, Array], tuple[Array, Array, Array]]

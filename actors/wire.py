@@ -14,11 +14,10 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from actors.trajectory import TrajectoryBatch
-from bus.codec import Kind, Message, tree_hash
-from bus.schema import ArraySpec, Schema, check
-from engine.pytree import path_name, tree_from_arrays
+from impulse.actors.trajectory import TrajectoryBatch
+from impulse.bus.codec import Kind, Message, tree_hash
+from impulse.bus.schema import ArraySpec, Schema, check
+from impulse.engine.pytree import path_name, tree_from_arrays
 
 TRAJECTORY_FINITE = ("steps/obs", "steps/log_prob", "steps/value", "steps/reward", "steps/episode_return",
                      "bootstrap_obs")

@@ -8,8 +8,8 @@ from Python; they are inferred from timings against a plain memcpy of the same s
 with --receiver connects); latency is measured one message at a time with the receiver's acknowledgement, and
 throughput with back-to-back puts (BLOCK, receiver FIFO of 4).
 
-    python -m benchmarks.bus_copies                    # 128 steps x 256 envs x 128 obs floats
-    python -m benchmarks.bus_copies --repeats 5 --burst 10
+    python -m impulse.benchmarks.bus_copies                    # 128 steps x 256 envs x 128 obs floats
+    python -m impulse.benchmarks.bus_copies --repeats 5 --burst 10
 """
 
 from __future__ import annotations
@@ -27,12 +27,11 @@ from typing import Any
 
 import numpy as np
 import zenoh
-
-from benchmarks._harness import REPO
-from bus.codec import Kind, decode, encode
-from bus.config import BusConfig
-from bus.schema import Schema, check
-from bus.session import Bus
+from impulse.benchmarks._harness import REPO
+from impulse.bus.codec import Kind, decode, encode
+from impulse.bus.config import BusConfig
+from impulse.bus.schema import Schema, check
+from impulse.bus.session import Bus
 
 RUN = "bench-bus"
 ACK_TIMEOUT_S = 30.0
@@ -187,7 +186,7 @@ def timed_put(publisher: Any, acks: Any, frame: bytes | bytearray) -> dict[str, 
 def receiver_link(bus: Bus, endpoint: str, shared_memory: bool, capacity: int) -> Iterator[tuple[Any, Any]]:
     """The acknowledging receiver (`--receiver`) in a process of its own, linked to `bus`: yields (publisher of
     frames, inbox of acknowledgements); on the way out the receiver is told to stop, and killed if it does not."""
-    receiver = subprocess.Popen([sys.executable, "-m", "benchmarks.bus_copies", "--receiver", endpoint, "--shm",
+    receiver = subprocess.Popen([sys.executable, "-m", "impulse.benchmarks.bus_copies", "--receiver", endpoint, "--shm",
                                  str(int(shared_memory))], cwd=REPO)
     try:
         acks = bus.inbox(bus.keys.credit("bench"), capacity)

@@ -44,15 +44,14 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
-from benchmarks.scripted_actions import engine_actions
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.physics.options import SCHEDULES as SOLVERS
-from engine.physics.options import SolverOptions
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
-from engine.physics.step import step
+from impulse.benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
+from impulse.benchmarks.scripted_actions import engine_actions
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.physics.options import SCHEDULES as SOLVERS
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.step import step
 
 CHECKPOINTS = (30, 60, 120)
 DIVERGENCE_M = 1e-3  # "the engines have parted": 1 mm
@@ -315,7 +314,7 @@ def run_ours(path: Path, steps: int, mode: str, solver: str = "phased") -> dict[
 
 def run_reference_mode(paths: Sequence[Path], steps: int, mode: str) -> dict[str, dict[str, Any]]:
     """Jax2D trajectories of all levels in one reference-venv process; keyed by level name."""
-    from benchmarks.reference_env import run_reference
+    from impulse.benchmarks.reference_env import run_reference
 
     args = ["trajectories", "--levels", *map(str, paths), "--steps", str(steps), "--actions", mode]
     records = run_reference(args, timeout=3600)

@@ -34,19 +34,18 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
-from benchmarks.plot import PALETTE, Panel, Series, mean_curves, render
-from curriculum.config import METHODS
-from curriculum.stats import buffer_summary
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import env_from_config
-from engine.levels.level import Level
-from engine.levels.sets import HANDMADE, LevelSetError, load_level_set
-from engine.physics.sizes import SceneSizes
-from learner.evaluate import evaluate
-from learner.run import build
+from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
+from impulse.benchmarks.plot import PALETTE, Panel, Series, mean_curves, render
+from impulse.curriculum.config import METHODS
+from impulse.curriculum.stats import buffer_summary
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.levels.level import Level
+from impulse.engine.levels.sets import HANDMADE, LevelSetError, load_level_set
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.learner.evaluate import evaluate
+from impulse.learner.run import build
 
 EVAL_SETS = ("handmade", "kinetix_s")
 EVAL_TITLES = {"handmade": "our hand-made S levels", "kinetix_s": "Kinetix S levels", "train": "training levels"}

@@ -49,19 +49,18 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
-from bus.codec import Kind, encode
-from bus.config import BusConfig
-from bus.stamp import Stamp
-from bus.trajectories import decode_trajectory, encode_trajectory
-from deploy.run_config import RunConfig
-from engine.env.actions import action_space
-from engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
-from engine.physics.sizes import SceneSizes, size_preset
-from engine.pytree import path_name
+from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
+from impulse.bus.codec import Kind, encode
+from impulse.bus.config import BusConfig
+from impulse.bus.stamp import Stamp
+from impulse.bus.trajectories import decode_trajectory, encode_trajectory
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
+from impulse.engine.physics.sizes import SceneSizes, size_preset
+from impulse.engine.pytree import path_name
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
 PARTS = ("bytes", "runs", "costs")
@@ -102,7 +101,7 @@ def run_overrides(args: argparse.Namespace) -> list[str]:
 
 
 def resolve(config_path: Path, overrides: list[str]) -> RunConfig:
-    from deploy.config import resolve_config
+    from impulse.deploy.config import resolve_config
 
     return resolve_config(RunConfig, config_path, overrides)
 
@@ -123,8 +122,8 @@ def active_slots(size: str) -> dict[str, Any]:
     """Mean active polygons, circles, joints and thrusters over the levels of a size (the shared Kinetix levels,
     else our hand-made ones that fit), and the active polygons among those the symbolic vector keeps. The floors
     need them: a batch pads every entity array to the size's slot counts, whatever a level uses."""
-    from engine.levels.kinetix_json import load_kinetix_level
-    from engine.levels.sets import load_level_set
+    from impulse.engine.levels.kinetix_json import load_kinetix_level
+    from impulse.engine.levels.sets import load_level_set
 
     sizes = size_preset(size)
     paths = sorted((LEVELS_DIR / size).glob("*.json")) if LEVELS_DIR.is_dir() else []
@@ -227,9 +226,9 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int) -
     """Bytes on the bus per env step of one trajectory batch, with its floors. The frame is encoded for real
     (arrays of zeros in the template's shapes: size does not depend on values), so header, array table and the
     64-byte alignment of every array are counted."""
-    from learner.agent import make_agent
-    from learner.config import NetworkConfig
-    from learner.service import batch_template
+    from impulse.learner.agent import make_agent
+    from impulse.learner.config import NetworkConfig
+    from impulse.learner.service import batch_template
 
     spec = EnvSpec(sizes=size_preset(size), observation=observation, action="multi_discrete")
     agent = make_agent(NetworkConfig(kind="entity" if observation == "entity" else "flat", width=64, depth=2), spec)
@@ -361,7 +360,7 @@ def run_fused(config_path: Path, overrides: list[str], work: Path, updates: int,
               timeout_s: float, label: str) -> RunResult:
     """`impulse train` as a child process, exactly as a user runs it, for `updates` updates."""
     run_dir = work / label
-    argv = [sys.executable, "-m", "deploy.cli", "train", "--config", str(config_path), *overrides,
+    argv = [sys.executable, "-m", "impulse.deploy.cli", "train", "--config", str(config_path), *overrides,
             f"name=bench-{label}", f"run_dir={run_dir}", f"total_env_steps={updates * steps_per_update}"]
     load = os.getloadavg()[0]
     code, wall = run_process(argv, work / f"{label}.log", timeout_s, child_env())
@@ -370,7 +369,7 @@ def run_fused(config_path: Path, overrides: list[str], work: Path, updates: int,
 
 
 def free_endpoint() -> str:
-    from benchmarks.bus_copies import free_endpoint as free
+    from impulse.benchmarks.bus_copies import free_endpoint as free
 
     return free()
 
@@ -379,10 +378,10 @@ def run_distributed(config_path: Path, overrides: list[str], work: Path, updates
                     num_actors: int, timeout_s: float) -> RunResult:
     """`impulse launch` with `num_actors` actors as a child process, on a free loopback port, while this process
     watches every status line on the run's bus (kept with the time it arrived)."""
-    from bus.codec import Rejected
-    from bus.keys import OPERATOR
-    from bus.session import Bus
-    from bus.status import read_status
+    from impulse.bus.codec import Rejected
+    from impulse.bus.keys import OPERATOR
+    from impulse.bus.session import Bus
+    from impulse.bus.status import read_status
 
     label = f"distributed-{num_actors}"
     run_dir = work / label
@@ -390,7 +389,7 @@ def run_distributed(config_path: Path, overrides: list[str], work: Path, updates
     extra = [f"name={name}", f"run_dir={run_dir}", f"actors.num_actors={num_actors}",
              f"total_env_steps={updates * steps_per_update}", f"bus.hub={free_endpoint()}"]
     config = resolve(config_path, [*overrides, *extra])
-    argv = [sys.executable, "-m", "deploy.cli", "launch", "--config", str(config_path), *overrides, *extra,
+    argv = [sys.executable, "-m", "impulse.deploy.cli", "launch", "--config", str(config_path), *overrides, *extra,
             "--status-every", "30"]
     memory = {}
     if "XLA_PYTHON_CLIENT_MEM_FRACTION" not in os.environ and jax.default_backend() == "gpu":
@@ -562,17 +561,17 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     """One rollout, one `ppo_update`, and the serialisation of one batch, timed here alone at the run's shapes
     (jitted as the actor and the learner jit them). In the runs these compete with other processes for the same
     cores, so they are lower bounds for what the processes spend."""
-    from actors.levels import LocalLevels
-    from actors.rollout import rollout, start_rollout
-    from actors.trajectory import make_batch
-    from actors.wire import checked_tree, trajectory_schema, weights_hash
-    from bus.codec import decode
-    from bus.weights import encode_weights
-    from engine.env.spec import env_from_config
-    from engine.pytree import tree_arrays
-    from learner.agent import make_agent
-    from learner.service import batch_template
-    from learner.update import TrainState, make_optimizer, ppo_update
+    from impulse.actors.levels import LocalLevels
+    from impulse.actors.rollout import rollout, start_rollout
+    from impulse.actors.trajectory import make_batch
+    from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash
+    from impulse.bus.codec import decode
+    from impulse.bus.weights import encode_weights
+    from impulse.engine.env.spec import env_from_config
+    from impulse.engine.pytree import tree_arrays
+    from impulse.learner.agent import make_agent
+    from impulse.learner.service import batch_template
+    from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
     ppo = config.ppo
     spec, env_params = env_from_config(config.env)
@@ -645,8 +644,8 @@ def transport_ms(arrays: dict[str, np.ndarray], bus_config: BusConfig, repeats: 
     """Put -> received as bytes of one trajectory frame into another process over zenoh on loopback, one message
     at a time, sent with the run's bus settings (shared memory, pool size); the receiver of
     `benchmarks.bus_copies` acknowledges each with its monotonic receive time."""
-    from benchmarks.bus_copies import RUN, receiver_link, timed_put
-    from bus.session import Bus
+    from impulse.benchmarks.bus_copies import RUN, receiver_link, timed_put
+    from impulse.bus.session import Bus
 
     frame = encode(Kind.TRAJECTORY, arrays, run=RUN)
     endpoint = free_endpoint()
@@ -858,7 +857,7 @@ def main(argv: list[str] | None = None) -> int:
         if "costs" not in args.parts:
             return 0
         progress("in-process costs: rollout, update, serialisation, transport ...")
-        from deploy.runtime.compile_cache import enable_compile_cache
+        from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
         enable_compile_cache()  # the checkout's cache, which the runs above filled with the same programs
         costs = inprocess_costs(config, args.repeats)

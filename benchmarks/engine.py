@@ -18,11 +18,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-
-from benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.physics.options import SCHEDULES as SOLVERS
-from engine.physics.step import step
+from impulse.benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.physics.options import SCHEDULES as SOLVERS
+from impulse.engine.physics.step import step
 
 
 def measure_ours(
@@ -76,7 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     env_info = environment()
     reference = None
     if not args.no_reference:
-        from benchmarks.reference_env import ensure_reference_env, run_reference
+        from impulse.benchmarks.reference_env import ensure_reference_env, run_reference
 
         ensure_reference_env()
         reference = run_reference

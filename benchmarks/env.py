@@ -23,14 +23,13 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
-from benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
-from engine.env import env
-from engine.env.actions import action_space
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import stack_levels
-from engine.physics.sizes import size_preset
+from impulse.benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
+from impulse.engine.env import env
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.levels.level import stack_levels
+from impulse.engine.physics.sizes import size_preset
 
 
 def reward_total(obs: Any, reward: jax.Array) -> jax.Array:
@@ -76,7 +75,7 @@ def measure_ours(size: str, num_envs: int, num_steps: int, repeats: int, observa
 
 
 def measure_reference(size: str, num_envs: int, num_steps: int, repeats: int) -> dict:
-    from benchmarks.reference_env import ReferenceEnvError, run_reference
+    from impulse.benchmarks.reference_env import ReferenceEnvError, run_reference
 
     level = str(require_levels() / DEFAULT_LEVELS[size])
     args = ["env-speed", "--level", level, "--num-envs", str(num_envs), "--steps", str(num_steps),
@@ -106,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
     require_levels()
     env_info = environment()
     if not args.no_reference:
-        from benchmarks.reference_env import ensure_reference_env
+        from impulse.benchmarks.reference_env import ensure_reference_env
 
         ensure_reference_env()
     for size in args.sizes.split(","):

@@ -20,15 +20,14 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from benchmarks._harness import emit, environment, progress, require_levels
-from engine.levels.generator import sample_random_levels
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.physics.options import SolverOptions
-from engine.physics.params import SimParams
-from engine.physics.sizes import SceneSizes, size_preset
-from engine.physics.state import SimState
-from engine.physics.step import step
+from impulse.benchmarks._harness import emit, environment, progress, require_levels
+from impulse.engine.levels.generator import sample_random_levels
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SceneSizes, size_preset
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.step import step
 
 TOLERANCE_M = 1e-3
 

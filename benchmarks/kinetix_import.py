@@ -40,11 +40,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
-from benchmarks.reference_env import run_reference
-from engine.env.observation_types import EntityObservation
-from learner.kinetix_import import import_kinetix, policy_outputs, read_kinetix_checkpoint
+from impulse.benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
+from impulse.benchmarks.reference_env import run_reference
+from impulse.engine.env.observation_types import EntityObservation
+from impulse.learner.kinetix_import import import_kinetix, policy_outputs, read_kinetix_checkpoint
 
 REFERENCE_SCRIPT = Path(__file__).resolve().parent / "_reference_kinetix_nets.py"
 NET_LEVELS = {
@@ -124,10 +123,10 @@ def two_proportion_z(solved_a: int, n_a: int, solved_b: int, n_b: int) -> float:
 
 
 def compare_policy(args: argparse.Namespace, work: Path) -> dict[str, Any]:
-    from deploy.cli import main as impulse
-    from deploy.config import resolve_config
-    from deploy.run_config import RunConfig
-    from learner.run import evaluate_run
+    from impulse.deploy.cli import main as impulse
+    from impulse.deploy.config import resolve_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.learner.run import evaluate_run
 
     level = str(level_path(args.level))
     progress(f"kinetix_import policy: Kinetix trains on {args.level} for {args.updates} updates")

@@ -17,11 +17,10 @@ import argparse
 import time
 
 import jax
-
-from benchmarks._harness import emit, environment, progress, time_jitted
-from engine.levels.generator import sample_random_level
-from engine.levels.mutations import MutationConfig, mutate_level
-from engine.physics.sizes import size_preset
+from impulse.benchmarks._harness import emit, environment, progress, time_jitted
+from impulse.engine.levels.generator import sample_random_level
+from impulse.engine.levels.mutations import MutationConfig, mutate_level
+from impulse.engine.physics.sizes import size_preset
 
 
 def _compile(fn, *args):

@@ -24,8 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
-
-from benchmarks._harness import REPO, emit, environment, progress
+from impulse.benchmarks._harness import REPO, emit, environment, progress
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
 MODES = ("off", "on", "on-every-rollout")
@@ -38,16 +37,16 @@ def _free_port() -> int:
 
 
 def run(config_path: Path, overrides: list[str], rounds: int, cycles: int, watch: int) -> list[dict[str, Any]]:
-    from actors.levels import LocalLevels
-    from actors.rollout import rollout, start_rollout
-    from actors.trajectory import make_batch
-    from deploy.config import resolve_config
-    from deploy.run_config import RunConfig
-    from engine.env.spec import env_from_config
-    from learner.agent import make_agent
-    from monitor.rollouts import RolloutStream
-    from monitor.stream import Monitor, server_reachable
-    from monitor.viewer import rerun_binary
+    from impulse.actors.levels import LocalLevels
+    from impulse.actors.rollout import rollout, start_rollout
+    from impulse.actors.trajectory import make_batch
+    from impulse.deploy.config import resolve_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.monitor.rollouts import RolloutStream
+    from impulse.monitor.stream import Monitor, server_reachable
+    from impulse.monitor.viewer import rerun_binary
 
     config = resolve_config(RunConfig, config_path, overrides)
     ppo = config.ppo

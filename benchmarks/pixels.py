@@ -36,16 +36,15 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from benchmarks import env as env_bench
-from benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels
-from benchmarks.compat_jax2d import action_sequence, level_name, resolve_levels
-from engine.env.pixels import pixel_geometry, render_pixels
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import Level
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
-from engine.physics.step import step
+from impulse.benchmarks import env as env_bench
+from impulse.benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels
+from impulse.benchmarks.compat_jax2d import action_sequence, level_name, resolve_levels
+from impulse.engine.env.pixels import pixel_geometry, render_pixels
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.step import step
 
 SCRIPT = Path(__file__).resolve().parent / "_reference_pixels.py"
 DEFAULT_DOWNSCALE = 4
@@ -199,7 +198,7 @@ def summarise(records: list[dict], which: str) -> dict:
 
 
 def run_images(paths: list[Path], record: tuple[int, ...], downscale: int) -> None:
-    from benchmarks.reference_env import run_reference
+    from impulse.benchmarks.reference_env import run_reference
 
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "kinetix_pixels.npz"
@@ -227,7 +226,7 @@ def measure_ours(size: str, num_envs: int, num_steps: int, repeats: int, downsca
 
 
 def measure_reference(size: str, num_envs: int, num_steps: int, repeats: int, downscale: int) -> dict:
-    from benchmarks.reference_env import ReferenceEnvError, run_reference
+    from impulse.benchmarks.reference_env import ReferenceEnvError, run_reference
 
     level = str(require_levels() / DEFAULT_LEVELS[size])
     args = ["env-speed", "--level", level, "--num-envs", str(num_envs), "--steps", str(num_steps),

@@ -34,16 +34,15 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
-from actors.rollout import rollout
-from actors.trajectory import make_batch
-from benchmarks._harness import emit, environment, progress, time_jitted
-from benchmarks.train import add_training_arguments, fused_setup, training_settings
-from engine.env.env import step as env_step
-from engine.env.observations import observe
-from engine.physics.step import step as physics_step
-from learner.config import NetworkConfig, PPOConfig
-from learner.update import ppo_update
+from impulse.actors.rollout import rollout
+from impulse.actors.trajectory import make_batch
+from impulse.benchmarks._harness import emit, environment, progress, time_jitted
+from impulse.benchmarks.train import add_training_arguments, fused_setup, training_settings
+from impulse.engine.env.env import step as env_step
+from impulse.engine.env.observations import observe
+from impulse.engine.physics.step import step as physics_step
+from impulse.learner.config import NetworkConfig, PPOConfig
+from impulse.learner.update import ppo_update
 
 FUSION = re.compile(r"=\s*\S+\s+fusion\(")
 

@@ -21,19 +21,18 @@ import time
 from typing import NamedTuple
 
 import jax
-
-from actors.rollout import rollout
-from actors.trajectory import make_batch
-from benchmarks._harness import emit, environment, progress, require_levels, time_jitted
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import Level, stack_levels
-from engine.physics.options import SolverOptions
-from engine.physics.sizes import size_preset
-from learner.agent import Agent, make_agent
-from learner.config import NetworkConfig, PPOConfig
-from learner.fused import FusedCarry, FusedTrainer
-from learner.update import ppo_update
+from impulse.actors.rollout import rollout
+from impulse.actors.trajectory import make_batch
+from impulse.benchmarks._harness import emit, environment, progress, require_levels, time_jitted
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.levels.level import Level, stack_levels
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.sizes import size_preset
+from impulse.learner.agent import Agent, make_agent
+from impulse.learner.config import NetworkConfig, PPOConfig
+from impulse.learner.fused import FusedCarry, FusedTrainer
+from impulse.learner.update import ppo_update
 
 
 class FusedSetup(NamedTuple):

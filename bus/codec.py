@@ -58,8 +58,7 @@ from functools import lru_cache
 from typing import Any, NamedTuple
 
 import numpy as np
-
-from bus.keys import SCHEMA_MAJOR
+from impulse.bus.keys import SCHEMA_MAJOR
 
 MAGIC = b"IMPZ"
 HEADER = struct.Struct("<4sHHIQQIQIQ")

@@ -14,9 +14,8 @@ from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
-
-from bus.codec import Kind, Rejected, decode, encode
-from bus.stamp import Stamp
+from impulse.bus.codec import Kind, Rejected, decode, encode
+from impulse.bus.stamp import Stamp
 
 REPORT = "report"
 ERROR = "error"

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from bus.codec import Kind, Rejected, decode, encode
-from bus.stamp import Stamp
+from impulse.bus.codec import Kind, Rejected, decode, encode
+from impulse.bus.stamp import Stamp
 
 INCARNATION = "incarnation"
 ACKED_SEQ = "acked_seq"

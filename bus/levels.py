@@ -13,9 +13,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
-
-from bus.codec import Kind, Message, decode, encode
-from bus.stamp import Stamp
+from impulse.bus.codec import Kind, Message, decode, encode
+from impulse.bus.stamp import Stamp
 
 
 def encode_level_batch(stamp: Stamp, arrays: Mapping[str, np.ndarray]) -> bytearray:

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from bus.codec import REASONS
+from impulse.bus.codec import REASONS
 
 LOGGER = logging.getLogger("impulse.bus")
 

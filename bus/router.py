@@ -42,9 +42,8 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-
-from bus.config import RouterConfig, is_loopback
-from bus.keys import ACTOR, CURRICULUM, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
+from impulse.bus.config import RouterConfig, is_loopback
+from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
 
 log = logging.getLogger("impulse.router")
 

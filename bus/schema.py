@@ -12,8 +12,7 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import numpy as np
-
-from bus.codec import TREE_HASH_META, Kind, Message, Rejected, flatten, wire_dtype
+from impulse.bus.codec import TREE_HASH_META, Kind, Message, Rejected, flatten, wire_dtype
 
 
 @dataclass(frozen=True)

@@ -49,13 +49,12 @@ from typing import Any
 
 import zenoh
 import zenoh.ext
-
-from bus.config import BusConfig, check_positive
-from bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
-from bus.keys import Keys, check_name, check_role
-from bus.rejects import RejectCounter
-from bus.router import client_security
-from bus.stamp import Stamp
+from impulse.bus.config import BusConfig, check_positive
+from impulse.bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
+from impulse.bus.keys import Keys, check_name, check_role
+from impulse.bus.rejects import RejectCounter
+from impulse.bus.router import client_security
+from impulse.bus.stamp import Stamp
 
 log = logging.getLogger("impulse.bus")
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bus.codec import Kind
+from impulse.bus.codec import Kind
 
 
 @dataclass

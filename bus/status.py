@@ -15,11 +15,10 @@ from collections import Counter
 from typing import Any, NamedTuple
 
 import zenoh
-
-from bus.codec import Kind, Rejected, decode, encode
-from bus.inbox import Received
-from bus.keys import Keys
-from bus.session import Bus
+from impulse.bus.codec import Kind, Rejected, decode, encode
+from impulse.bus.inbox import Received
+from impulse.bus.keys import Keys
+from impulse.bus.session import Bus
 
 
 class StatusPublisher:

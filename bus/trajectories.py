@@ -12,9 +12,8 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
-
-from bus.codec import Kind, Message, Rejected, decode, encode
-from bus.stamp import Stamp
+from impulse.bus.codec import Kind, Message, Rejected, decode, encode
+from impulse.bus.stamp import Stamp
 
 INCARNATION = "incarnation"
 ACTOR_INDEX = "actor"

@@ -15,9 +15,8 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
-
-from bus.codec import TREE_HASH_META, Kind, Message, decode, encode
-from bus.stamp import Stamp
+from impulse.bus.codec import TREE_HASH_META, Kind, Message, decode, encode
+from impulse.bus.stamp import Stamp
 
 PUBLISHED_AT = "published_at"
 """Meta: the learner's wall-clock time at publication."""

@@ -27,13 +27,12 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-
-from curriculum.config import CurriculumConfig
-from curriculum.noop_filter import NoopFilterConfig, sample_filtered_levels
-from curriculum.priority import LEARNABILITY, eviction_slot, pick_replays, score_of
-from curriculum.results import LevelResults
-from curriculum.staging import Candidates, add_result, find, take_candidates
-from curriculum.state import (
+from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.noop_filter import NoopFilterConfig, sample_filtered_levels
+from impulse.curriculum.priority import LEARNABILITY, eviction_slot, pick_replays, score_of
+from impulse.curriculum.results import LevelResults
+from impulse.curriculum.staging import Candidates, add_result, find, take_candidates
+from impulse.curriculum.state import (
     ORIGIN_MUTATED,
     ORIGIN_NEW,
     ORIGIN_REPLAY,
@@ -41,10 +40,10 @@ from curriculum.state import (
     LevelBatch,
     empty_state,
 )
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.generator import GeneratorConfig, sample_random_level
-from engine.levels.level import LEVEL_ID_WORDS, Level
-from engine.levels.mutations import MutationConfig, mutate_level
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.generator import GeneratorConfig, sample_random_level
+from impulse.engine.levels.level import LEVEL_ID_WORDS, Level
+from impulse.engine.levels.mutations import MutationConfig, mutate_level
 
 Array = jax.Array
 

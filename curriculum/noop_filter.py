@@ -13,13 +13,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
-from engine.env.actions import noop_action
-from engine.env.episodes import Act, first_episodes
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import EnvState
-from engine.levels.generator import GeneratorConfig, sample_random_level
-from engine.levels.level import Level
+from impulse.engine.env.actions import noop_action
+from impulse.engine.env.episodes import Act, first_episodes
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.generator import GeneratorConfig, sample_random_level
+from impulse.engine.levels.level import Level
 
 Array = jax.Array
 

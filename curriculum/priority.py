@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-
-from curriculum.state import Buffer, Knobs
+from impulse.curriculum.state import Buffer, Knobs
 
 Array = jax.Array
 

@@ -29,23 +29,22 @@ from typing import Any, Protocol
 
 import jax
 import numpy as np
-
-from bus.codec import Rejected
-from bus.control import control_reply, encode_refusal, encode_report
-from bus.inbox import IncomingQuery
-from bus.keys import CURRICULUM
-from bus.levels import decode_level_results, encode_level_batch
-from bus.service import CycleReport, Progress
-from bus.session import Bus
-from bus.status import StatusPublisher
-from curriculum.algorithms import Curriculum
-from curriculum.config import LIVE_KNOBS, CurriculumConfig
-from curriculum.results import empty_results
-from curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
-from curriculum.stats import buffer_summary, buffer_table, histogram
-from curriculum.wire import ResultsError, level_batch_arrays, results_from_message
-from engine.levels.level import Level
-from engine.pytree import tree_arrays
+from impulse.bus.codec import Rejected
+from impulse.bus.control import control_reply, encode_refusal, encode_report
+from impulse.bus.inbox import IncomingQuery
+from impulse.bus.keys import CURRICULUM
+from impulse.bus.levels import decode_level_results, encode_level_batch
+from impulse.bus.service import CycleReport, Progress
+from impulse.bus.session import Bus
+from impulse.bus.status import StatusPublisher
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
+from impulse.curriculum.results import empty_results
+from impulse.curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
+from impulse.curriculum.stats import buffer_summary, buffer_table, histogram
+from impulse.curriculum.wire import ResultsError, level_batch_arrays, results_from_message
+from impulse.engine.levels.level import Level
+from impulse.engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
 

@@ -13,10 +13,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from curriculum.results import LevelResults
-from curriculum.state import Counters, Knobs, Staging
-from engine.levels.level import Level
+from impulse.curriculum.results import LevelResults
+from impulse.curriculum.state import Counters, Knobs, Staging
+from impulse.engine.levels.level import Level
 
 Array = jax.Array
 

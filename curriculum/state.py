@@ -18,9 +18,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig, candidate_episodes
-from engine.levels.level import LEVEL_ID_WORDS, Level
+from impulse.curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig, candidate_episodes
+from impulse.engine.levels.level import LEVEL_ID_WORDS, Level
 
 Array = jax.Array
 

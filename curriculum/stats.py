@@ -12,11 +12,10 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from curriculum.priority import replay_distribution
-from curriculum.state import CurriculumState
-from engine.levels.level import level_id_values
-from engine.physics.sizes import SceneSizes
+from impulse.curriculum.priority import replay_distribution
+from impulse.curriculum.state import CurriculumState
+from impulse.engine.levels.level import level_id_values
+from impulse.engine.physics.sizes import SceneSizes
 
 SOLVE_RATE_BINS = np.linspace(0.0, 1.0, 11)
 

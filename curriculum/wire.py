@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import jax
 import numpy as np
-
-from bus.codec import Kind, Message
-from bus.schema import ArraySpec, Schema, check
-from curriculum.results import LevelResults, results_from_host, results_to_host
-from curriculum.state import LevelBatch
-from engine.levels.generator import sample_random_level
-from engine.levels.level import LEVEL_ID_WORDS
-from engine.physics.sizes import SceneSizes
-from engine.pytree import tree_arrays, tree_from_arrays
+from impulse.bus.codec import Kind, Message
+from impulse.bus.schema import ArraySpec, Schema, check
+from impulse.curriculum.results import LevelResults, results_from_host, results_to_host
+from impulse.curriculum.state import LevelBatch
+from impulse.engine.levels.generator import sample_random_level
+from impulse.engine.levels.level import LEVEL_ID_WORDS
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.pytree import tree_arrays, tree_from_arrays
 
 _PER_LEVEL = ("K",)
 

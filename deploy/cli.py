@@ -15,9 +15,9 @@ from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
 
-from deploy.commands import COMMANDS, Command, bench
-from deploy.config import ConfigError, config_to_toml, resolve_config
-from deploy.runtime.log_setup import LEVELS, configure_logging
+from impulse.deploy.commands import COMMANDS, Command, bench
+from impulse.deploy.config import ConfigError, config_to_toml, resolve_config
+from impulse.deploy.runtime.log_setup import LEVELS, configure_logging
 
 EXIT_USAGE = 2
 

@@ -8,13 +8,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
-from engine.env.actions import action_space
-from engine.env.observations import observation_shape
-from engine.env.spec import EnvSpec
-from learner.config import NetworkConfig
-from learner.distributions import Distribution, distribution_for
-from learner.networks import ActorCritic, make_network
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.observations import observation_shape
+from impulse.engine.env.spec import EnvSpec
+from impulse.learner.config import NetworkConfig
+from impulse.learner.distributions import Distribution, distribution_for
+from impulse.learner.networks import ActorCritic, make_network
 
 Array = jax.Array
 

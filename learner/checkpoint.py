@@ -55,9 +55,8 @@ from typing import Any, NamedTuple
 
 import jax
 import orbax.checkpoint as ocp
+from impulse.learner.config import CheckpointConfig
 from orbax.checkpoint.checkpoint_managers import preservation_policy
-
-from learner.config import CheckpointConfig
 
 log = logging.getLogger(__name__)
 

@@ -13,9 +13,9 @@ import math
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
-from curriculum.config import CurriculumConfig
-from engine.config_checks import check_device_list, check_range
-from engine.env.config import EnvConfig
+from impulse.curriculum.config import CurriculumConfig
+from impulse.engine.config_checks import check_device_list, check_range
+from impulse.engine.env.config import EnvConfig
 
 
 @dataclass(frozen=True)

@@ -11,12 +11,11 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-
-from actors.trajectory import TrajectoryBatch
-from curriculum.results import LevelResults, level_results
-from learner.agent import Agent
-from learner.config import PPOConfig
-from learner.returns import gae
+from impulse.actors.trajectory import TrajectoryBatch
+from impulse.curriculum.results import LevelResults, level_results
+from impulse.learner.agent import Agent
+from impulse.learner.config import PPOConfig
+from impulse.learner.returns import gae
 
 Array = jax.Array
 

@@ -16,14 +16,13 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from actors.rollout import Watched, rollout, start_rollout
-from actors.trajectory import Trajectory
-from engine.env.episodes import first_episodes
-from engine.env.spec import EnvParams
-from engine.env.state import EnvState
-from engine.levels.level import Level
-from learner.agent import Agent
+from impulse.actors.rollout import Watched, rollout, start_rollout
+from impulse.actors.trajectory import Trajectory
+from impulse.engine.env.episodes import first_episodes
+from impulse.engine.env.spec import EnvParams
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.level import Level
+from impulse.learner.agent import Agent
 
 Array = jax.Array
 

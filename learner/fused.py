@@ -18,17 +18,16 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from actors.rollout import RolloutCarry, rollout, start_rollout
-from actors.trajectory import episode_metrics, make_batch
-from curriculum.algorithms import Curriculum
-from curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, CurriculumState
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import Level
-from learner.agent import Agent
-from learner.config import PPOConfig
-from learner.curriculum_inputs import batch_level_results
-from learner.update import TrainState, make_optimizer, ppo_update
+from impulse.actors.rollout import RolloutCarry, rollout, start_rollout
+from impulse.actors.trajectory import episode_metrics, make_batch
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, CurriculumState
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import Level
+from impulse.learner.agent import Agent
+from impulse.learner.config import PPOConfig
+from impulse.learner.curriculum_inputs import batch_level_results
+from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
 Array = jax.Array
 

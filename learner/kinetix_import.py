@@ -44,14 +44,13 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from engine.env.actions import action_space
-from engine.env.config import EnvConfig
-from engine.env.observations import symbolic_length
-from engine.env.spec import env_from_config
-from learner.config import NetworkConfig
-from learner.distributions import DiagGaussian, distribution_for
-from learner.networks import GATE_BIAS, NUM_ENTITY_TYPES, make_network
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.observations import symbolic_length
+from impulse.engine.env.spec import env_from_config
+from impulse.learner.config import NetworkConfig
+from impulse.learner.distributions import DiagGaussian, distribution_for
+from impulse.learner.networks import GATE_BIAS, NUM_ENTITY_TYPES, make_network
 
 PRETRAINED_PARAMS = "params.safetensors"
 PRETRAINED_CONFIG = "config.json"

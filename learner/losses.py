@@ -15,9 +15,8 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from learner.config import PPOConfig
-from learner.distributions import Distribution
+from impulse.learner.config import PPOConfig
+from impulse.learner.distributions import Distribution
 
 Array = jax.Array
 

@@ -43,10 +43,9 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env.observation_types import ATTENTION_CHANNELS, EntityObservation, PixelObservation
-from learner.config import NetworkConfig
-from learner.distributions import DiagGaussian, Distribution
+from impulse.engine.env.observation_types import ATTENTION_CHANNELS, EntityObservation, PixelObservation
+from impulse.learner.config import NetworkConfig
+from impulse.learner.distributions import DiagGaussian, Distribution
 
 Array = jax.Array
 NUM_ENTITY_TYPES = 4  # polygon, circle, joint, thruster

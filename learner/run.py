@@ -20,20 +20,19 @@ from typing import Any
 
 import jax
 import numpy as np
-
-from bus.service import CycleReport, Progress
-from curriculum.algorithms import Curriculum
-from curriculum.stats import buffer_summary
-from engine.env.spec import EnvParams, env_from_config
-from engine.levels.level import Level
-from engine.levels.sets import HANDMADE, RANDOM, kinetix_group, load_level_set
-from learner.agent import Agent, make_agent
-from learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
-from learner.config import TrainingSetup
-from learner.evaluate import LevelScores, RecordedEpisodes, evaluate, record_episodes
-from learner.fused import FusedCarry, FusedTrainer
-from learner.networks import describe_parameters
-from learner.run_directory import existing_run
+from impulse.bus.service import CycleReport, Progress
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.stats import buffer_summary
+from impulse.engine.env.spec import EnvParams, env_from_config
+from impulse.engine.levels.level import Level
+from impulse.engine.levels.sets import HANDMADE, RANDOM, kinetix_group, load_level_set
+from impulse.learner.agent import Agent, make_agent
+from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
+from impulse.learner.config import TrainingSetup
+from impulse.learner.evaluate import LevelScores, RecordedEpisodes, evaluate, record_episodes
+from impulse.learner.fused import FusedCarry, FusedTrainer
+from impulse.learner.networks import describe_parameters
+from impulse.learner.run_directory import existing_run
 
 log = logging.getLogger(__name__)
 

@@ -34,28 +34,27 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
-
-from actors.rollout import rollout, start_rollout
-from actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
-from actors.wire import checked_tree, trajectory_schema, weights_hash
-from bus.codec import Message, Rejected
-from bus.credits import encode_credit
-from bus.keys import ACTOR, CURRICULUM, LEARNER
-from bus.service import CycleReport, Progress
-from bus.session import Bus
-from bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
-from bus.trajectories import decode_trajectory
-from bus.weights import encode_weights
-from engine.env.spec import EnvParams
-from engine.levels.level import level_from_scene, stack_levels
-from engine.physics.building import empty_scene
-from engine.pytree import tree_arrays
-from learner.agent import Agent
-from learner.checkpoint import TRAIN, Checkpointer, CheckpointError
-from learner.config import CheckpointConfig, LearnerConfig, PPOConfig
-from learner.run_directory import existing_run
-from learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
-from learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
+from impulse.actors.rollout import rollout, start_rollout
+from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
+from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash
+from impulse.bus.codec import Message, Rejected
+from impulse.bus.credits import encode_credit
+from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER
+from impulse.bus.service import CycleReport, Progress
+from impulse.bus.session import Bus
+from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
+from impulse.bus.trajectories import decode_trajectory
+from impulse.bus.weights import encode_weights
+from impulse.engine.env.spec import EnvParams
+from impulse.engine.levels.level import level_from_scene, stack_levels
+from impulse.engine.physics.building import empty_scene
+from impulse.engine.pytree import tree_arrays
+from impulse.learner.agent import Agent
+from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
+from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
+from impulse.learner.run_directory import existing_run
+from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
+from impulse.learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
 
 log = logging.getLogger("impulse.learner")
 

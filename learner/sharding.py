@@ -19,10 +19,9 @@ from typing import Any
 
 import jax
 import numpy as np
+from impulse.actors.trajectory import TrajectoryBatch, env_axes
+from impulse.learner.config import PPOConfig
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-
-from actors.trajectory import TrajectoryBatch, env_axes
-from learner.config import PPOConfig
 
 ENV_AXIS = "envs"
 """Name of the mesh axis the environments are split over."""

@@ -18,11 +18,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
-
-from actors.trajectory import Trajectory, TrajectoryBatch
-from learner.config import PPOConfig
-from learner.losses import PPOBatch, ppo_loss
-from learner.returns import gae, vtrace
+from impulse.actors.trajectory import Trajectory, TrajectoryBatch
+from impulse.learner.config import PPOConfig
+from impulse.learner.losses import PPOBatch, ppo_loss
+from impulse.learner.returns import gae, vtrace
 
 Array = jax.Array
 

@@ -7,10 +7,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import rerun.blueprint as rrb
-
-from engine.levels.drawing import ARENA_METRES
-from monitor.metrics import CURRICULUM, METRICS
-from monitor.rollouts import env_entity
+from impulse.engine.levels.drawing import ARENA_METRES
+from impulse.monitor.metrics import CURRICULUM, METRICS
+from impulse.monitor.rollouts import env_entity
 
 ARENA_BOUNDS = rrb.VisualBounds2D(x_range=[0.0, ARENA_METRES], y_range=[0.0, ARENA_METRES])
 LEARNER_CURVES = {

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from engine.config_checks import check_range
+from impulse.engine.config_checks import check_range
 
 
 @dataclass(frozen=True)

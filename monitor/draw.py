@@ -19,8 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import rerun as rr
-
-from engine.levels.drawing import ARENA_METRES, SceneDrawing
+from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing
 
 OUTLINE_RADIUS = 0.025
 SPOKE_RADIUS = 0.015

@@ -23,9 +23,8 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import rerun as rr
-
-from engine.levels.drawing import SceneDrawing
-from monitor.draw import log_scene
+from impulse.engine.levels.drawing import SceneDrawing
+from impulse.monitor.draw import log_scene
 
 METRICS = "metrics"
 CURRICULUM = "curriculum"

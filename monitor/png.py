@@ -11,11 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing, scene_drawing
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.state import SimState
 from PIL import Image, ImageDraw
-
-from engine.levels.drawing import ARENA_METRES, SceneDrawing, scene_drawing
-from engine.levels.level import Level
-from engine.physics.state import SimState
 
 PIXELS_PER_METRE = 100.0  # Kinetix's pixels_per_unit: the arena is 500 x 500 pixels at scale 1
 BACKGROUND = (255, 255, 255)

@@ -27,17 +27,16 @@ from typing import Any
 import jax
 import numpy as np
 import rerun as rr
-
-from engine.env.state import EnvState
-from engine.levels.drawing import scene_drawing
-from engine.levels.level import level_id_values
-from engine.physics.narrowphase import detect_contacts
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
-from engine.physics.validate import scene_sizes_of
-from monitor.draw import log_scene, to_view
-from monitor.stream import Monitor
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.drawing import scene_drawing
+from impulse.engine.levels.level import level_id_values
+from impulse.engine.physics.narrowphase import detect_contacts
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.validate import scene_sizes_of
+from impulse.monitor.draw import log_scene, to_view
+from impulse.monitor.stream import Monitor
 
 ROLLOUTS = "rollouts"
 CONTACT_COLOUR = (255, 40, 40)

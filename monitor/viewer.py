@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote
 
-from monitor.stream import server_address
+from impulse.monitor.stream import server_address
 
 
 def rerun_binary() -> str:

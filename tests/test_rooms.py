@@ -16,6 +16,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 OURS = {"engine", "actors", "learner", "curriculum", "bus", "monitor", "deploy", "benchmarks"}
+PACKAGE = "impulse"
 
 
 def _module_name(path: Path, root: Path) -> str:
@@ -23,8 +24,14 @@ def _module_name(path: Path, root: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _room_name(name: str) -> str:
+    """`impulse.engine.env` -> `engine.env`: the rooms are imported under the one import name `impulse`."""
+    return name.removeprefix(PACKAGE + ".")
+
+
 def our_imports(path: Path, root: Path = REPO) -> set[str]:
-    """The modules of ours that `path` imports; for `from a import b` both `a` and `a.b` (b may be a module)."""
+    """The modules of ours that `path` imports, named from their room (`engine.env`, without `impulse.`); for
+    `from a import b` both `a` and `a.b` (b may be a module)."""
     found: set[str] = set()
     package = _module_name(path, root).split(".")
     if path.name != "__init__.py":
@@ -39,7 +46,7 @@ def our_imports(path: Path, root: Path = REPO) -> set[str]:
                 base = ".".join([*anchor, base] if base else anchor)
             found.add(base)
             found.update(f"{base}.{alias.name}" for alias in node.names)
-    return {name for name in found if name.split(".")[0] in OURS}
+    return {_room_name(name) for name in found if _room_name(name).split(".")[0] in OURS}
 
 
 def _within(name: str, *prefixes: str) -> bool:
@@ -133,7 +140,7 @@ def third_party_imports(path: Path) -> set[str]:
             found.update(alias.name.split(".")[0] for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
             found.add(node.module.split(".")[0])
-    return {name for name in found if name not in sys.stdlib_module_names and name not in OURS}
+    return {name for name in found if name not in sys.stdlib_module_names and name not in OURS | {PACKAGE}}
 
 
 def test_engine_needs_only_jax_and_numpy():
@@ -152,8 +159,8 @@ def test_room_imports(rule):
 def test_the_checker_sees_submodules_relative_and_nested_imports(tmp_path):
     sample = tmp_path / "engine" / "levels" / "sample.py"
     sample.parent.mkdir(parents=True)
-    sample.write_text("from engine import env\nfrom ..physics import step\nimport json\n\n"
-                      "def f():\n    from deploy.cli import main\n")
+    sample.write_text("from impulse.engine import env\nfrom ..physics import step\nimport json\n\n"
+                      "def f():\n    from impulse.deploy.cli import main\n")
     assert our_imports(sample, tmp_path) == {
         "engine", "engine.env", "engine.physics", "engine.physics.step", "deploy.cli", "deploy.cli.main"
     }

@@ -22,6 +22,12 @@ ROOMS = ("deploy", "benchmarks", "learner", "actors", "curriculum", "monitor", "
 """Top to bottom, as the picture draws them."""
 
 
+def _room(module: str) -> str:
+    """The room a module name belongs to: `impulse.engine.env` -> `engine` (other names: their first part)."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "impulse" and len(parts) > 1 else parts[0]
+
+
 def room_edges(repo: Path = REPO) -> Counter[tuple[str, str]]:
     """(importing room, imported room) -> how many modules of the first import the second."""
     edges: Counter[tuple[str, str]] = Counter()
@@ -30,9 +36,9 @@ def room_edges(repo: Path = REPO) -> Counter[tuple[str, str]]:
             imported: set[str] = set()
             for node in ast.walk(ast.parse(path.read_text(), str(path))):
                 if isinstance(node, ast.Import):
-                    imported.update(alias.name.split(".")[0] for alias in node.names)
+                    imported.update(_room(alias.name) for alias in node.names)
                 elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
-                    imported.add(node.module.split(".")[0])
+                    imported.add(_room(node.module))
             for other in imported & set(ROOMS) - {room}:
                 edges[room, other] += 1
     return edges

@@ -12,10 +12,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from deploy.commands import curriculum, import_kinetix, launch, levels, services, view
-from deploy.commands.router import add_router_arguments, run_router_command
-from deploy.commands.train import add_eval_arguments, add_train_arguments, run_eval, run_train
-from deploy.run_config import RunConfig
+from impulse.deploy.commands import curriculum, import_kinetix, launch, levels, services, view
+from impulse.deploy.commands.router import add_router_arguments, run_router_command
+from impulse.deploy.commands.train import add_eval_arguments, add_train_arguments, run_eval, run_train
+from impulse.deploy.run_config import RunConfig
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
 

@@ -13,7 +13,7 @@ import importlib
 import pkgutil
 from collections.abc import Sequence
 
-DEFAULT_PACKAGE = "benchmarks"
+DEFAULT_PACKAGE = "impulse.benchmarks"
 
 
 class UnknownBenchmark(LookupError):

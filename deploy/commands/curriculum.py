@@ -17,12 +17,12 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from deploy.config import ConfigError, apply_overrides, config_to_toml
-from deploy.run_config import RunConfig
-from deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.run_dirs import open_run_for
 
 if TYPE_CHECKING:
-    from bus.session import Bus
+    from impulse.bus.session import Bus
 
 log = logging.getLogger("impulse.curriculum")
 
@@ -94,8 +94,8 @@ def _ask(bus: Bus, key: str, payload: bytes) -> list[bytes]:
 
 
 def _client(config: RunConfig):
-    from bus.keys import OPERATOR
-    from bus.session import Bus
+    from impulse.bus.keys import OPERATOR
+    from impulse.bus.session import Bus
 
     return Bus(config.bus, config.name, OPERATOR, f"cli-{os.getpid()}")
 
@@ -107,7 +107,7 @@ def _no_answer(config: RunConfig, key: str) -> None:
 
 
 def _ask_knobs(config: RunConfig, request: dict[str, Any]) -> dict[str, Any] | None:
-    from bus.control import control_reply, control_request
+    from impulse.bus.control import control_reply, control_request
 
     with _client(config) as bus:
         replies = _ask(bus, bus.keys.curriculum_knobs, control_request(**request))
@@ -122,8 +122,8 @@ def _ask_knobs(config: RunConfig, request: dict[str, Any]) -> dict[str, Any] | N
 
 
 def inspect(args: argparse.Namespace, config: RunConfig) -> int:
-    from bus.codec import Rejected
-    from bus.control import control_request, decode_report
+    from impulse.bus.codec import Rejected
+    from impulse.bus.control import control_request, decode_report
 
     with _client(config) as bus:
         replies = _ask(bus, bus.keys.curriculum_inspect, control_request(top=args.top, levels=bool(args.render)))
@@ -151,11 +151,10 @@ def inspect(args: argparse.Namespace, config: RunConfig) -> int:
 def _render(config: RunConfig, arrays: dict, report: dict, out: Path) -> None:
     import jax
     import numpy as np
-
-    from engine.env.spec import env_from_config
-    from engine.levels.generator import sample_random_level
-    from engine.pytree import tree_from_arrays
-    from monitor.png import render_level, save_png
+    from impulse.engine.env.spec import env_from_config
+    from impulse.engine.levels.generator import sample_random_level
+    from impulse.engine.pytree import tree_from_arrays
+    from impulse.monitor.png import render_level, save_png
 
     spec, _ = env_from_config(config.env)
     template = jax.eval_shape(lambda key: sample_random_level(key, spec.sizes), jax.random.PRNGKey(0))  # no compile
@@ -207,23 +206,23 @@ def serve(args: argparse.Namespace) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir = opened
-    from deploy.runtime.devices import restrict_gpus
+    from impulse.deploy.runtime.devices import restrict_gpus
 
     try:
         restrict_gpus(config.curriculum.devices)
     except ValueError as err:
         print(f"impulse curriculum serve: curriculum.devices: {err}", file=sys.stderr)
         return EXIT_USAGE
-    from deploy.runtime.compile_cache import enable_compile_cache
+    from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
     enable_compile_cache()
-    from bus.session import Bus
-    from curriculum.algorithms import Curriculum
-    from curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
-    from deploy.runtime.monitoring import CurriculumLogger, open_monitor
-    from deploy.runtime.runloop import LoopOptions, run_loop
-    from engine.env.spec import env_from_config
-    from learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
+    from impulse.bus.session import Bus
+    from impulse.curriculum.algorithms import Curriculum
+    from impulse.curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
+    from impulse.deploy.runtime.monitoring import CurriculumLogger, open_monitor
+    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
 
     spec, env_params = env_from_config(config.env)
     curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)

@@ -16,11 +16,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from deploy.config import config_to_toml, write_resolved_config
-from deploy.run_config import RunConfig
+from impulse.deploy.config import config_to_toml, write_resolved_config
+from impulse.deploy.run_config import RunConfig
 
 if TYPE_CHECKING:
-    from learner.kinetix_import import ImportedPolicy
+    from impulse.learner.kinetix_import import ImportedPolicy
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -43,7 +43,7 @@ def add_import_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_import(args: argparse.Namespace, config: RunConfig) -> int:
-    from learner.kinetix_import import (
+    from impulse.learner.kinetix_import import (
         KinetixImportError,
         describe_settings,
         import_kinetix,
@@ -84,12 +84,11 @@ def write_checkpoint(config: RunConfig, imported: ImportedPolicy, run_dir: Path)
     checked against the network's own before anything is written."""
     import jax
     import jax.numpy as jnp
-
-    from engine.env.spec import env_from_config
-    from learner.agent import make_agent
-    from learner.checkpoint import TRAIN, Checkpointer
-    from learner.kinetix_import import check_against
-    from learner.update import TrainState, make_optimizer
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.learner.checkpoint import TRAIN, Checkpointer
+    from impulse.learner.kinetix_import import check_against
+    from impulse.learner.update import TrainState, make_optimizer
 
     run_dir.mkdir(parents=True, exist_ok=True)
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:

@@ -29,20 +29,20 @@ import sys
 import time
 from pathlib import Path
 
-from bus.codec import Rejected
-from bus.inbox import Received
-from bus.keys import OPERATOR
-from bus.session import Bus
-from bus.status import read_status
-from deploy.config import write_resolved_config
-from deploy.run_config import RunConfig
-from deploy.runtime.monitoring import viewer_config
-from deploy.runtime.preflight import PreflightError, run_preflight
-from deploy.runtime.run_dirs import open_run_for
-from deploy.runtime.runloop import StopFlag
-from deploy.runtime.status_display import StatusDisplay, render
-from deploy.runtime.supervisor import Child, Supervisor, describe_failure
-from learner.run_directory import existing_run, holds_checkpoints
+from impulse.bus.codec import Rejected
+from impulse.bus.inbox import Received
+from impulse.bus.keys import OPERATOR
+from impulse.bus.session import Bus
+from impulse.bus.status import read_status
+from impulse.deploy.config import write_resolved_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.monitoring import viewer_config
+from impulse.deploy.runtime.preflight import PreflightError, run_preflight
+from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.runloop import StopFlag
+from impulse.deploy.runtime.status_display import StatusDisplay, render
+from impulse.deploy.runtime.supervisor import Child, Supervisor, describe_failure
+from impulse.learner.run_directory import existing_run, holds_checkpoints
 
 log = logging.getLogger("impulse.launch")
 
@@ -70,7 +70,7 @@ def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
     command = [role] if action is None else [role, action]
-    return [sys.executable, "-m", "deploy.cli", *command, "--run", str(run_dir), *extra]
+    return [sys.executable, "-m", "impulse.deploy.cli", *command, "--run", str(run_dir), *extra]
 
 
 def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
@@ -109,7 +109,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     children = []
     if args.view:
         record = ["--record", str(args.record)] if args.record is not None else []
-        children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "deploy.cli", "view", str(run_dir),
+        children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "impulse.deploy.cli", "view", str(run_dir),
                                                        *record], run_dir / "logs" / "viewer.log"))
     children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
                                                              *(["--resume"] if restart or resume_first else [])),
@@ -136,7 +136,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         for child in children:
             supervisor.start(child.name)
         if args.view:
-            from monitor.viewer import has_display, web_viewer_address
+            from impulse.monitor.viewer import has_display, web_viewer_address
 
             where = "the native viewer" if has_display() else web_viewer_address(config.monitor.url,
                                                                                   config.monitor.web_port)
@@ -199,7 +199,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_FAILED
     scores = run_dir / "eval.json"
     if finished and scores.is_file():
-        from learner.run import format_scores  # JAX loads here only, for the table's helper
+        from impulse.learner.run import format_scores  # JAX loads here only, for the table's helper
 
         log.info("evaluation of the final policy (%s):\n%s", scores, format_scores(json.loads(scores.read_text())))
     return 0 if finished or interrupted else EXIT_FAILED

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace, _config: object) -> int:
 
 
 def _sizes(name: str | None):
-    from engine.physics.sizes import size_preset
+    from impulse.engine.physics.sizes import size_preset
 
     return size_preset(name) if name else None
 
@@ -94,7 +94,7 @@ def _level_files(paths: list[Path]) -> tuple[list[Path], list[str]]:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from engine.levels.kinetix_json import level_file_problems
+    from impulse.engine.levels.kinetix_json import level_file_problems
 
     files, missing = _level_files(args.paths)
     for line in missing:
@@ -117,7 +117,7 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _load(path: Path, size: str | None, validate: bool = True):
-    from engine.levels.kinetix_json import LevelFileError, load_kinetix_level
+    from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
 
     try:
         return load_kinetix_level(path, _sizes(size), validate=validate)
@@ -127,8 +127,8 @@ def _load(path: Path, size: str | None, validate: bool = True):
 
 
 def _show(args: argparse.Namespace) -> int:
-    from engine.levels.summary import describe_level
-    from engine.physics.validate import validate_scene
+    from impulse.engine.levels.summary import describe_level
+    from impulse.engine.physics.validate import validate_scene
 
     loaded = _load(args.path, args.size, validate=False)
     if loaded is None:
@@ -143,7 +143,7 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from monitor.png import render_level, save_png
+    from impulse.monitor.png import render_level, save_png
 
     if not args.scale > 0:
         print(f"impulse levels render: --scale must be positive, got {args.scale}", file=sys.stderr)
@@ -162,7 +162,7 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def _convert(args: argparse.Namespace) -> int:
-    from engine.levels.kinetix_json import save_kinetix_level
+    from impulse.engine.levels.kinetix_json import save_kinetix_level
 
     loaded = _load(args.source, args.size)
     if loaded is None:

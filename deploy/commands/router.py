@@ -12,8 +12,8 @@ import dataclasses
 import logging
 import sys
 
-from deploy.run_config import RunConfig
-from deploy.runtime.runloop import StopFlag
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.runloop import StopFlag
 
 log = logging.getLogger("impulse.router")
 
@@ -27,7 +27,7 @@ def add_router_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_router_command(args: argparse.Namespace, config: RunConfig) -> int:
-    from bus.router import CredentialsError, open_listeners_warning, run_router
+    from impulse.bus.router import CredentialsError, open_listeners_warning, run_router
 
     router = config.router
     if args.listen:

@@ -17,12 +17,12 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from deploy.config import config_to_toml, write_resolved_config
-from deploy.run_config import RunConfig
-from deploy.runtime.compile_cache import enable_compile_cache
-from deploy.runtime.devices import restrict_gpus
-from deploy.runtime.monitoring import MetricsLogger, open_monitor
-from deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.config import config_to_toml, write_resolved_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.compile_cache import enable_compile_cache
+from impulse.deploy.runtime.devices import restrict_gpus
+from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
+from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.service")
 
@@ -67,12 +67,12 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse learner: learner.devices: {err}", file=sys.stderr)
         return EXIT_USAGE
     enable_compile_cache()
-    from bus.session import Bus
-    from deploy.runtime.runloop import LoopOptions, run_loop
-    from engine.env.spec import env_from_config
-    from learner.agent import make_agent
-    from learner.run import final_evaluation
-    from learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
+    from impulse.bus.session import Bus
+    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.learner.run import final_evaluation
+    from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
 
     run_dir.mkdir(parents=True, exist_ok=True)
     if args.run is None:
@@ -136,15 +136,15 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
             print(f"impulse actor: actors.devices: {err}", file=sys.stderr)
             return EXIT_USAGE
     enable_compile_cache()
-    from actors.levels import CurriculumLevels, LevelSource, LocalLevels
-    from actors.process import ACTOR_ROLE, Actor, actor_name
-    from bus.session import Bus
-    from curriculum.wire import level_batch_template
-    from deploy.runtime.runloop import LoopOptions, run_loop
-    from engine.env.spec import env_from_config
-    from engine.levels.sets import LevelSetError
-    from learner.agent import make_agent
-    from learner.curriculum_inputs import batch_level_results
+    from impulse.actors.levels import CurriculumLevels, LevelSource, LocalLevels
+    from impulse.actors.process import ACTOR_ROLE, Actor, actor_name
+    from impulse.bus.session import Bus
+    from impulse.curriculum.wire import level_batch_template
+    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+    from impulse.engine.env.spec import env_from_config
+    from impulse.engine.levels.sets import LevelSetError
+    from impulse.learner.agent import make_agent
+    from impulse.learner.curriculum_inputs import batch_level_results
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
-from deploy.run_config import RunConfig
-from deploy.runtime.compile_cache import enable_compile_cache
-from deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.compile_cache import enable_compile_cache
+from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.train")
 
@@ -45,8 +45,8 @@ def train_run(
 ) -> RunSummary:
     """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
     checkpointing on the configured cadence and when stopped, then evaluate if the run is complete."""
-    from deploy.runtime.runloop import LoopOptions, run_loop
-    from learner.run import FusedRun
+    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+    from impulse.learner.run import FusedRun
 
     run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates)
     loop = run_loop(run, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
@@ -76,7 +76,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace, config: RunConfig) -> int:
-    from learner.run import RunError  # JAX loads only when a run starts
+    from impulse.learner.run import RunError  # JAX loads only when a run starts
 
     enable_compile_cache()
     opened = open_run_for("train", config, run_dir=args.resume, overrides=args.overrides)
@@ -128,7 +128,7 @@ def _run_dir_of(path: Path) -> Path:
 
 
 def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
-    from learner.run import RunError, evaluate_run, format_scores
+    from impulse.learner.run import RunError, evaluate_run, format_scores
 
     enable_compile_cache()
     try:
@@ -158,10 +158,9 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
 
     def record(names: list[str], episodes: Any, policy_version: int) -> None:
         import numpy as np
-
-        from monitor.blueprint import episodes_blueprint
-        from monitor.rollouts import RolloutFrames, log_rollout
-        from monitor.stream import open_recording
+        from impulse.monitor.blueprint import episodes_blueprint
+        from impulse.monitor.rollouts import RolloutFrames, log_rollout
+        from impulse.monitor.stream import open_recording
 
         entity_names = tuple(re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem or name) for name in names)
         steps, first = episodes.steps, episodes.first

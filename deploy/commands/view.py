@@ -18,10 +18,10 @@ import sys
 import time
 from pathlib import Path
 
-from deploy.run_config import RunConfig
-from deploy.runtime.run_dirs import open_run_for
-from deploy.runtime.runloop import StopFlag
-from deploy.runtime.supervisor import die_with_parent
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.runloop import StopFlag
+from impulse.deploy.runtime.supervisor import die_with_parent
 
 log = logging.getLogger("impulse.view")
 
@@ -57,8 +57,8 @@ def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
 
 
 def run_view(args: argparse.Namespace, config: RunConfig) -> int:
-    from monitor.stream import server_reachable
-    from monitor.viewer import viewer_plan
+    from impulse.monitor.stream import server_reachable
+    from impulse.monitor.viewer import viewer_plan
 
     opened = open_run_for("view", config, run_dir=args.run, overrides=args.overrides)
     if opened is None:
@@ -108,7 +108,7 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
 
 
 def _wait_for_server(url: str, process: subprocess.Popen[bytes], stop: StopFlag) -> bool:
-    from monitor.stream import server_reachable
+    from impulse.monitor.stream import server_reachable
 
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while time.monotonic() < deadline and not stop.stop and process.poll() is None:

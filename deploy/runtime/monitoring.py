@@ -16,10 +16,10 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from deploy.run_config import RunConfig
+from impulse.deploy.run_config import RunConfig
 
 if TYPE_CHECKING:
-    from monitor.stream import Monitor
+    from impulse.monitor.stream import Monitor
 
 STATUS_EVERY_S = 2.0
 OnCycle = Callable[[dict[str, Any], dict[str, float]], None]
@@ -27,8 +27,8 @@ OnCycle = Callable[[dict[str, Any], dict[str, float]], None]
 
 def run_blueprint(config: RunConfig) -> Any:
     """The default layout for this run's processes (its actors, whether it has a curriculum service)."""
-    from actors.process import actor_name
-    from monitor.blueprint import default_blueprint
+    from impulse.actors.process import actor_name
+    from impulse.monitor.blueprint import default_blueprint
 
     return default_blueprint([actor_name(i) for i in range(config.actors.num_actors)],
                              config.monitor.watch_envs, config.monitor.gallery, config.uses_curriculum_service)
@@ -38,7 +38,7 @@ def open_monitor(config: RunConfig) -> Monitor | None:
     """This process's monitor, or None when monitoring is off."""
     if not config.monitor.enabled:
         return None
-    from monitor.stream import Monitor
+    from impulse.monitor.stream import Monitor
 
     return Monitor(config.name, url=config.monitor.url, blueprint=run_blueprint(config),
                    frames_per_s=config.monitor.frames_per_s, frame_queue=config.monitor.queue_rollouts)
@@ -56,7 +56,7 @@ class MetricsLogger:
         self._status_at = -float("inf")
 
     def __call__(self, record: dict[str, Any], window: dict[str, float]) -> None:
-        from monitor.metrics import log_process_metrics
+        from impulse.monitor.metrics import log_process_metrics
 
         if self.then is not None:
             self.then(record, window)
@@ -80,7 +80,7 @@ class CurriculumLogger:
         self._knobs: dict[str, Any] = {}
 
     def poll(self) -> None:
-        from monitor.metrics import log_knobs
+        from impulse.monitor.metrics import log_knobs
 
         knobs = self.service.live_knobs()
         if knobs != self._knobs:
@@ -95,9 +95,8 @@ class CurriculumLogger:
 
     def _log_buffer(self) -> None:
         import jax
-
-        from engine.levels.drawing import scene_drawing
-        from monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars
+        from impulse.engine.levels.drawing import scene_drawing
+        from impulse.monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars
 
         report = self.service.inspect(self.gallery)
         levels = self.service.top_levels(self.gallery)

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from deploy.run_config import RunConfig
-    from engine.physics.sizes import SceneSizes
-    from learner.config import CheckpointConfig
+    from impulse.deploy.run_config import RunConfig
+    from impulse.engine.physics.sizes import SceneSizes
+    from impulse.learner.config import CheckpointConfig
 
 log = logging.getLogger("impulse.launch")
 
@@ -43,7 +43,7 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
     `resume`: the run continues from `run_dir`'s checkpoints (`--resume`). `curriculum_service`: the launch starts
     the curriculum service, which always resumes from its own checkpoints when there are any. `cpu_only`: keep JAX
     in this process on the CPU (for the launcher; not for tests that share a process with others)."""
-    from bus.keys import ACTOR, CURRICULUM, LEARNER
+    from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER
 
     roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else [])]
     check_credentials(config, roles)
@@ -71,7 +71,7 @@ def check_credentials(config: RunConfig, roles: Iterable[str]) -> None:
     credentials), each started role's files are there: what `bus.router.client_security` reads at connect time."""
     if not config.bus.credentials or not config.bus.connect:
         return
-    from bus.router import CredentialsError, client_security
+    from impulse.bus.router import CredentialsError, client_security
 
     for role in roles:
         try:
@@ -89,7 +89,7 @@ def check_level_set(key: str, source: str, config: RunConfig) -> None:
     wrong with it: building its designs is tested code and costs seconds of eager JAX compiling on a small CPU."""
     log.info("checking %s = %s", key, source)
     sizes = _scene_sizes(config)
-    from engine.levels.sets import HANDMADE, load_level_set
+    from impulse.engine.levels.sets import HANDMADE, load_level_set
 
     if source == HANDMADE or source.startswith(HANDMADE + ":"):
         _check_handmade(key, source.partition(":")[2], sizes, config.env.size)
@@ -109,11 +109,10 @@ def check_learner_checkpoint(config: RunConfig, directory: Path) -> None:
     log.info("checking that the learner's checkpoint in %s fits this config's network", directory)
     import jax
     import numpy as np
-
-    from engine.env.spec import env_from_config
-    from learner.agent import make_agent
-    from learner.checkpoint import TRAIN
-    from learner.update import TrainState, make_optimizer
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.learner.checkpoint import TRAIN
+    from impulse.learner.update import TrainState, make_optimizer
 
     spec, _ = env_from_config(config.env)
     try:
@@ -133,10 +132,9 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
     state (method, buffer size, level sizes), as `impulse curriculum serve --resume` will restore it."""
     log.info("checking that the curriculum's checkpoint in %s fits this config", directory)
     import jax
-
-    from curriculum.algorithms import Curriculum
-    from engine.env.spec import env_from_config
-    from learner.checkpoint import CURRICULUM
+    from impulse.curriculum.algorithms import Curriculum
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.checkpoint import CURRICULUM
 
     spec, env_params = env_from_config(config.env)
     curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
@@ -148,7 +146,7 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
 def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, template: Any, whose: str) -> None:
     """Restore `item` of the newest checkpoint in `directory` with `template`; a `CheckpointError` (no usable
     checkpoint, another network) becomes a `PreflightError` that names the directory."""
-    from learner.checkpoint import Checkpointer, CheckpointError
+    from impulse.learner.checkpoint import Checkpointer, CheckpointError
 
     try:
         with Checkpointer(directory, checkpoint_config) as checkpoints:
@@ -166,7 +164,7 @@ def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, te
 
 def _check_handmade(key: str, picked: str, sizes: SceneSizes, size_name: str) -> None:
     """The checks `engine.levels.sets` makes of a hand-made set before building it."""
-    from engine.levels import handmade
+    from impulse.engine.levels import handmade
 
     available = handmade.names()
     names = [name for name in picked.split(",") if name]
@@ -182,7 +180,7 @@ def _check_handmade(key: str, picked: str, sizes: SceneSizes, size_name: str) ->
 
 
 def _scene_sizes(config: RunConfig) -> SceneSizes:
-    from engine.env.spec import env_from_config
+    from impulse.engine.env.spec import env_from_config
 
     spec, _ = env_from_config(config.env)
     return spec.sizes

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from deploy.config import ConfigError, load_run_config, resolve_config
-from deploy.run_config import RunConfig
+from impulse.deploy.config import ConfigError, load_run_config, resolve_config
+from impulse.deploy.run_config import RunConfig
 
 
 class RunSetupError(Exception):

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bus.service import Service
-from deploy.runtime.progress import MetricsFile, ProgressLine
+from impulse.bus.service import Service
+from impulse.deploy.runtime.progress import MetricsFile, ProgressLine
 
 log = logging.getLogger("impulse.run")
 

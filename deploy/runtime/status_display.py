@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any, TextIO
 
-from deploy.runtime.supervisor import Child, describe_exit
+from impulse.deploy.runtime.supervisor import Child, describe_exit
 
 log = logging.getLogger("impulse.launch")
 

@@ -4,8 +4,8 @@ its actions drive motors and thrusters, the reward, and auto-reset at episode en
 Pure functions, jitted with the static `EnvSpec` and vmappable over environments (`engine.env.env` documents the
 order of one step and the auto-reset rule):
 
-    from engine.env.env import reset_batch, step
-    from engine.env.spec import env_from_config
+    from impulse.engine.env.env import reset_batch, step
+    from impulse.engine.env.spec import env_from_config
 
     spec, params = env_from_config(config)                              # config: EnvConfig
     obs, state = reset_batch(spec, params, levels, num_envs)            # levels: a Level batch [K]

@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env.spec import EnvSpec
-from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
+from impulse.engine.env.spec import EnvSpec
+from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
 
 Array = jax.Array
 

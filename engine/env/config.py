@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from engine.config_checks import check_range
+from impulse.engine.config_checks import check_range
 
 _SCREEN_PIXELS = 500
 """Side of Kinetix's square screen in pixels, which env.pixel_downscale must divide: `engine.env.pixels`'s

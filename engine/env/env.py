@@ -32,16 +32,15 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-
-from engine.env.actions import actuation
-from engine.env.observations import observe
-from engine.env.reward import dense_reward, goal_distance, pair_roles, sparse_reward
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import UNSET_DISTANCE, EnvState, initial_state
-from engine.levels.level import Level
-from engine.physics.pairs import pair_tables
-from engine.physics.state import SimState
-from engine.physics.step import step as physics_step
+from impulse.engine.env.actions import actuation
+from impulse.engine.env.observations import observe
+from impulse.engine.env.reward import dense_reward, goal_distance, pair_roles, sparse_reward
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import UNSET_DISTANCE, EnvState, initial_state
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.step import step as physics_step
 
 Array = jax.Array
 

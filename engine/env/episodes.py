@@ -28,12 +28,11 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.env.env import reset_batch
-from engine.env.env import step as env_step
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import EnvState
-from engine.levels.level import Level
+from impulse.engine.env.env import reset_batch
+from impulse.engine.env.env import step as env_step
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.level import Level
 
 Array = jax.Array
 

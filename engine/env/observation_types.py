@@ -8,8 +8,7 @@ that networks sized for Kinetix fit unchanged.
 from __future__ import annotations
 
 import jax
-
-from engine.pytree import pytree_dataclass
+from impulse.engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

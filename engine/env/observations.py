@@ -35,15 +35,14 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env.observation_types import EntityObservation, PixelObservation
-from engine.env.pixels import pixel_observation
-from engine.env.spec import EnvSpec
-from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, level_from_scene
-from engine.physics.building import empty_scene
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
+from impulse.engine.env.observation_types import EntityObservation, PixelObservation
+from impulse.engine.env.pixels import pixel_observation
+from impulse.engine.env.spec import EnvSpec
+from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level, level_from_scene
+from impulse.engine.physics.building import empty_scene
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 

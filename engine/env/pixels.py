@@ -31,12 +31,11 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env.observation_types import PixelObservation
-from engine.levels.drawing import FIXED_NEUTRAL, MOTOR_BINDING_COLOURS, ROLE_COLOURS, UNBOUND
-from engine.levels.level import Level
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
+from impulse.engine.env.observation_types import PixelObservation
+from impulse.engine.levels.drawing import FIXED_NEUTRAL, MOTOR_BINDING_COLOURS, ROLE_COLOURS, UNBOUND
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 

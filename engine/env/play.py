@@ -13,13 +13,12 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.env.episodes import first_episodes
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import EnvState
-from engine.levels.handmade.controllers import Controller
-from engine.levels.level import Level
-from engine.physics.state import SimState
+from impulse.engine.env.episodes import first_episodes
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.handmade.controllers import Controller
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 

@@ -17,10 +17,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.levels.level import Level
-from engine.physics.pairs import PairTables
-from engine.physics.state import SimState
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.pairs import PairTables
+from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 

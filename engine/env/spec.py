@@ -9,12 +9,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from engine.env.config import EnvConfig
-from engine.env.pixels import pixel_geometry
-from engine.physics.options import SolverOptions
-from engine.physics.params import SimParams
-from engine.physics.sizes import SIZE_S, SceneSizes, size_preset
-from engine.pytree import pytree_dataclass
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.pixels import pixel_geometry
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SIZE_S, SceneSizes, size_preset
+from impulse.engine.pytree import pytree_dataclass
 
 ObservationKind = Literal["entity", "symbolic", "pixels"]
 ActionKind = Literal["multi_discrete", "continuous", "discrete"]

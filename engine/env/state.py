@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-
-from engine.levels.level import Level
-from engine.physics.state import SimState
-from engine.pytree import pytree_dataclass
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.state import SimState
+from impulse.engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

@@ -15,9 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from engine.levels.level import ROLE_NEUTRAL, Level
-from engine.physics.state import SimState
+from impulse.engine.levels.level import ROLE_NEUTRAL, Level
+from impulse.engine.physics.state import SimState
 
 ARENA_METRES = 5.0
 

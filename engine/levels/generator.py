@@ -37,9 +37,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.levels.draws import DrawLayout
-from engine.levels.level import (
+from impulse.engine.levels.draws import DrawLayout
+from impulse.engine.levels.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
     ROLE_BLUE,
@@ -50,7 +49,7 @@ from engine.levels.level import (
     level_from_scene,
     random_level_id,
 )
-from engine.physics.building import (
+from impulse.engine.physics.building import (
     ARENA_SIZE,
     FLOOR_TOP,
     empty_scene,
@@ -62,11 +61,11 @@ from engine.physics.building import (
     write_polygon,
     write_thruster,
 )
-from engine.physics.geometry import rotate
-from engine.physics.mass import circle_mass_properties, polygon_mass_properties
-from engine.physics.narrowphase import detect_contacts
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import Joints, SimState
+from impulse.engine.physics.geometry import rotate
+from impulse.engine.physics.mass import circle_mass_properties, polygon_mass_properties
+from impulse.engine.physics.narrowphase import detect_contacts
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import Joints, SimState
 
 Array = jax.Array
 

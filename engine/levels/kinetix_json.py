@@ -31,8 +31,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.levels.level import (
+from impulse.engine.levels.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
     ROLE_NAMES,
@@ -41,13 +40,13 @@ from engine.levels.level import (
     level_id_words,
     with_content_id,
 )
-from engine.physics.building import empty_scene, refresh_collision_filter
-from engine.physics.options import SolverOptions
-from engine.physics.pairs import pair_tables
-from engine.physics.params import SimParams
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
-from engine.physics.validate import validate_scene
+from impulse.engine.physics.building import empty_scene, refresh_collision_filter
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.validate import validate_scene
 
 # Values Kinetix writes beside the scene; fixed in every size (see the digest's section on embedded params).
 MAX_TIMESTEPS = 256

@@ -20,10 +20,9 @@ import hashlib
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
-from engine.pytree import pytree_dataclass
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
+from impulse.engine.pytree import pytree_dataclass
 
 Array = jax.Array
 

@@ -35,9 +35,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.levels.draws import DrawLayout
-from engine.levels.generator import (
+from impulse.engine.levels.draws import DrawLayout
+from impulse.engine.levels.generator import (
     SHAPE_ADD_DRAWS,
     SHAPE_DRAWS,
     THRUSTER_DRAWS,
@@ -51,14 +50,14 @@ from engine.levels.generator import (
     sample_shape,
     uniforms,
 )
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, random_level_id
-from engine.physics.building import ARENA_SIZE, FLOOR_TOP, connected_by_joints, refresh_collision_filter
-from engine.physics.geometry import rotate
-from engine.physics.mass import circle_mass_properties, polygon_mass_properties
-from engine.physics.params import SimParams
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
-from engine.physics.step import step
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, random_level_id
+from impulse.engine.physics.building import ARENA_SIZE, FLOOR_TOP, connected_by_joints, refresh_collision_filter
+from impulse.engine.physics.geometry import rotate
+from impulse.engine.physics.mass import circle_mass_properties, polygon_mass_properties
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
+from impulse.engine.physics.step import step
 
 Array = jax.Array
 

@@ -19,9 +19,9 @@ import os
 import re
 from pathlib import Path
 
-from engine.levels.kinetix_json import LevelFileError, load_kinetix_level
-from engine.levels.level import Level, stack_levels
-from engine.physics.sizes import SceneSizes
+from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
+from impulse.engine.levels.level import Level, stack_levels
+from impulse.engine.physics.sizes import SceneSizes
 
 RANDOM = "random"
 HANDMADE = "handmade"
@@ -36,7 +36,7 @@ class LevelSetError(ValueError):
 
 
 def _handmade(names: list[str] | None, sizes: SceneSizes) -> tuple[list[str], list[Level]]:
-    from engine.levels import handmade  # imported here: building the designs costs time only when used
+    from impulse.engine.levels import handmade  # imported here: building the designs costs time only when used
 
     available = handmade.names()
     if names:

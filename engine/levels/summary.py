@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-
-from engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
-from engine.physics.params import SimParams
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
 
 _PRESETS = (("S", SIZE_S), ("M", SIZE_M), ("L", SIZE_L))
 _ARENA_NAMES = ("floor", "left wall", "right wall", "ceiling")

@@ -7,7 +7,7 @@ used by Kinetix (units, parameter names and defaults, contact and joint formulas
 meaning; the solver's schedule and data layout are our own, chosen for throughput. See `docs/engine.md`.
 """
 
-from engine.physics.building import (
+from impulse.engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,
@@ -17,12 +17,12 @@ from engine.physics.building import (
     empty_scene,
     refresh_collision_filter,
 )
-from engine.physics.options import SolverOptions
-from engine.physics.params import SimParams
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes, size_preset
-from engine.physics.state import Bodies, ContactCache, Joints, SimState, Thrusters
-from engine.physics.step import StepContacts, step
-from engine.physics.validate import SceneError, check_scene, validate_scene
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes, size_preset
+from impulse.engine.physics.state import Bodies, ContactCache, Joints, SimState, Thrusters
+from impulse.engine.physics.step import StepContacts, step
+from impulse.engine.physics.validate import SceneError, check_scene, validate_scene
 
 __all__ = [
     "SIZE_L",

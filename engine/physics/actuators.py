@@ -8,12 +8,11 @@ impulse of base_thruster_power * power * action * dt along its direction.
 from __future__ import annotations
 
 import jax.numpy as jnp
-
-from engine.physics.geometry import cross, nonzero, rotate
-from engine.physics.joint_solver import JointRows
-from engine.physics.params import SimParams
-from engine.physics.slots import one_hot_rows, sum_onto_bodies
-from engine.physics.state import SimState
+from impulse.engine.physics.geometry import cross, nonzero, rotate
+from impulse.engine.physics.joint_solver import JointRows
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.slots import one_hot_rows, sum_onto_bodies
+from impulse.engine.physics.state import SimState
 
 Array = jnp.ndarray
 

@@ -27,11 +27,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.physics.context import Impulses, StepContext
-from engine.physics.geometry import cross_scalar_vector, dot, nonzero
-from engine.physics.joint_solver import JointSolverState
-from engine.physics.pairs import PairTables
+from impulse.engine.physics.context import Impulses, StepContext
+from impulse.engine.physics.geometry import cross_scalar_vector, dot, nonzero
+from impulse.engine.physics.joint_solver import JointSolverState
+from impulse.engine.physics.pairs import PairTables
 
 Array = jax.Array
 

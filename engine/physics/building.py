@@ -15,11 +15,10 @@ from typing import TypeVar
 
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics.mass import MassConvention, circle_mass_properties, polygon_mass_properties
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import Bodies, ContactCache, Joints, SimState, Thrusters
+from impulse.engine.physics.mass import MassConvention, circle_mass_properties, polygon_mass_properties
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import Bodies, ContactCache, Joints, SimState, Thrusters
 
 Array = jnp.ndarray
 SlotTable = TypeVar("SlotTable", Bodies, Joints, Thrusters)

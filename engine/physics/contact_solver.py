@@ -13,13 +13,12 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics.geometry import cross, cross_scalar_vector, dot, nonzero
-from engine.physics.narrowphase import Contacts
-from engine.physics.pairs import PairTables
-from engine.physics.params import SimParams
-from engine.physics.slots import one_hot_rows, sum_onto_bodies, write_back
-from engine.physics.state import SimState
+from impulse.engine.physics.geometry import cross, cross_scalar_vector, dot, nonzero
+from impulse.engine.physics.narrowphase import Contacts
+from impulse.engine.physics.pairs import PairTables
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.slots import one_hot_rows, sum_onto_bodies, write_back
+from impulse.engine.physics.state import SimState
 
 Array = jnp.ndarray
 

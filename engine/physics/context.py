@@ -11,15 +11,14 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import jax
-
-from engine.physics.contact_solver import ContactRows
-from engine.physics.joint_solver import JointRows
-from engine.physics.narrowphase import Contacts
-from engine.physics.options import SolverOptions
-from engine.physics.pairs import PairTables, pair_tables
-from engine.physics.params import SimParams
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import Joints
+from impulse.engine.physics.contact_solver import ContactRows
+from impulse.engine.physics.joint_solver import JointRows
+from impulse.engine.physics.narrowphase import Contacts
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.pairs import PairTables, pair_tables
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import Joints
 
 Array = jax.Array
 

@@ -10,11 +10,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-
-from engine.physics.geometry import cross, nonzero, rotate
-from engine.physics.params import SimParams
-from engine.physics.slots import one_hot_rows, read_body, spread_to_bodies, sum_onto_bodies
-from engine.physics.state import Joints, SimState
+from impulse.engine.physics.geometry import cross, nonzero, rotate
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.slots import one_hot_rows, read_body, spread_to_bodies, sum_onto_bodies
+from impulse.engine.physics.state import Joints, SimState
 
 Array = jnp.ndarray
 

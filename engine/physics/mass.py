@@ -14,8 +14,7 @@ from __future__ import annotations
 from typing import Literal
 
 import jax.numpy as jnp
-
-from engine.physics.geometry import cross, dot, nonzero
+from impulse.engine.physics.geometry import cross, dot, nonzero
 
 Array = jnp.ndarray
 MassConvention = Literal["physical", "jax2d"]

@@ -11,10 +11,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-
-from engine.physics.geometry import cross, dot, nonzero, rotate
-from engine.physics.pairs import PairTables
-from engine.physics.state import SimState
+from impulse.engine.physics.geometry import cross, dot, nonzero, rotate
+from impulse.engine.physics.pairs import PairTables
+from impulse.engine.physics.state import SimState
 
 Array = jnp.ndarray
 

@@ -19,8 +19,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-
-from engine.physics.sizes import SceneSizes
+from impulse.engine.physics.sizes import SceneSizes
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ Names and defaults are Jax2D 1.0.2's, so that Kinetix level files (which embed t
 
 from __future__ import annotations
 
-from engine.pytree import pytree_dataclass
+from impulse.engine.pytree import pytree_dataclass
 
 
 @pytree_dataclass

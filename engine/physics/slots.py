@@ -16,8 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics.pairs import PairTables
+from impulse.engine.physics.pairs import PairTables
 
 Array = jax.Array
 

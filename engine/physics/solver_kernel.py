@@ -29,15 +29,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from impulse.engine.physics.contact_solver import ContactRows
+from impulse.engine.physics.context import Impulses, StepContext
+from impulse.engine.physics.joint_solver import JointSolverState
+from impulse.engine.physics.lanes import Row, RowLayout, Vector, flatten, vectors
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as pallas_triton
-
-from engine.physics.contact_solver import ContactRows
-from engine.physics.context import Impulses, StepContext
-from engine.physics.joint_solver import JointSolverState
-from engine.physics.lanes import Row, RowLayout, Vector, flatten, vectors
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
 
 Array = jax.Array
 

@@ -26,20 +26,19 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from engine.physics.actuators import apply_motors, apply_thrusters, thruster_positions
-from engine.physics.batched_contacts import batch_slots, solve_contacts
-from engine.physics.contact_solver import ContactRows, contact_rows, solve_phase, warm_start
-from engine.physics.context import Impulses, StepContext
-from engine.physics.joint_solver import JointSolverState, joint_rows, solve_joint, warm_start_joints
-from engine.physics.narrowphase import detect_contacts
-from engine.physics.options import SolverOptions
-from engine.physics.pairs import pair_tables
-from engine.physics.params import SimParams
-from engine.physics.sizes import SceneSizes
-from engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
-from engine.physics.solver_kernel import iterate_kernel
-from engine.physics.state import ContactCache, SimState
+from impulse.engine.physics.actuators import apply_motors, apply_thrusters, thruster_positions
+from impulse.engine.physics.batched_contacts import batch_slots, solve_contacts
+from impulse.engine.physics.contact_solver import ContactRows, contact_rows, solve_phase, warm_start
+from impulse.engine.physics.context import Impulses, StepContext
+from impulse.engine.physics.joint_solver import JointSolverState, joint_rows, solve_joint, warm_start_joints
+from impulse.engine.physics.narrowphase import detect_contacts
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
+from impulse.engine.physics.solver_kernel import iterate_kernel
+from impulse.engine.physics.state import ContactCache, SimState
 
 Array = jax.Array
 

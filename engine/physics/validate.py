@@ -7,11 +7,10 @@ the hot path.
 from __future__ import annotations
 
 import numpy as np
-
-from engine.physics.building import arena_polygon_count, connected_by_joints
-from engine.physics.pairs import pair_tables
-from engine.physics.sizes import SceneSizes
-from engine.physics.state import SimState
+from impulse.engine.physics.building import arena_polygon_count, connected_by_joints
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.state import SimState
 
 _MIN_EDGE = 1e-4
 _MIN_RADIUS = 1e-4

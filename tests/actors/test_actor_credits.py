@@ -11,20 +11,20 @@ from functools import partial
 
 import jax
 import pytest
+from impulse.actors.levels import LocalLevels
+from impulse.actors.process import Actor
+from impulse.actors.wire import weights_hash
+from impulse.bus.credits import encode_credit
+from impulse.bus.session import Bus
+from impulse.bus.stamp import Stamp
+from impulse.bus.weights import encode_weights
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.pytree import tree_arrays
+from impulse.learner.agent import make_agent
+from impulse.learner.curriculum_inputs import batch_level_results
 
-from actors.levels import LocalLevels
-from actors.process import Actor
-from actors.wire import weights_hash
-from bus.credits import encode_credit
-from bus.session import Bus
-from bus.stamp import Stamp
-from bus.weights import encode_weights
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import env_from_config
-from engine.pytree import tree_arrays
-from learner.agent import make_agent
-from learner.curriculum_inputs import batch_level_results
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
 pytestmark = pytest.mark.heavy

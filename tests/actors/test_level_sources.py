@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import socket
 
-from actors.levels import CurriculumLevels
-from bus.config import BusConfig
-from bus.session import Bus, Hub
-from curriculum.wire import level_batch_template
-from engine.physics.sizes import SceneSizes
+from impulse.actors.levels import CurriculumLevels
+from impulse.bus.config import BusConfig
+from impulse.bus.session import Bus, Hub
+from impulse.curriculum.wire import level_batch_template
+from impulse.engine.physics.sizes import SceneSizes
 
 
 def free_endpoint() -> str:

@@ -9,15 +9,14 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from actors.rollout import rollout, start_rollout
-from actors.trajectory import make_batch
-from curriculum.results import level_results, results_to_host
-from engine.env.actions import noop_action
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import level_id_values
-from engine.levels.sets import load_level_set
-from engine.physics.sizes import SIZE_S
+from impulse.actors.rollout import rollout, start_rollout
+from impulse.actors.trajectory import make_batch
+from impulse.curriculum.results import level_results, results_to_host
+from impulse.engine.env.actions import noop_action
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import level_id_values
+from impulse.engine.levels.sets import load_level_set
+from impulse.engine.physics.sizes import SIZE_S
 
 SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=12)
 PARAMS = EnvParams()

@@ -8,19 +8,18 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-
-from actors.wire import checked_tree, trajectory_schema, weights_hash, weights_schema
-from bus.codec import Kind, Rejected, decode, encode
-from bus.schema import check
-from bus.stamp import Stamp
-from bus.weights import decode_weights, encode_weights
-from curriculum.results import level_results
-from curriculum.wire import LEVEL_RESULTS_SCHEMA, results_arrays
-from engine.env.spec import EnvParams, EnvSpec
-from engine.pytree import tree_arrays
-from learner.agent import make_agent
-from learner.config import NetworkConfig
-from learner.service import batch_template
+from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash, weights_schema
+from impulse.bus.codec import Kind, Rejected, decode, encode
+from impulse.bus.schema import check
+from impulse.bus.stamp import Stamp
+from impulse.bus.weights import decode_weights, encode_weights
+from impulse.curriculum.results import level_results
+from impulse.curriculum.wire import LEVEL_RESULTS_SCHEMA, results_arrays
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.pytree import tree_arrays
+from impulse.learner.agent import make_agent
+from impulse.learner.config import NetworkConfig
+from impulse.learner.service import batch_template
 
 RUN = "wire-test"
 NETWORK = NetworkConfig(kind="entity", width=16, depth=1, entity_encoder_size=16, entity_heads=2, entity_head_size=8)

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from benchmarks.compat_jax2d import (
+from impulse.benchmarks.compat_jax2d import (
     ContactLog,
     checkpoints,
     compare_level,

@@ -6,9 +6,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from impulse.benchmarks.plot import Panel, Series, main, mean_curves, nice_ticks, render
 from PIL import Image
-
-from benchmarks.plot import Panel, Series, main, mean_curves, nice_ticks, render
 
 
 def test_nice_ticks_cover_the_range_in_round_steps() -> None:

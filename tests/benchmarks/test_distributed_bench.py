@@ -4,8 +4,7 @@ its floors are positive and below it (no processes, nothing jitted)."""
 from __future__ import annotations
 
 import pytest
-
-from benchmarks.distributed import bytes_per_step
+from impulse.benchmarks.distributed import bytes_per_step
 
 
 @pytest.mark.parametrize("observation", ["entity", "symbolic"])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from benchmarks.gpu_table import figures, markdown, runs
+from impulse.benchmarks.gpu_table import figures, markdown, runs
 
 DEVICE = {"jax_version": "0.11.2", "backend": "gpu", "device": "NVIDIA H100 80GB HBM3"}
 RUN = [

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-
-from benchmarks.pixels import compare_images, differing, not_uniform
+from impulse.benchmarks.pixels import compare_images, differing, not_uniform
 
 
 def _image() -> np.ndarray:

@@ -8,8 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-from bus.codec import (
+from impulse.bus.codec import (
     ALIGN,
     DIGEST_SIZE,
     DIGESTED_KINDS,
@@ -28,7 +27,7 @@ from bus.codec import (
     tree_hash,
     unflatten,
 )
-from bus.keys import SCHEMA_MAJOR
+from impulse.bus.keys import SCHEMA_MAJOR
 
 RUN = "codec-run"
 

@@ -42,9 +42,8 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
-
-from actors.wire import TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_hash, weights_schema
-from bus.codec import (
+from impulse.actors.wire import TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_hash, weights_schema
+from impulse.bus.codec import (
     ALIGN,
     DIGEST_SIZE,
     FLAG_DIGEST,
@@ -61,17 +60,17 @@ from bus.codec import (
     decode,
     tree_hash,
 )
-from bus.control import Report, control_reply, control_request, decode_report, encode_refusal, encode_report
-from bus.credits import Credit, decode_credit, encode_credit
-from bus.inbox import Received
-from bus.keys import Keys
-from bus.levels import decode_level_batch, decode_level_results, encode_level_batch, encode_level_results
-from bus.stamp import Stamp
-from bus.status import Status, StatusPublisher, read_status
-from bus.trajectories import decode_trajectory, encode_trajectory
-from bus.weights import PUBLISHED_AT, decode_weights, encode_weights
-from curriculum.results import LevelResults
-from curriculum.wire import (
+from impulse.bus.control import Report, control_reply, control_request, decode_report, encode_refusal, encode_report
+from impulse.bus.credits import Credit, decode_credit, encode_credit
+from impulse.bus.inbox import Received
+from impulse.bus.keys import Keys
+from impulse.bus.levels import decode_level_batch, decode_level_results, encode_level_batch, encode_level_results
+from impulse.bus.stamp import Stamp
+from impulse.bus.status import Status, StatusPublisher, read_status
+from impulse.bus.trajectories import decode_trajectory, encode_trajectory
+from impulse.bus.weights import PUBLISHED_AT, decode_weights, encode_weights
+from impulse.curriculum.results import LevelResults
+from impulse.curriculum.wire import (
     ResultsError,
     level_batch_arrays,
     level_batch_from_message,
@@ -80,12 +79,12 @@ from curriculum.wire import (
     results_arrays,
     results_from_message,
 )
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import LEVEL_ID_WORDS
-from engine.pytree import path_name, tree_arrays
-from learner.agent import make_agent
-from learner.config import NetworkConfig
-from learner.service import LEARNER_ID, batch_template
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import LEVEL_ID_WORDS
+from impulse.engine.pytree import path_name, tree_arrays
+from impulse.learner.agent import make_agent
+from impulse.learner.config import NetworkConfig
+from impulse.learner.service import LEARNER_ID, batch_template
 
 RUN = "fuzz-run"
 CASES = 10_000

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import pytest
-
-from bus.keys import SCHEMA_MAJOR, Keys, check_name
+from impulse.bus.keys import SCHEMA_MAJOR, Keys, check_name
 
 
 def test_each_role_publishes_under_its_own_prefix() -> None:

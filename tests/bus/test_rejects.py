@@ -6,8 +6,7 @@ import logging
 import threading
 
 import pytest
-
-from bus.rejects import RejectCounter
+from impulse.bus.rejects import RejectCounter
 
 
 class StepClock:

@@ -8,9 +8,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from impulse.bus.config import RouterConfig
+from impulse.bus.router import CredentialsError, access_rules, router_zenoh_config
 
-from bus.config import RouterConfig
-from bus.router import CredentialsError, access_rules, router_zenoh_config
 from tests.support.paths import REPO
 
 CERT_SCRIPT = REPO / "deploy" / "cluster" / "security" / "make-test-certs.sh"

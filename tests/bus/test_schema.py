@@ -6,9 +6,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-from bus.codec import TREE_HASH_META, Kind, Message, Rejected, decode, encode, tree_hash
-from bus.schema import ArraySpec, Schema, check
+from impulse.bus.codec import TREE_HASH_META, Kind, Message, Rejected, decode, encode, tree_hash
+from impulse.bus.schema import ArraySpec, Schema, check
 
 RUN = "schema-run"
 

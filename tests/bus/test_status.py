@@ -4,11 +4,10 @@ counters over their restarts without counting a live process twice."""
 from __future__ import annotations
 
 import pytest
-
-from bus.codec import Kind, Rejected, encode
-from bus.inbox import Received
-from bus.keys import Keys
-from bus.status import DropTotals, Status, read_status
+from impulse.bus.codec import Kind, Rejected, encode
+from impulse.bus.inbox import Received
+from impulse.bus.keys import Keys
+from impulse.bus.status import DropTotals, Status, read_status
 
 RUN = "status-run"
 KEYS = Keys(RUN)

@@ -8,25 +8,25 @@ import time
 
 import numpy as np
 import pytest
-
-from bus.codec import Kind, decode, encode
-from bus.config import BusConfig
-from bus.control import control_reply, control_request
-from bus.levels import encode_level_results
-from bus.session import Bus
-from curriculum.algorithms import Curriculum
-from curriculum.config import CurriculumConfig
-from curriculum.service import CurriculumService
-from curriculum.state import ORIGIN_NEW
-from curriculum.wire import (
+from impulse.bus.codec import Kind, decode, encode
+from impulse.bus.config import BusConfig
+from impulse.bus.control import control_reply, control_request
+from impulse.bus.levels import encode_level_results
+from impulse.bus.session import Bus
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.service import CurriculumService
+from impulse.curriculum.state import ORIGIN_NEW
+from impulse.curriculum.wire import (
     level_batch_from_message,
     level_batch_schema,
     level_batch_template,
 )
-from deploy.config import ConfigError, apply_overrides
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import level_id_values, level_id_words
-from learner.checkpoint import CURRICULUM, Checkpointer
+from impulse.deploy.config import ConfigError, apply_overrides
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import level_id_values, level_id_words
+from impulse.learner.checkpoint import CURRICULUM, Checkpointer
+
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.launch_procs import free_port
 

@@ -6,10 +6,9 @@ import functools
 
 import jax
 import numpy as np
-
-from curriculum.noop_filter import noop_solves, sample_filtered_levels
-from engine.env.spec import EnvParams, EnvSpec
-from engine.physics.sizes import SIZE_S
+from impulse.curriculum.noop_filter import noop_solves, sample_filtered_levels
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.physics.sizes import SIZE_S
 
 SPEC = EnvSpec(sizes=SIZE_S)
 PARAMS = EnvParams()

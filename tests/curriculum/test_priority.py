@@ -8,16 +8,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from curriculum.algorithms import Curriculum
-from curriculum.config import CurriculumConfig
-from curriculum.priority import eviction_slot, pick_replays, replay_distribution, score_of
-from curriculum.results import results_from_host
-from curriculum.state import empty_state, knobs_from_config
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import level_from_scene, level_id_words
-from engine.physics.building import empty_scene
-from engine.physics.sizes import SIZE_S
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.priority import eviction_slot, pick_replays, replay_distribution, score_of
+from impulse.curriculum.results import results_from_host
+from impulse.curriculum.state import empty_state, knobs_from_config
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import level_from_scene, level_id_words
+from impulse.engine.physics.building import empty_scene
+from impulse.engine.physics.sizes import SIZE_S
 
 SPEC = EnvSpec()
 EXAMPLE = level_from_scene(empty_scene(SIZE_S))

@@ -6,9 +6,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from curriculum.results import level_results, results_from_host, results_to_host
-from engine.levels.level import level_id_values, level_id_words
+from impulse.curriculum.results import level_results, results_from_host, results_to_host
+from impulse.engine.levels.level import level_id_values, level_id_words
 
 
 def test_episodes_are_tallied_per_level_id_with_per_episode_means():

@@ -8,15 +8,14 @@ import functools
 import jax
 import numpy as np
 import pytest
-
-from curriculum.algorithms import Curriculum
-from curriculum.config import CurriculumConfig
-from curriculum.priority import score_weights
-from curriculum.results import results_from_host
-from curriculum.state import ORIGIN_MUTATED, ORIGIN_REPLAY
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import level_id_values, level_id_words
-from engine.physics.validate import validate_scene
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.priority import score_weights
+from impulse.curriculum.results import results_from_host
+from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_REPLAY
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import level_id_values, level_id_words
+from impulse.engine.physics.validate import validate_scene
 
 SPEC = EnvSpec()
 BATCH = 16

@@ -10,18 +10,18 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from impulse.deploy.cli import main
+from impulse.deploy.commands import bench
 
-from deploy.cli import main
-from deploy.commands import bench
 from tests.support.paths import REPO
 
 REPO_ROOT = REPO
 
 
 def impulse(*args: str) -> subprocess.CompletedProcess[str]:
-    """Run the installed console script when there is one (as a user would), else `python -m deploy.cli`."""
+    """Run the installed console script when there is one (as a user would), else `python -m impulse.deploy.cli`."""
     script = Path(sys.executable).with_name("impulse")
-    command = [str(script)] if script.exists() else [sys.executable, "-m", "deploy.cli"]
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "impulse.deploy.cli"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
     return subprocess.run(
         [*command, *args], cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=120, check=False

@@ -7,12 +7,12 @@ from pathlib import Path
 from typing import Literal
 
 import pytest
+from impulse.deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env import config as env_config
+from impulse.engine.env.config import EnvConfig
+from impulse.learner.config import PPOConfig
 
-from deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
-from deploy.run_config import RunConfig
-from engine.env import config as env_config
-from engine.env.config import EnvConfig
-from learner.config import PPOConfig
 from tests.support.paths import REPO
 
 
@@ -256,7 +256,7 @@ def test_type_column_needs_a_token_wider_than_one() -> None:
 
 
 def test_screen_size_matches_the_pixel_renderer() -> None:
-    from engine.env.pixels import SCREEN_PIXELS
+    from impulse.engine.env.pixels import SCREEN_PIXELS
 
     assert env_config._SCREEN_PIXELS == SCREEN_PIXELS
 

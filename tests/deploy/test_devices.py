@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import pytest
-
-from deploy.config import ConfigError, resolve_config
-from deploy.run_config import RunConfig
-from deploy.runtime.devices import VISIBLE, restrict_gpus, visible_gpus
+from impulse.deploy.config import ConfigError, resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.devices import VISIBLE, restrict_gpus, visible_gpus
 
 
 def test_positions_are_gpu_numbers_when_nothing_is_inherited() -> None:

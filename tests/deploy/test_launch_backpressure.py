@@ -22,15 +22,15 @@ import time
 
 import numpy as np
 import pytest
+from impulse.bus.codec import Kind, decode
+from impulse.curriculum.state import ORIGIN_REPLAY
+from impulse.curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.spec import EnvSpec
+from impulse.learner.checkpoint import Checkpointer
 from rerun.chunk import RrdReader
 
-from bus.codec import Kind, decode
-from curriculum.state import ORIGIN_REPLAY
-from curriculum.wire import level_batch_from_message, level_batch_schema, level_batch_template
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import EnvSpec
-from learner.checkpoint import Checkpointer
 from tests.support.launch_procs import (
     REPO,
     SMALL_BATCH,
@@ -56,7 +56,7 @@ ENVS = 32  # the batch of SMALL_BATCH
 
 
 def curriculum_cli(run_dir, *words: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "deploy.cli", "curriculum", *words, "--run", str(run_dir)],
+    return subprocess.run([sys.executable, "-m", "impulse.deploy.cli", "curriculum", *words, "--run", str(run_dir)],
                           capture_output=True, text=True, timeout=120, cwd=REPO)
 
 

@@ -16,17 +16,17 @@ import time
 import jax
 import numpy as np
 import pytest
+from impulse.bus.codec import Kind, decode, encode
+from impulse.bus.keys import LEARNER, SCHEMA_MAJOR
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.pytree import tree_arrays
+from impulse.learner.agent import make_agent
+from impulse.learner.checkpoint import Checkpointer
+from impulse.learner.service import batch_template
 from rerun.chunk import RrdReader
 
-from bus.codec import Kind, decode, encode
-from bus.keys import LEARNER, SCHEMA_MAJOR
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from engine.env.spec import env_from_config
-from engine.pytree import tree_arrays
-from learner.agent import make_agent
-from learner.checkpoint import Checkpointer
-from learner.service import batch_template
 from tests.support.launch_procs import (
     QUICK_LAUNCH,
     StatusWatcher,
@@ -206,7 +206,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         assert checkpoints.latest_step() == UPDATES
     # `impulse eval` reads the learner's train-only checkpoint; --record draws one episode per level to an .rrd.
     recorded = tmp_path / "eval.rrd"
-    evaluated = subprocess.run([sys.executable, "-m", "deploy.cli", "eval", "--checkpoint", str(run_dir),
+    evaluated = subprocess.run([sys.executable, "-m", "impulse.deploy.cli", "eval", "--checkpoint", str(run_dir),
                                 "--attempts", "4", "--record", str(recorded)], capture_output=True, text=True,
                                timeout=300)
     assert evaluated.returncode == 0 and "s_easy_car_right" in evaluated.stdout, evaluated.stderr

@@ -2,7 +2,7 @@
 (`deploy.runtime.preflight`), and processes that keep failing the same way stop the run instead of crash-looping
 (`deploy.runtime.supervisor`).
 
-The launches here are real (`python -m deploy.cli launch` on configs/quick-launch.toml, their own hub port); the
+The launches here are real (`python -m impulse.deploy.cli launch` on configs/quick-launch.toml, their own hub port); the
 preflight checks of checkpoints run in this process on checkpoints written from zeros (no training)."""
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.deploy.config import config_to_toml, resolve_config, write_resolved_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.preflight import PreflightError, run_preflight
+from impulse.learner.checkpoint import CURRICULUM, TRAIN, Checkpointer
 
-from deploy.config import config_to_toml, resolve_config, write_resolved_config
-from deploy.run_config import RunConfig
-from deploy.runtime.preflight import PreflightError, run_preflight
-from learner.checkpoint import CURRICULUM, TRAIN, Checkpointer
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, free_port, service_pids
 
 ROLES = ("learner", "actor", "curriculum")
@@ -28,8 +28,9 @@ ROLES = ("learner", "actor", "curriculum")
 
 def launch(run_dir: Path, *overrides: str, env: dict[str, str] | None = None,
            timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
-    command = [sys.executable, "-m", "deploy.cli", "launch", "--config", str(QUICK_LAUNCH), "--status-every", "2",
-               f"run_dir={run_dir}", f"name={run_dir.name}", f"bus.hub=tcp/127.0.0.1:{free_port()}", *overrides]
+    command = [sys.executable, "-m", "impulse.deploy.cli", "launch", "--config", str(QUICK_LAUNCH),
+               "--status-every", "2", f"run_dir={run_dir}", f"name={run_dir.name}",
+               f"bus.hub=tcp/127.0.0.1:{free_port()}", *overrides]
     environment = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache"), **(env or {})}
     return subprocess.run(command, cwd=REPO, env=environment, capture_output=True, text=True, timeout=timeout_s,
                           check=False)
@@ -75,9 +76,9 @@ def test_actors_that_fail_the_same_way_stop_the_run(tmp_path: Path) -> None:
 
 
 def test_resume_with_another_network_is_refused_naming_the_checkpoint_directory(tmp_path: Path) -> None:
-    from engine.env.spec import env_from_config
-    from learner.agent import make_agent
-    from learner.update import TrainState, make_optimizer
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.learner.update import TrainState, make_optimizer
 
     run_dir = tmp_path / "run"
     config = config_for(run_dir)
@@ -100,8 +101,8 @@ def test_resume_with_another_network_is_refused_naming_the_checkpoint_directory(
 
 def test_a_curriculum_checkpoint_of_another_buffer_size_is_refused(tmp_path: Path) -> None:
     """The curriculum service always resumes its own checkpoints, so they are checked without --resume too."""
-    from curriculum.algorithms import Curriculum
-    from engine.env.spec import env_from_config
+    from impulse.curriculum.algorithms import Curriculum
+    from impulse.engine.env.spec import env_from_config
 
     run_dir = tmp_path / "run"
     config = config_for(run_dir, "env.levels=random", "curriculum=plr", "curriculum.buffer_size=16")

@@ -9,15 +9,15 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.deploy.cli import main
+from impulse.engine.levels.drawing import ROLE_COLOURS
+from impulse.engine.levels.kinetix_json import level_to_json_dict, load_kinetix_level, save_kinetix_level
+from impulse.engine.levels.level import level_from_scene
+from impulse.engine.physics.building import empty_scene
+from impulse.engine.physics.sizes import SIZE_M, SIZE_S
+from impulse.monitor.png import world_to_pixel
 from PIL import Image
 
-from deploy.cli import main
-from engine.levels.drawing import ROLE_COLOURS
-from engine.levels.kinetix_json import level_to_json_dict, load_kinetix_level, save_kinetix_level
-from engine.levels.level import level_from_scene
-from engine.physics.building import empty_scene
-from engine.physics.sizes import SIZE_M, SIZE_S
-from monitor.png import world_to_pixel
 from tests.support.bad_level_files import write_bad_inputs
 from tests.support.monitor_scenes import BLUE_AT, GREEN_AT, small_level
 

@@ -8,8 +8,7 @@ import logging
 from collections.abc import Iterator
 
 import pytest
-
-from deploy.runtime.log_setup import configure_logging
+from impulse.deploy.runtime.log_setup import configure_logging
 
 
 @pytest.fixture(autouse=True)

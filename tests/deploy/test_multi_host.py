@@ -22,11 +22,11 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from impulse.bus.codec import Kind, Rejected, decode, encode
+from impulse.bus.config import BusConfig
+from impulse.bus.keys import Keys
+from impulse.bus.session import zenoh_config
 
-from bus.codec import Kind, Rejected, decode, encode
-from bus.config import BusConfig
-from bus.keys import Keys
-from bus.session import zenoh_config
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
 from tests.support.namespaces import Hosts, why_not
 
@@ -65,7 +65,7 @@ class Cluster:
             role, extra = name, [f"--connect={self.endpoints[name]}"]
         if role == "actor":
             extra += ["--index", "0"]
-        command = [*self.prefixes.get(name, []), sys.executable, "-m", "deploy.cli", role, "--config",
+        command = [*self.prefixes.get(name, []), sys.executable, "-m", "impulse.deploy.cli", role, "--config",
                    str(QUICK_LAUNCH), f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
                    f"router.credentials={self.credentials}", "total_env_steps=100000000",
                    "checkpoint.every_updates=1000", *SMALL_BATCH, *extra]

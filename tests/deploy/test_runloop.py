@@ -7,9 +7,9 @@ from __future__ import annotations
 import io
 import json
 
-from bus.service import CycleReport, Progress
-from deploy.runtime.progress import ProgressLine
-from deploy.runtime.runloop import LoopOptions, run_loop
+from impulse.bus.service import CycleReport, Progress
+from impulse.deploy.runtime.progress import ProgressLine
+from impulse.deploy.runtime.runloop import LoopOptions, run_loop
 
 
 class CountingService:

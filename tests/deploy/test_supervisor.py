@@ -11,9 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-
-from deploy.runtime.status_display import render
-from deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
+from impulse.deploy.runtime.status_display import render
+from impulse.deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
 
 FAST = {"give_up_after": 3, "backoff_s": (0.05,)}
 

@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from impulse.learner.checkpoint import Checkpointer, CheckpointError, CorruptCheckpointError
 
-from learner.checkpoint import Checkpointer, CheckpointError, CorruptCheckpointError
 from tests.support.checkpoint_damage import largest_file, truncate
 
 
@@ -99,7 +99,7 @@ def test_a_corrupt_newest_checkpoint_is_moved_aside_and_the_previous_one_restore
     write_steps(directory)
     phrase = corrupt(directory / "3")
     damaged = snapshot(directory / "3")
-    caplog.set_level(logging.WARNING, logger="learner.checkpoint")
+    caplog.set_level(logging.WARNING, logger="impulse.learner.checkpoint")
     with Checkpointer(directory) as checkpoints:
         restored = checkpoints.restore({"train": TEMPLATE})
         assert restored.step == 2 and restored.counters == {"update": 2} and restored.config_toml == "step = 2\n"
@@ -108,7 +108,7 @@ def test_a_corrupt_newest_checkpoint_is_moved_aside_and_the_previous_one_restore
     moved = tmp_path / "checkpoints-corrupt" / "3"
     assert not (directory / "3").exists()
     assert snapshot(moved) == damaged, "the corrupt checkpoint is kept as it was, every file"
-    warning = next(r.getMessage() for r in caplog.records if r.name == "learner.checkpoint")
+    warning = next(r.getMessage() for r in caplog.records if r.name == "impulse.learner.checkpoint")
     assert "checkpoint 3 is corrupt: " + phrase in warning and str(moved) in warning
 
 

@@ -8,10 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.env.actions import action_space
-from engine.env.spec import EnvSpec
-from learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.spec import EnvSpec
+from impulse.learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
 
 KINETIX_NVEC = (3, 3, 3, 3, 2, 2)
 

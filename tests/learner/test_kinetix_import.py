@@ -16,13 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.env.actions import action_space
-from engine.env.config import EnvConfig
-from engine.env.observation_types import EntityObservation
-from engine.env.spec import env_from_config
-from learner.distributions import distribution_for
-from learner.kinetix_import import (
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.observation_types import EntityObservation
+from impulse.engine.env.spec import env_from_config
+from impulse.learner.distributions import distribution_for
+from impulse.learner.kinetix_import import (
     KinetixCheckpoint,
     KinetixImportError,
     check_against,
@@ -31,7 +30,8 @@ from learner.kinetix_import import (
     read_kinetix_checkpoint,
     read_pickle,
 )
-from learner.networks import make_network
+from impulse.learner.networks import make_network
+
 from tests.support.paths import FIXTURES as TEST_FIXTURES
 from tests.support.paths import REPO
 
@@ -190,11 +190,11 @@ def test_pickles_cannot_run_code(tmp_path):
 
 @pytest.mark.heavy  # a CLI process of its own
 def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
-    from deploy.cli import main
-    from deploy.config import resolve_config
-    from deploy.run_config import RunConfig
-    from learner.checkpoint import TRAIN, Checkpointer
-    from learner.run import FusedRun, build
+    from impulse.deploy.cli import main
+    from impulse.deploy.config import resolve_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.learner.checkpoint import TRAIN, Checkpointer
+    from impulse.learner.run import FusedRun, build
 
     out = tmp_path / "run"
     level = REPO / "engine" / "levels" / "handmade" / "s_lander.json"

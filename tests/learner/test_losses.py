@@ -8,10 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from learner.config import PPOConfig
-from learner.distributions import Categorical
-from learner.losses import (
+from impulse.learner.config import PPOConfig
+from impulse.learner.distributions import Categorical
+from impulse.learner.losses import (
     PPOBatch,
     approx_kl,
     clip_fraction,

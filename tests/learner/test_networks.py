@@ -12,14 +12,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.observations import observation_shape
+from impulse.engine.env.spec import EnvSpec
+from impulse.engine.physics.sizes import size_preset
+from impulse.learner.config import NetworkConfig
+from impulse.learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
+from impulse.learner.networks import count_parameters, describe_parameters, make_network, parameter_counts
 
-from engine.env.actions import action_space
-from engine.env.observations import observation_shape
-from engine.env.spec import EnvSpec
-from engine.physics.sizes import size_preset
-from learner.config import NetworkConfig
-from learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
-from learner.networks import count_parameters, describe_parameters, make_network, parameter_counts
 from tests.support.learner_dummies import SIZES, dummy_observation, permute_shapes, scramble_inactive
 
 MULTI = MultiCategorical((3, 3, 3, 3, 2, 2))
@@ -220,8 +220,8 @@ def test_heads_per_channel_must_divide() -> None:
 
 
 def test_ppo_loss_gradients_flow_through_the_network() -> None:
-    from learner.config import PPOConfig
-    from learner.losses import PPOBatch, ppo_loss
+    from impulse.learner.config import PPOConfig
+    from impulse.learner.losses import PPOBatch, ppo_loss
 
     network = make_network(dataclasses.replace(SMALL_TRANSFORMER, transformer_layers=1, depth=1), MULTI)
     obs = dummy_observation("s", batch=(2, 3))  # [T, B] as a rollout would give it

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-
-from learner.update import check_policy_lag
+from impulse.learner.update import check_policy_lag
 
 
 def test_lag_is_versions_behind_and_limit_is_inclusive():
@@ -17,13 +16,12 @@ def test_the_update_measures_lag_from_the_batch_versions():
     """`ppo_update` reports learner version minus the batch's behaviour version; fused batches carry the
     learner's own version, hence lag 0."""
     import jax
-
-    from actors.trajectory import Trajectory, make_batch
-    from engine.env.observations import observation_shape
-    from engine.env.spec import EnvSpec
-    from learner.agent import make_agent
-    from learner.config import NetworkConfig, PPOConfig
-    from learner.update import TrainState, make_optimizer, ppo_update
+    from impulse.actors.trajectory import Trajectory, make_batch
+    from impulse.engine.env.observations import observation_shape
+    from impulse.engine.env.spec import EnvSpec
+    from impulse.learner.agent import make_agent
+    from impulse.learner.config import NetworkConfig, PPOConfig
+    from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
     spec = EnvSpec(observation="symbolic")
     agent = make_agent(NetworkConfig(kind="flat", width=8, depth=1, flat_embedding_size=8), spec)

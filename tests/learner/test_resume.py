@@ -16,11 +16,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.learner.checkpoint import Checkpointer
+from impulse.learner.run import build, fused_checkpoint_items
 
-from deploy.config import resolve_config
-from deploy.run_config import RunConfig
-from learner.checkpoint import Checkpointer
-from learner.run import build, fused_checkpoint_items
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.paths import REPO
 
@@ -43,7 +43,7 @@ def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
     command = [
         sys.executable,
         "-c",
-        "from deploy.cli import main; raise SystemExit(main())",
+        "from impulse.deploy.cli import main; raise SystemExit(main())",
         "train",
         f"run_dir={run_dir}",
         *SETTINGS,

@@ -16,18 +16,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from impulse.actors.rollout import rollout, start_rollout
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.drawing import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
+from impulse.engine.levels.level import stack_levels
+from impulse.engine.physics.sizes import SIZE_S
+from impulse.monitor.draw import SCENE_PARTS
+from impulse.monitor.metrics import log_scalars
+from impulse.monitor.png import render_scene, world_to_pixel
+from impulse.monitor.rollouts import RolloutFrames, contact_points, log_rollout
+from impulse.monitor.stream import Monitor, open_recording
 from rerun.chunk import RrdReader
 
-from actors.rollout import rollout, start_rollout
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.drawing import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
-from engine.levels.level import stack_levels
-from engine.physics.sizes import SIZE_S
-from monitor.draw import SCENE_PARTS
-from monitor.metrics import log_scalars
-from monitor.png import render_scene, world_to_pixel
-from monitor.rollouts import RolloutFrames, contact_points, log_rollout
-from monitor.stream import Monitor, open_recording
 from tests.support.launch_procs import free_port, wait_for
 from tests.support.monitor_scenes import small_level
 from tests.support.paths import REPO
@@ -216,7 +216,7 @@ def processes_using(port: int) -> list[int]:
 
 
 def view(run_dir: Path, record: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "deploy.cli", "view", str(run_dir), "--web", "--record",
+    return subprocess.Popen([sys.executable, "-m", "impulse.deploy.cli", "view", str(run_dir), "--web", "--record",
                              str(record)], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 

@@ -12,11 +12,10 @@ from pathlib import Path
 
 import jax
 import numpy as np
-
-from engine.levels.kinetix_json import level_to_json_dict
-from engine.levels.level import level_from_scene
-from engine.physics.building import empty_scene
-from engine.physics.sizes import SIZE_S
+from impulse.engine.levels.kinetix_json import level_to_json_dict
+from impulse.engine.levels.level import level_from_scene
+from impulse.engine.physics.building import empty_scene
+from impulse.engine.physics.sizes import SIZE_S
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CUT_AFTER = '": '  # the end of a key, before its value

@@ -13,12 +13,11 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env import env
-from engine.env.spec import EnvParams, EnvSpec
-from engine.env.state import EnvState
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, Level, level_from_scene, stack_levels
-from engine.physics import SIZE_S, add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
+from impulse.engine.env import env
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.state import EnvState
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, Level, level_from_scene, stack_levels
+from impulse.engine.physics import SIZE_S, add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
 
 SIZES = SIZE_S
 CHUNK = 12  # agent steps per compiled call

@@ -14,11 +14,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from bus.codec import Rejected
-from bus.config import BusConfig
-from bus.keys import OPERATOR
-from bus.session import Bus
-from bus.status import read_status
+from impulse.bus.codec import Rejected
+from impulse.bus.config import BusConfig
+from impulse.bus.keys import OPERATOR
+from impulse.bus.session import Bus
+from impulse.bus.status import read_status
+
 from tests.support.paths import REPO
 
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"
@@ -38,8 +39,9 @@ def start_launch(run_dir: Path, port: int, *overrides: str) -> tuple[subprocess.
     """`impulse launch` on the quick config in `run_dir`, its own hub port; output to run_dir.parent/launch.log."""
     log_path = run_dir.parent / f"{run_dir.name}-launch.log"
     env = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache"), "PYTHONUNBUFFERED": "1"}
-    command = [sys.executable, "-m", "deploy.cli", "launch", "--config", str(QUICK_LAUNCH), "--status-every", "2",
-               f"run_dir={run_dir}", f"name={run_dir.name}", f"bus.hub=tcp/127.0.0.1:{port}", *overrides]
+    command = [sys.executable, "-m", "impulse.deploy.cli", "launch", "--config", str(QUICK_LAUNCH),
+               "--status-every", "2", f"run_dir={run_dir}", f"name={run_dir.name}", f"bus.hub=tcp/127.0.0.1:{port}",
+               *overrides]
     with log_path.open("wb") as out:
         process = subprocess.Popen(command, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
     return process, log_path
@@ -103,7 +105,7 @@ def service_pids(run_dir: Path, role: str, index: int | None = None) -> list[int
         except OSError:
             continue
         args = [w.decode(errors="replace") for w in words if w]
-        if role in args and str(run_dir) in args and "deploy.cli" in args:
+        if role in args and str(run_dir) in args and "impulse.deploy.cli" in args:
             if index is None or ("--index" in args and args[args.index("--index") + 1] == str(index)):
                 found.append(int(entry.name))
     return found

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-
-from engine.env.observation_types import (
+from impulse.engine.env.observation_types import (
     ATTENTION_CHANNELS,
     CIRCLE_FEATURES,
     JOINT_FEATURES,

@@ -7,11 +7,10 @@ from types import SimpleNamespace
 
 import jax
 import numpy as np
-
-from engine.levels.generator import sample_random_levels
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, ROLE_RED, Level
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
-from engine.physics.validate import validate_scene
+from impulse.engine.levels.generator import sample_random_levels
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, ROLE_RED, Level
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+from impulse.engine.physics.validate import validate_scene
 
 SIZES = {"s": SIZE_S, "m": SIZE_M, "l": SIZE_L}
 # Levels sampled per size for the statistics (cheap: sampling is vmapped; validation is the slow part).

@@ -7,10 +7,9 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.levels.level import level_from_scene
-from engine.physics.building import add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
-from engine.physics.sizes import SIZE_S
+from impulse.engine.levels.level import level_from_scene
+from impulse.engine.physics.building import add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
+from impulse.engine.physics.sizes import SIZE_S
 
 GREEN_AT = (1.5, 2.5)  # centre of the green box
 BLUE_AT = (3.8, 1.0)  # centre of the (fixed) blue circle

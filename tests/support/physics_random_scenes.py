@@ -13,8 +13,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics import (
+from impulse.engine.physics import (
     SimState,
     add_circle,
     add_fixed_joint,
@@ -22,7 +21,8 @@ from engine.physics import (
     add_revolute_joint,
     add_thruster,
 )
-from engine.physics.geometry import rotate
+from impulse.engine.physics.geometry import rotate
+
 from tests.support.physics_sim import SIZES, arena_scene
 
 NUM_FREE_POLYGONS = SIZES.num_polygons - SIZES.num_static_polygons

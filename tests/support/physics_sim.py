@@ -13,9 +13,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics import SceneSizes, SimParams, SimState, SolverOptions, empty_scene, step
-from engine.physics.pairs import pair_tables
+from impulse.engine.physics import SceneSizes, SimParams, SimState, SolverOptions, empty_scene, step
+from impulse.engine.physics.pairs import pair_tables
 
 SIZES = SceneSizes(num_polygons=8, num_circles=3, num_joints=2, num_thrusters=2)
 NUM_ACTIONS = SIZES.num_joints + SIZES.num_thrusters

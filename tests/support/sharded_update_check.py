@@ -11,14 +11,13 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from actors.trajectory import Trajectory, make_batch
-from engine.env.observations import observation_shape
-from engine.env.spec import EnvSpec
-from learner.agent import make_agent
-from learner.config import NetworkConfig, PPOConfig
-from learner.sharding import DataParallel, learner_devices
-from learner.update import TrainState, make_optimizer, ppo_update
+from impulse.actors.trajectory import Trajectory, make_batch
+from impulse.engine.env.observations import observation_shape
+from impulse.engine.env.spec import EnvSpec
+from impulse.learner.agent import make_agent
+from impulse.learner.config import NetworkConfig, PPOConfig
+from impulse.learner.sharding import DataParallel, learner_devices
+from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
 NUM_ENVS, NUM_STEPS = 16, 6
 

@@ -5,7 +5,7 @@ exports each one as a Kinetix JSON file next to this module (`<name>.json`), so 
 them too. `controllers` holds controllers that solve some of them (played by `engine.env.play`), used by the
 tests.
 
-    from engine.levels import handmade
+    from impulse.engine.levels import handmade
     handmade.names()                       # all level names, S first
     level = handmade.build("s_easy_car_right")             # in its own size
     level = handmade.build("s_easy_car_right", SIZE_L)     # padded into a larger size
@@ -19,9 +19,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from engine.levels.handmade import designs
-from engine.levels.level import Level, with_content_id
-from engine.physics.sizes import SceneSizes, size_preset
+from impulse.engine.levels.handmade import designs
+from impulse.engine.levels.level import Level, with_content_id
+from impulse.engine.physics.sizes import SceneSizes, size_preset
 
 LEVEL_DIR = Path(__file__).resolve().parent
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 
-from engine.levels.handmade.files import main
+from impulse.engine.levels.handmade.files import main
 
 if __name__ == "__main__":
     sys.exit(main())

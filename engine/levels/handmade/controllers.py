@@ -16,8 +16,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics.state import SimState
+from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 Controller = Callable[[SimState, Array], Array]

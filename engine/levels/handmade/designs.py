@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import math
 
-from engine.levels.handmade.scene_builder import FLOOR, SceneBuilder
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, Level
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+from impulse.engine.levels.handmade.scene_builder import FLOOR, SceneBuilder
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, Level
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
 
 GROUND = 0.4  # the floor's top
 

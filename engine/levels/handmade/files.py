@@ -11,11 +11,10 @@ import sys
 
 import jax
 import numpy as np
-
-from engine.levels import handmade
-from engine.levels.kinetix_json import LevelFileError, load_kinetix_level, save_kinetix_level
-from engine.levels.level import Level
-from engine.physics.validate import validate_scene
+from impulse.engine.levels import handmade
+from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level, save_kinetix_level
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.validate import validate_scene
 
 
 def level_differences(a: Level, b: Level) -> list[str]:

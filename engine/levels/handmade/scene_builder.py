@@ -12,9 +12,8 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
-
-from engine.levels.level import ROLE_NEUTRAL, Level, level_from_scene
-from engine.physics.building import (
+from impulse.engine.levels.level import ROLE_NEUTRAL, Level, level_from_scene
+from impulse.engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,
@@ -23,7 +22,7 @@ from engine.physics.building import (
     empty_scene,
     rectangle_vertices,
 )
-from engine.physics.sizes import SceneSizes
+from impulse.engine.physics.sizes import SceneSizes
 
 # Global indices of the arena polygons, which may carry roles like any shape (e.g. a red floor).
 FLOOR, LEFT_WALL, RIGHT_WALL, CEILING = 0, 1, 2, 3

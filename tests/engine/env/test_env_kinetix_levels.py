@@ -9,14 +9,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from benchmarks._harness import LEVELS_DIR
-from engine.env import env
-from engine.env.actions import random_action
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import stack_levels
-from engine.physics import SimParams, size_preset
+from impulse.benchmarks._harness import LEVELS_DIR
+from impulse.engine.env import env
+from impulse.engine.env.actions import random_action
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.levels.level import stack_levels
+from impulse.engine.physics import SimParams, size_preset
 
 NUM_STEPS = 256
 

@@ -5,18 +5,17 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-
-from engine.env.observation_types import (
+from impulse.engine.env.observation_types import (
     ATTENTION_CHANNELS,
     CIRCLE_FEATURES,
     JOINT_FEATURES,
     POLYGON_FEATURES,
     THRUSTER_FEATURES,
 )
-from engine.env.observations import observation_shape, observe, symbolic_length
-from engine.env.spec import EnvSpec
-from engine.levels.level import level_from_scene
-from engine.physics import (
+from impulse.engine.env.observations import observation_shape, observe, symbolic_length
+from impulse.engine.env.spec import EnvSpec
+from impulse.engine.levels.level import level_from_scene
+from impulse.engine.physics import (
     SIZE_L,
     SIZE_M,
     SIZE_S,
@@ -29,6 +28,7 @@ from engine.physics import (
     add_thruster,
     empty_scene,
 )
+
 from tests.support.env_scenes import GREEN_BALL, SPEC, quiet_scene, rollout, start
 
 observe_jit = jax.jit(observe, static_argnums=0)

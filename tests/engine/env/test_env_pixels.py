@@ -9,15 +9,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.env import env
-from engine.env.observations import observation_shape
-from engine.env.pixels import pixel_geometry, render_pixels
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, Level, level_from_scene
-from engine.physics import SIZE_S, add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
-from learner.agent import make_agent
-from learner.config import NetworkConfig
+from impulse.engine.env import env
+from impulse.engine.env.observations import observation_shape
+from impulse.engine.env.pixels import pixel_geometry, render_pixels
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, Level, level_from_scene
+from impulse.engine.physics import SIZE_S, add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
+from impulse.learner.agent import make_agent
+from impulse.learner.config import NetworkConfig
 
 SIZES = SIZE_S
 PPM = pixel_geometry(4).pixels_per_metre  # 25 pixels per metre at downscale 4

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import pytest
-
-from engine.env.config import EnvConfig
-from engine.env.spec import EnvParams, EnvSpec, env_from_config
-from engine.physics import SIZE_M, SimParams
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.spec import EnvParams, EnvSpec, env_from_config
+from impulse.engine.physics import SIZE_M, SimParams
 
 
 def test_env_from_config():

@@ -7,9 +7,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import pytest
-
-from engine.levels.draws import DrawLayout
-from engine.levels.generator import SHAPE_ADD_DRAWS, SHAPE_DRAWS, THRUSTER_DRAWS
+from impulse.engine.levels.draws import DrawLayout
+from impulse.engine.levels.generator import SHAPE_ADD_DRAWS, SHAPE_DRAWS, THRUSTER_DRAWS
 
 
 class Example(NamedTuple):

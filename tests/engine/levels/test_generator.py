@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from impulse.engine.levels.generator import GeneratorConfig, sample_random_level, sample_random_levels
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.step import step
 
-from engine.levels.generator import GeneratorConfig, sample_random_level, sample_random_levels
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED
-from engine.physics.params import SimParams
-from engine.physics.step import step
 from tests.support.level_samples import SIZES, STAT_COUNTS, host_levels, problems, random_levels, summary, take
 
 # Kinetix's measured statistics of unfiltered random levels (reference digest, table 9.4): sample size, then the

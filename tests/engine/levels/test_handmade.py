@@ -10,17 +10,16 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-
-from engine.env.play import play_batch
-from engine.env.spec import EnvParams, EnvSpec
-from engine.levels import handmade
-from engine.levels.handmade import controllers
-from engine.levels.handmade.files import check, level_differences
-from engine.levels.kinetix_json import load_kinetix_level
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, stack_levels
-from engine.levels.sets import load_level_set
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S
-from engine.physics.validate import validate_scene
+from impulse.engine.env.play import play_batch
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels import handmade
+from impulse.engine.levels.handmade import controllers
+from impulse.engine.levels.handmade.files import check, level_differences
+from impulse.engine.levels.kinetix_json import load_kinetix_level
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, stack_levels
+from impulse.engine.levels.sets import load_level_set
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S
+from impulse.engine.physics.validate import validate_scene
 
 NAMES = handmade.names()
 MAX_STEPS = 256  # one Kinetix episode; frame skip 2 (EnvSpec's default)

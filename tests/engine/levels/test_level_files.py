@@ -15,8 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.levels.kinetix_json import (
+from impulse.engine.levels.kinetix_json import (
     MAX_LEVEL_FILE_BYTES,
     LevelFileError,
     level_file_problems,
@@ -24,8 +23,8 @@ from engine.levels.kinetix_json import (
     load_kinetix_level,
     save_kinetix_level,
 )
-from engine.levels.level import Level, level_from_scene, with_content_id
-from engine.physics.building import (
+from impulse.engine.levels.level import Level, level_from_scene, with_content_id
+from impulse.engine.physics.building import (
     add_circle,
     add_fixed_joint,
     add_polygon,
@@ -35,10 +34,11 @@ from engine.physics.building import (
     empty_scene,
     refresh_collision_filter,
 )
-from engine.physics.options import SolverOptions
-from engine.physics.pairs import pair_tables
-from engine.physics.params import SimParams
-from engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+from impulse.engine.physics.options import SolverOptions
+from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+
 from tests.support.bad_level_files import good_level_text, truncation_point, write_bad_inputs
 from tests.support.paths import REPO
 

@@ -5,16 +5,16 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-
-from engine.levels.kinetix_json import load_kinetix_level, save_kinetix_level
-from engine.levels.level import (
+from impulse.engine.levels.kinetix_json import load_kinetix_level, save_kinetix_level
+from impulse.engine.levels.level import (
     content_level_id,
     level_id_values,
     level_id_words,
     random_level_id,
     with_content_id,
 )
-from engine.levels.sets import load_level_set
+from impulse.engine.levels.sets import load_level_set
+
 from tests.support.level_samples import SIZES, random_levels
 
 

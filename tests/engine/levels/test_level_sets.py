@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from deploy.run_config import RunConfig
-from engine.levels.sets import (
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.levels.sets import (
     KINETIX_LEVELS_ENV,
     MAX_LISTED_PROBLEMS,
     LevelSetError,
@@ -21,8 +20,9 @@ from engine.levels.sets import (
     kinetix_levels_root,
     load_level_set,
 )
-from engine.physics.sizes import SIZE_L, SIZE_S
-from learner.run import RunError, _eval_levels, _levels, format_scores, kinetix_groups
+from impulse.engine.physics.sizes import SIZE_L, SIZE_S
+from impulse.learner.run import RunError, _eval_levels, _levels, format_scores, kinetix_groups
+
 from tests.support.bad_level_files import good_level_text, write_bad_inputs
 from tests.support.paths import SHARED_LEVELS
 

@@ -8,9 +8,8 @@ import functools
 import jax
 import numpy as np
 import pytest
-
-from engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_id_values
-from engine.levels.mutations import (
+from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_id_values
+from impulse.engine.levels.mutations import (
     EDIT_NAMES,
     MutationConfig,
     apply_edit,
@@ -18,6 +17,7 @@ from engine.levels.mutations import (
     mutate_level,
     mutate_levels,
 )
+
 from tests.support.level_samples import SIZES, problems, random_levels, summary, to_host
 
 # Per-operator tests run on L levels (room left for additions, fixed joints present), one compiled program for all

@@ -8,14 +8,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.physics import (
+from impulse.engine.physics import (
     add_circle,
     add_rectangle,
     add_revolute_joint,
     add_thruster,
     validate_scene,
 )
+
 from tests.support.physics_random_scenes import build_scenes, draw_actions, draw_parameters
 from tests.support.physics_sim import (
     CHUNK,

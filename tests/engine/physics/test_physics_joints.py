@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from impulse.engine.physics import add_circle, add_fixed_joint, add_rectangle
 
-from engine.physics import add_circle, add_fixed_joint, add_rectangle
 from tests.support.physics_sim import (
     PARAMS,
     arena_scene,

@@ -13,14 +13,13 @@ import functools
 import jax
 import jax.numpy as jnp
 import pytest
-
-from benchmarks._harness import LEVELS_DIR
-from benchmarks.kernel_check import compare, shared_levels
-from engine.env.config import EnvConfig
-from engine.env.spec import env_from_config
-from engine.levels.generator import sample_random_levels
-from engine.physics import SolverOptions, step
-from engine.physics.sizes import SIZE_S
+from impulse.benchmarks._harness import LEVELS_DIR
+from impulse.benchmarks.kernel_check import compare, shared_levels
+from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.levels.generator import sample_random_levels
+from impulse.engine.physics import SolverOptions, step
+from impulse.engine.physics.sizes import SIZE_S
 
 # Measured: 1.3e-5 m on the shared S levels after 120 steps, 3e-6 m on random S levels after 60 (float rounding,
 # the same arithmetic evaluated in another order); a wrong term in a visit parts them by millimetres at once.

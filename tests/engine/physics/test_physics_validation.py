@@ -7,8 +7,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from engine.physics import (
+from impulse.engine.physics import (
     SceneError,
     add_circle,
     add_polygon,
@@ -18,6 +17,7 @@ from engine.physics import (
     check_scene,
     validate_scene,
 )
+
 from tests.support.paths import SHARED_LEVELS
 from tests.support.physics_sim import SIZES, arena_scene, non_finite_leaves, run, set_body_field
 
@@ -110,7 +110,7 @@ def _level_files() -> list[Path]:
 
 
 def test_kinetix_levels_load_and_validate():
-    from engine.levels.kinetix_json import load_kinetix_level
+    from impulse.engine.levels.kinetix_json import load_kinetix_level
 
     problems = {}
     for path in _level_files():
@@ -122,7 +122,7 @@ def test_kinetix_levels_load_and_validate():
 
 
 def test_kinetix_small_level_runs_without_nan():
-    from engine.levels.kinetix_json import load_kinetix_level
+    from impulse.engine.levels.kinetix_json import load_kinetix_level
 
     small = [p for p in _level_files() if p.parent.name == "s"]
     if not small:

@@ -7,9 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint, empty_scene
-from engine.physics.building import write_body, write_joint
+from impulse.engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint, empty_scene
+from impulse.engine.physics.building import write_body, write_joint
 
 SIZES = SceneSizes(num_polygons=6, num_circles=1, num_joints=1, num_thrusters=0)
 

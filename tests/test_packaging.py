@@ -1,0 +1,55 @@
+"""The installed distribution has one import name, `impulse`: the wheel built from this checkout holds the package
+`impulse` and nothing else at its top level (no `engine`, `bus`, `deploy`, ... that would collide with a user's own
+modules), every package of the rooms is in it, with the hand-made level files, and it imports and runs from the
+wheel's files alone."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from tests.support.paths import REPO
+
+pytestmark = pytest.mark.heavy
+
+ROOMS = ("engine", "bus", "curriculum", "monitor", "actors", "learner", "deploy", "benchmarks")
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                            "-w", str(out), str(REPO)], capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr[-3000:]
+    [path] = out.glob("impulse-*.whl")
+    return path
+
+
+def test_the_wheel_holds_impulse_alone_with_every_package(wheel: Path) -> None:
+    names = zipfile.ZipFile(wheel).namelist()
+    top = {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")}
+    assert top == {"impulse"}
+    expected = {f"impulse/{path.parent.relative_to(REPO).as_posix()}/__init__.py"
+                for room in ROOMS for path in (REPO / room).rglob("__init__.py")}
+    assert expected - set(names) == set(), "packages missing from pyproject.toml's [tool.setuptools] packages"
+    assert "impulse/engine/levels/handmade/s_easy_car_right.json" in names
+    entry = next(name for name in names if name.endswith("entry_points.txt"))
+    assert "impulse = impulse.deploy.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
+
+
+def test_the_wheel_imports_and_runs_from_its_own_files(wheel: Path, tmp_path: Path) -> None:
+    zipfile.ZipFile(wheel).extractall(tmp_path / "site")
+    script = ("import sys; sys.path.insert(0, sys.argv[1])\n"
+              "import importlib.util, impulse, impulse.deploy.cli as cli\n"
+              "assert impulse.__file__.startswith(sys.argv[1]), impulse.__file__\n"
+              "assert all(importlib.util.find_spec(room) is None for room in sys.argv[2:]), 'a room at top level'\n"
+              "raise SystemExit(cli.main(['levels', 'show', sys.argv[1] + "
+              "'/impulse/engine/levels/handmade/s_easy_car_right.json']))\n")
+    shown = subprocess.run([sys.executable, "-c", script, str(tmp_path / "site"), *ROOMS], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=300)
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert "s_easy_car_right" in shown.stdout or "green" in shown.stdout.lower(), shown.stdout[-2000:]
