@@ -155,6 +155,6 @@ def test_training_and_evaluation_level_errors_name_the_file(
         _levels(bad_env, SIZE_S)
     assert str(info.value).startswith(f"env.levels: {path}: not valid JSON: Expecting value: line ")
     bad_eval = dataclasses.replace(config, eval=dataclasses.replace(config.eval, levels=str(path)))
-    with caplog.at_level(logging.WARNING, logger="learner.run"):
+    with caplog.at_level(logging.WARNING, logger="impulse.learner.run"):
         assert _eval_levels(bad_eval, SIZE_S, ["x"], None) == ([], None)
     assert f"no evaluation: eval.levels: {path}: not valid JSON" in caplog.text
