@@ -34,11 +34,9 @@ signature (anyone can compute one); who may publish is the router's business. Da
 results) carry none: hashing a 150 MB trajectory would cost more than the rest of its journey, and their arrays
 are checked against the schema and for NaN/Inf on arrival.
 
-Copies (measured by benchmarks/bus_copies.py on the 2-core machine, a 17.7 MB trajectory; a plain memcpy of it
-takes 1.4 ms): `encode` copies each array once into one fresh bytearray (2.0 ms in all) and returns that
-bytearray, not `bytes(...)`: zenoh's `ZBytes` copies a `bytes` and a `bytearray` alike (1.2 ms either way; it
-has no zero-copy path for Python buffers), so converting first would only add a copy (1.3 ms). `decode` copies
-nothing (0.05 ms): the arrays are read-only numpy views into the buffer it was given.
+Copies: `encode` copies each array once, into one fresh bytearray, and returns that bytearray, not `bytes(...)`
+(zenoh copies either alike, so converting would only add a copy); `decode` copies nothing: the arrays are
+read-only numpy views into the buffer it was given (docs/distributed.md has the measured times).
 
 `decode` trusts nothing: every length is compared with the actual payload before anything is sliced, nothing
 of a declared size is allocated, and every failure is a `Rejected` with a reason from REASONS.

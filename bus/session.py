@@ -4,37 +4,16 @@ Topology on one machine: a hub process (`run_hub`) listens on `BusConfig.hub` (l
 actors are peers that connect to it. The hub is a process of its own so that any of them can restart without
 breaking the others' connections. Several machines: `connect` lists router endpoints instead.
 
-Measured with eclipse-zenoh 1.10.2 on loopback (see tests/bus/test_session.py):
-
-- Peers that connect to the hub learn each other's listen endpoints by gossip and open a direct link (each
-  lists the other and the hub in `session.info.peers_zid()`), so actor-to-learner traffic is one hop. After the
-  hub is killed, two peers kept exchanging messages over their direct link.
-- A peer killed with SIGKILL is seen gone at once (the kernel closes its sockets): a liveliness watcher gets
-  DELETE within milliseconds, and PUT again when the restarted process (same id) declares its token.
-- Connect endpoints are retried forever (`connect/timeout_ms = -1`, `connect/exit_on_failure = false`, with
-  `connect/retry` backing off from CONNECT_RETRY_INIT_MS to CONNECT_RETRY_MAX_MS). So a peer started before
-  the hub opens at once (`zenoh.open` returned in 0.5 s with nothing listening) and links up about 1 s after the
-  hub starts, and a peer whose hub is killed and restarted on the same port reconnects by itself (0.95 s here;
-  3.5 s with zenoh's default 1-4 s back-off).
-- Peers do not forward for each other (zenoh >= 1.9 has only peer-to-peer routing): a peer reaches another only
-  over their direct link, which gossip opens a few ms after `zenoh.open` returns. A put made before a
-  subscriber is known is dropped silently, so wait for `wait_matching` first. Note that `matching_status`
-  returns a MatchingStatus object that is always truthy (the stubs say bool): `while not pub.matching_status`
-  never waits, and with it 8-12 of 20 first puts were lost; `.matching` is the flag, and with it 0 of 60 were.
-  It turns True only once the direct link is up. A `get` finds only queryables already declared to it
-  (`wait_queryable`). `Bus()` returns once its set of direct links has been quiet for 50 ms, so what it does
-  first reaches the peers already known to the hub: a `get` right after `Bus()` was answered 12 of 12 times,
-  6 of 12 without that wait. A liveliness PUT arrives over the direct link, so
-  answering a newly seen token is safe. Protocols must still tolerate losing a message to a peer that joined a
-  moment ago (re-grant credits, retry queries).
-- A hub whose port is taken fails at once with a ZError from `zenoh.open` (no silent fallback).
-- A process holding an unclosed session with a Python-callback subscriber never exits (killed after 8 s); with
-  channel handlers, as here, it exited even unclosed. `Bus.close` closes anyway, undeclaring advanced
-  subscribers first (a hang reported upstream when they outlive the session; not reproduced with 1.10.2).
-- Copies of a 17.7 MB trajectory from `encode` to `decode` (benchmarks/bus_copies.py): encode 1, ZBytes 1,
-  shared-memory pool 1 (or the socket path), `to_bytes` 1, decode 0. Put -> received as bytes took 8 ms with
-  shared memory (19 of 20 messages went through the 64 MiB pool, one fell back to the socket; 3.0-3.4 GB/s
-  back to back) and 22-28 ms without (0.74-0.88 GB/s).
+What the session handling relies on (zenoh's behaviour on loopback, measured and listed in docs/distributed.md,
+"What zenoh does"): peers that connect to the hub open direct links by gossip and deliver only over them, so `Bus()`
+returns once its links have settled and a publisher waits for `wait_matching` (whose `.matching` flag, not the
+always-truthy status object, says a subscriber is there) before its first put; a `get` finds only queryables
+already declared to it (`wait_queryable`); connect endpoints are retried forever, so a peer started before the hub,
+or whose hub restarts, links up by itself; a peer killed with SIGKILL is seen gone at once by liveliness. Protocols
+still tolerate losing a message to a peer that joined a moment ago (re-granted credits, retried queries).
+Subscriptions feed `Mailbox` callbacks (`bus.inbox`); a session holding callback subscribers must be closed
+explicitly or its process does not exit, which `Bus.close` does, undeclaring every entity (advanced subscribers
+first) before it closes the session.
 """
 
 from __future__ import annotations
