@@ -13,11 +13,8 @@ One cycle (driven by the shared run loop):
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
 
-Weights. A weights frame is adopted only when its digest matches (`bus.codec`), it fits the network, and its
-(learner epoch, policy version) is strictly newer than the weights held; a replayed older frame is refused as stale
-and one equal to the weights held is ignored. The one exception is a restarted learner: once the learner's
-liveliness token has gone and come back, weights of another epoch are adopted even if that epoch is lower (a run
-directory started afresh). Who sent them is what the key says: only the learner may publish there.
+Weights. The actor follows the learner (`actors.follow.LearnerFollower`): it adopts only intact, strictly newer
+weights of its network (a restarted learner's new epoch excepted), ignores repeats and refuses replays.
 
 Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
 `credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
@@ -28,10 +25,8 @@ learner's liveliness token goes and comes back (the link to it broke: a router r
 no acknowledgement arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written
 off too.
 
-Stopping. The actor stops by itself when the learner's latest status (heard on the learner's own status key)
-says the run is finished and the learner's liveliness token is gone: a finished learner publishes that status
-and leaves. A forged "finished" while the learner is still there changes nothing, and the learner's next status
-overwrites it.
+Stopping. The actor stops by itself when the learner has finished the run: its latest status (on the learner's own
+status key) says so and its liveliness token is gone (`LearnerFollower.learner_finished`).
 """
 
 from __future__ import annotations
@@ -39,31 +34,28 @@ from __future__ import annotations
 import logging
 import secrets
 import time
-from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 import numpy as np
 from impulse.actors.config import ActorConfig
+from impulse.actors.follow import LearnerFollower
 from impulse.actors.levels import LevelSource
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
-from impulse.actors.wire import weights_schema
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
-from impulse.bus.keys import ACTOR, LEARNER
+from impulse.bus.keys import ACTOR
 from impulse.bus.levels import encode_level_results
-from impulse.bus.schema import check
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
-from impulse.bus.status import StatusPublisher, read_status
+from impulse.bus.status import StatusPublisher
 from impulse.bus.trajectories import encode_trajectory
-from impulse.bus.weights import Weights, decode_weights
 from impulse.curriculum.results import LevelResults
 from impulse.curriculum.wire import results_arrays
 from impulse.engine.env.spec import EnvParams, EnvSpec
-from impulse.engine.pytree import tree_arrays, tree_from_arrays
+from impulse.engine.pytree import tree_arrays
 from impulse.monitor.config import MonitorConfig
 
 if TYPE_CHECKING:
@@ -73,21 +65,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("impulse.actor")
 
 ACTOR_ROLE = ACTOR
-WEIGHTS_QUERY_EVERY_S = 2.0
-"""While it has no weights, an actor asks the learner's queryable this often (the cached broadcast usually
-arrives first)."""
-
-
-LATENCY_WINDOW = 100
-"""Weight broadcasts whose publish-to-adopted latency the status line summarises."""
-
-
-def _summary(values: deque[float]) -> dict[str, float]:
-    if not values:
-        return {}
-    ordered = sorted(values)
-    return {"n": len(ordered), "p50": ordered[len(ordered) // 2], "max": ordered[-1]}
-
 
 class ActingAgent(Protocol):
     """What an actor needs of the agent (`learner.agent.Agent` fits): the environment it was built for, its policy
@@ -148,32 +125,19 @@ class Actor:
         )
         rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
         self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
-        self._params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
-        self._weights_schema = weights_schema(self._params_template)
+        self.follow = LearnerFollower(bus, jax.eval_shape(agent.init, jax.random.PRNGKey(0)))
 
         keys = bus.keys
         self._traj = bus.publisher(keys.traj(self.name))
         self._results = bus.publisher(keys.levels_results(self.name))
-        self._weights = bus.inbox(keys.weights_policy, 1, drop_oldest=True, latest=True)
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
-        self._learner_presence = bus.watch_alive(keys.alive_pattern(LEARNER))
-        self._learner_present = False
-        self._learner_away = False  # the learner's token went after it was seen: batches in flight may be lost
-        self._learner_returned = False  # ... and came back: weights of a new epoch may be adopted
-        self._learner_status = bus.inbox(keys.status_pattern(LEARNER), 4, drop_oldest=True)
-        self._learner_says_finished = False
         self._status = StatusPublisher(bus, actors.status_every_s)
 
-        self.params: Any = None
-        self.version = -1
-        self.epoch = -1
         self.seq = 0  # batches sent by this incarnation
         self.acked = 0  # highest sequence number the learner has taken off its queue
         self._blocked_since: float | None = None  # when the actor last ran out of credit
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
-        self._last_query = -float("inf")
-        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0, "weights_adopted": 0,
-                       "weights_by_query": 0, "weights_repeated": 0}
+        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0}
         self._steps_done = 0
         self._stream: RolloutStream | None = None
         if monitor is not None and self.watch:
@@ -184,55 +148,32 @@ class Actor:
             self._stream = RolloutStream(monitor, self.name, self.watch, self.num_steps, monitor_config.contacts)
         self._started = time.monotonic()
         self._last_cycle_s = 0.0
-        self._weights_latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
 
     # -- weights ------------------------------------------------------------------------------------------
 
-    def _adopt(self, weights: Weights) -> None:
-        """Adopt checked weights if they are newer than those held (see the module docstring); raises Rejected."""
-        message = weights.message
-        check(message, self._weights_schema)
-        held, offered = (self.epoch, self.version), weights.order
-        if offered == held:
-            self.counts["weights_repeated"] += 1  # the cached broadcast again (a reconnection), or a copy
-            return
-        restarted = self._learner_returned and message.learner_epoch != self.epoch
-        if offered < held and not restarted:
-            raise Rejected("stale", f"weights of epoch {offered[0]} version {offered[1]}, older than the epoch "
-                           f"{held[0]} version {held[1]} held (a replay?)")
-        self._learner_returned = False
-        self.params = jax.device_put(tree_from_arrays(message.arrays, self._params_template))
-        if message.learner_epoch != self.epoch and self.epoch >= 0:
-            log.info("learner restarted (epoch %d -> %d): batches in flight written off", self.epoch,
-                     message.learner_epoch)
-            self._write_off()
-        self.epoch, self.version = offered
-        self.bus.stamp.acting_for(*offered)
-        self.counts["weights_adopted"] += 1
-        if weights.published_at is not None:
-            self._weights_latency_ms.append(1000.0 * (time.time() - weights.published_at))
+    @property
+    def params(self) -> Any:
+        return self.follow.params
 
-    def _receive_weights(self) -> None:
-        """Adopt the newest weights broadcast; before the first rollout, ask the learner for its current ones."""
-        payloads = [received.payload for received in self._weights.poll()]
-        queried = False
-        if self.params is None and time.monotonic() - self._last_query >= WEIGHTS_QUERY_EVERY_S:
-            self._last_query = time.monotonic()
-            answers = self.bus.get(self.bus.keys.weights_latest, timeout_s=1.0)
-            queried = bool(answers) and not payloads
-            payloads = answers[-1:] + payloads
-        for payload in payloads[-1:]:
-            first = self.params is None
-            try:
-                self._adopt(decode_weights(payload, self.bus.keys.run))
-            except Rejected as err:
-                self.bus.rejects.record(err.reason, "weights", err.detail)
-                continue
-            if queried:
-                self.counts["weights_by_query"] += 1
-            if first:
-                log.info("adopted the learner's current weights %s: version %d, epoch %d",
-                         "by query" if queried else "from its cached broadcast", self.version, self.epoch)
+    @property
+    def version(self) -> int:
+        return self.follow.version
+
+    @property
+    def epoch(self) -> int:
+        return self.follow.epoch
+
+    def _follow_learner(self) -> None:
+        """Adopt the newest weights; what was in flight to a learner that restarted, or whose link broke (its token
+        went and came back: a router restart, a network partition), is written off now rather than after the
+        credit timeout. A batch that did arrive is still trained on; its late acknowledgement is ignored."""
+        events = self.follow.poll()
+        if events.new_epoch and self.in_flight:
+            log.info("the learner restarted: %d batches in flight written off", self.in_flight)
+            self._write_off()
+        if events.learner_back and self.in_flight:
+            log.info("the learner is back after an interruption: %d batches in flight written off", self.in_flight)
+            self._write_off()
 
     # -- credits ------------------------------------------------------------------------------------------
 
@@ -241,32 +182,7 @@ class Actor:
         self.acked = self.seq
         self._blocked_since = None
 
-    def _watch_learner(self) -> None:
-        """The learner gone and back (a broken link, a restarted router, a restarted learner): what was in flight
-        may have been lost on the way, so it is written off now rather than after the credit timeout. A batch
-        that did arrive is still trained on; its late acknowledgement is ignored. Also notes whether the learner's
-        latest status says the run is finished."""
-        for _, alive in self._learner_presence.poll():
-            self._learner_present = alive
-            if not alive:
-                self._learner_away = True
-            elif self._learner_away:
-                self._learner_away = False
-                self._learner_returned = True
-                if self.in_flight:
-                    log.info("the learner is back after an interruption: %d batches in flight written off",
-                             self.in_flight)
-                    self._write_off()
-        for received in self._learner_status.poll():
-            try:
-                status = read_status(received, self.bus.keys).status
-            except Rejected as err:
-                self.bus.rejects.record(err.reason, received.key, err.detail)
-                continue
-            self._learner_says_finished = status.get("finished") is True
-
     def _receive_acks(self) -> None:
-        self._watch_learner()
         for received in self._credits.poll():
             try:
                 credit = decode_credit(received.payload, self.bus.keys.run)
@@ -332,8 +248,9 @@ class Actor:
             "waiting": "weights" if self.params is None else "levels" if self.levels.waiting else (
                 "credit" if self.in_flight >= self.actors.credits else ""),
             "rejected": self.bus.rejects.counts(),
-            "weights_latency_ms": _summary(self._weights_latency_ms),
+            "weights_latency_ms": self.follow.latency_ms(),
             **self.counts,
+            **self.follow.counts,
             **({"monitor": self.monitor.status()} if self.monitor is not None else {}),
         }
 
@@ -352,7 +269,7 @@ class Actor:
 
     def cycle(self) -> CycleReport | None:
         self._publish_status_if_due()
-        self._receive_weights()
+        self._follow_learner()
         self._receive_acks()
         if self.params is None:
             return None
@@ -404,7 +321,7 @@ class Actor:
         """When the learner's latest status says the run is finished and the learner has left (see the module
         docstring): on one machine the launcher stops the actors anyway, but actors on other hosts would otherwise
         wait for weights that never come."""
-        if self._learner_says_finished and not self._learner_present:
+        if self.follow.learner_finished:
             log.info("the learner finished the run: %s stops", self.name)
             return True
         return False

@@ -20,6 +20,7 @@ share one credential): it tells actors apart, it does not authenticate one.
     <root>/curriculum/inspect           buffer report queryable (`impulse curriculum inspect`)
     <root>/actor/traj/<actor>           trajectory batches
     <root>/actor/results/<actor>        per-level results
+    <root>/evaluator/results/<id>       evaluations of the learner's policy on level sets
     <root>/<role>/status/<id>           status lines (every process)
     <root>/<role>/alive/<id>            liveliness tokens (every process)
 """
@@ -38,10 +39,12 @@ PREFIX = "impulse"
 LEARNER = "learner"
 CURRICULUM = "curriculum"
 ACTOR = "actor"
+EVALUATOR = "evaluator"
 OPERATOR = "operator"
-ROLES = (LEARNER, CURRICULUM, ACTOR, OPERATOR)
-"""The roles of a run's processes (the `<role>` chunk of their keys); the operator is any command-line tool, the
-launcher or a watcher. Across machines each role has credentials of its own (`bus.router`)."""
+ROLES = (LEARNER, CURRICULUM, ACTOR, EVALUATOR, OPERATOR)
+"""The roles of a run's processes (the `<role>` chunk of their keys); the evaluator follows the learner's weights
+and scores them on level sets; the operator is any command-line tool, the launcher or a watcher. Across machines
+each role has credentials of its own (`bus.router`)."""
 
 STATUS = "status"
 ALIVE = "alive"
@@ -144,6 +147,17 @@ class Keys:
     def levels_results_all(self) -> str:
         """Pattern matching every actor's level results (the curriculum's subscription)."""
         return self.own(ACTOR, "results", "*")
+
+    # -- the evaluator's ------------------------------------------------------------------------------------
+
+    def evaluation(self, ident: str) -> str:
+        """Evaluations of the learner's policies published by one evaluator."""
+        return self.own(EVALUATOR, "results", check_name(ident, "id"))
+
+    @property
+    def evaluations_all(self) -> str:
+        """Pattern matching every evaluator's results (the learner's subscription)."""
+        return self.own(EVALUATOR, "results", "*")
 
     # -- every process's ------------------------------------------------------------------------------------
 

@@ -43,7 +43,7 @@ from typing import Any
 
 import zenoh
 from impulse.bus.config import RouterConfig, is_loopback
-from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
+from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
 
 log = logging.getLogger("impulse.router")
 
@@ -117,8 +117,9 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
     Each role may publish (put, reply, declare a queryable or a liveliness token) only under its own prefix
     `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. `ingress` rules
     say what a role may send into the router, `egress` what the router may deliver to it: trajectories reach only
-    the learner, level results only the curriculum, the learner's weights, credits and status reach actors, and
-    every process may hear status lines. Keys cover every run; the advanced publisher's cache for late joiners
+    the learner, level results only the curriculum, the learner's weights, credits and status reach actors (and
+    its weights and status the evaluator, whose evaluations reach the learner), and every process may hear status
+    lines. Keys cover every run; the advanced publisher's cache for late joiners
     lives under `learner/weights/policy/@adv/**`, which `**` does not match (`@` chunks match only themselves),
     hence its own keys.
     """
@@ -137,10 +138,13 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
                everything),
         _allow("hear-statuses", "egress", ["put"], [f"{run}/*/status/*"]),
         *(_allow(f"{role}-publishes", "ingress", publishing, own(role)) for role in ROLES),
-        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/traj/*", *own(LEARNER)]),
+        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/traj/*", f"{run}/{EVALUATOR}/results/*",
+                                                             *own(LEARNER)]),
         _allow("actor-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache,
                                                     f"{run}/{CURRICULUM}/levels/sample"]),
         _allow("actor-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
+        _allow("evaluator-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
+        _allow("evaluator-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
         _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect"]),
         _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
@@ -150,6 +154,7 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         LEARNER: ["learner-hears"],
         CURRICULUM: ["curriculum-hears"],
         ACTOR: ["actor-asks", "actor-hears"],
+        EVALUATOR: ["evaluator-asks", "evaluator-hears"],
         OPERATOR: ["operator-asks"],
     }
     subjects, policies = [], []

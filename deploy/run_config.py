@@ -13,7 +13,14 @@ from impulse.bus.config import BusConfig, RouterConfig
 from impulse.curriculum.config import CurriculumConfig
 from impulse.engine.config_checks import check_range
 from impulse.engine.env.config import EnvConfig
-from impulse.learner.config import CheckpointConfig, EvalConfig, LearnerConfig, NetworkConfig, PPOConfig
+from impulse.learner.config import (
+    CheckpointConfig,
+    EvalConfig,
+    EvaluatorConfig,
+    LearnerConfig,
+    NetworkConfig,
+    PPOConfig,
+)
 from impulse.monitor.config import MonitorConfig
 
 RANDOM_LEVELS = "random"
@@ -42,6 +49,8 @@ class RunConfig:
     """Which levels to train on when env.levels is "random" (domain randomisation unless a method is chosen)."""
     actors: ActorConfig = field(default_factory=ActorConfig)
     learner: LearnerConfig = field(default_factory=LearnerConfig)
+    evaluator: EvaluatorConfig = field(default_factory=EvaluatorConfig)
+    """The evaluator process `impulse launch` starts when `evaluator.levels` is set."""
     bus: BusConfig = field(default_factory=BusConfig)
     router: RouterConfig = field(default_factory=RouterConfig)
     """`impulse router`, for runs across machines."""

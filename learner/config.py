@@ -171,17 +171,42 @@ class CheckpointConfig:
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Evaluation at the end of `impulse train` and by `impulse eval`."""
+    """Evaluation in `impulse train` (every `every_updates` and at the end) and by `impulse eval`."""
 
     levels: str = ""
-    """Level set to evaluate on (as env.levels); empty: the training levels, or the hand-made set when training
-    on random levels."""
+    """Level sets to evaluate on, comma-separated (each as env.levels takes it, e.g. "kinetix:s,handmade"); empty:
+    the training levels, or the hand-made set when training on random levels."""
     attempts: int = 20
     """Episodes per level, each from the level's start (Kinetix scores hand-made levels over 20); 0 skips the
     evaluation at the end of training."""
+    every_updates: int = 0
+    """`impulse train` also evaluates the policy every this many updates and writes the scores to metrics.jsonl
+    (the columns the evaluator process gives a distributed run); 0: only at the end."""
 
     def __post_init__(self) -> None:
         check_range("eval.attempts", self.attempts, at_least=0)
+        check_range("eval.every_updates", self.every_updates, at_least=0)
+
+
+@dataclass(frozen=True)
+class EvaluatorConfig:
+    """The evaluator process of a distributed run: it follows the learner's weights and scores the newest policy
+    on level sets, as `impulse eval` does, while the run trains (`learner.evaluator`)."""
+
+    levels: str = ""
+    """Level sets to score on, comma-separated (e.g. "kinetix:s,handmade"); empty: no evaluator."""
+    every_updates: int = 50
+    """Score the newest policy once the learner is this many versions past the last one scored; versions that
+    arrive while it scores are skipped (and counted)."""
+    attempts: int = 20
+    """Episodes per level (Kinetix's protocol: 20)."""
+    devices: tuple[int, ...] = ()
+    """GPUs the evaluator runs on (positions among those it may see, as actors.devices); empty: the first."""
+
+    def __post_init__(self) -> None:
+        check_range("evaluator.every_updates", self.every_updates, at_least=1)
+        check_range("evaluator.attempts", self.attempts, at_least=1)
+        check_device_list("evaluator.devices", self.devices)
 
 
 @dataclass(frozen=True)

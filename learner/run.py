@@ -19,20 +19,21 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
 from impulse.bus.service import CycleReport, Progress
 from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.stats import buffer_summary
 from impulse.engine.env.spec import EnvParams, env_from_config
 from impulse.engine.levels.level import Level
-from impulse.engine.levels.sets import HANDMADE, RANDOM, kinetix_group, load_level_set
+from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
+from impulse.engine.physics.sizes import SceneSizes
 from impulse.learner.agent import Agent, make_agent
 from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
 from impulse.learner.config import TrainingSetup
-from impulse.learner.evaluate import LevelScores, RecordedEpisodes, evaluate, record_episodes
+from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
 from impulse.learner.networks import describe_parameters
 from impulse.learner.run_directory import existing_run
+from impulse.learner.scoring import LevelSets, evaluation_columns, format_scores, load_level_sets, score_policy
 
 log = logging.getLogger(__name__)
 
@@ -50,53 +51,18 @@ def _levels(config: TrainingSetup, sizes) -> tuple[list[str], Level | None]:
         raise RunError(f"env.levels: {err}") from err
 
 
-def _eval_levels(config: TrainingSetup, sizes, train_names: list[str], train_levels: Level | None):
-    source = config.eval.levels or (HANDMADE if train_levels is None else "")
-    if not source:
-        return train_names, train_levels
+def _eval_sets(config: TrainingSetup, sizes: SceneSizes, train_names: list[str],
+               train_levels: Level | None) -> LevelSets | None:
+    """The evaluation levels: `eval.levels` (one or more sets), else the training levels, else (on random
+    levels) the hand-made set; None, with a warning, when they cannot be loaded."""
+    spec = config.eval.levels or (HANDMADE if train_levels is None else "")
+    if not spec:
+        return LevelSets(train_names, train_levels, {config.env.levels: train_names})
     try:
-        return load_level_set(source, sizes)
-    except ValueError as err:
+        return load_level_sets(spec, sizes)
+    except LevelSetError as err:
         log.warning("no evaluation: %s%s", "eval.levels: " if config.eval.levels else "", err)
-        return [], None
-
-
-def _scores_table(names: list[str], scores: LevelScores) -> dict[str, dict[str, float]]:
-    return {
-        name: {
-            "solve_rate": float(scores.solve_rate[i]),
-            "mean_return": float(scores.mean_return[i]),
-            "mean_length": float(scores.mean_length[i]),
-        }
-        for i, name in enumerate(names)
-    }
-
-
-def kinetix_groups(table: dict[str, dict[str, float]]) -> dict[str, float]:
-    """Mean solve rate per group as Kinetix logs them for its hand-made sets: "<size>_all" and "<size>_<prefix>"
-    (`engine.levels.sets.kinetix_group`), for levels named "<size>/<file>" as the "kinetix:" sets name them."""
-    members: dict[str, list[float]] = {}
-    for name, scores in table.items():
-        if "/" not in name:
-            continue
-        for group in (f"{name.rpartition('/')[0]}_all", kinetix_group(name)):
-            members.setdefault(group, []).append(scores["solve_rate"])
-    return {group: float(np.mean(rates)) for group, rates in sorted(members.items())}
-
-
-def format_scores(table: dict[str, dict[str, float]]) -> str:
-    """A terminal table of per-level evaluation scores, their mean, and Kinetix's group means where the levels
-    are Kinetix's."""
-    width = max([len(n) for n in table] + [5])
-    lines = [f"{'level':<{width}}  solved  return  length"]
-    for name, s in table.items():
-        lines.append(f"{name:<{width}}  {s['solve_rate']:>6.0%}  {s['mean_return']:>6.3f}  {s['mean_length']:>6.1f}")
-    if table:
-        mean = np.mean([s["solve_rate"] for s in table.values()])
-        lines.append(f"{'mean':<{width}}  {mean:>6.0%}")
-    for group, rate in kinetix_groups(table).items():
-        lines.append(f"{group:<{width}}  {rate:>6.0%}")
-    return "\n".join(lines)
+        return None
 
 
 def build(config: TrainingSetup) -> tuple[FusedTrainer, Agent, list[str], Level | None]:
@@ -118,7 +84,7 @@ class FusedRun:
     """The fused trainer as a run-loop service: one `cycle` is one jitted iteration (rollout + PPO update)."""
 
     def __init__(self, config: TrainingSetup, run_dir: Path, config_toml: str, resume: bool = False,
-                 stop_after_updates: int | None = None):
+                 stop_after_updates: int | None = None, init_from: Path | None = None):
         self.config = config
         self.run_dir = run_dir
         self.config_toml = config_toml
@@ -137,14 +103,21 @@ class FusedRun:
             describe_parameters(self.carry.train.params),
         )
         self.update = 0
+        self.init_from: dict[str, Any] = {}
+        """Where the starting policy came from, when fine-tuning (written into every checkpoint's counters)."""
         if resume:
             self._restore()
+        elif init_from is not None:
+            self._start_from_policy(init_from)
         start = time.perf_counter()
         self._iterate = iterate.lower(self.carry, self.levels).compile()
         self.compile_s = time.perf_counter() - start
         log.info("compiled the training step in %.1f s (%s envs x %s steps)", self.compile_s,
                  config.ppo.num_envs, config.ppo.num_steps)
         self.target = self.trainer.num_updates
+        self.eval_sets = None
+        if config.eval.every_updates and config.eval.attempts:
+            self.eval_sets = _eval_sets(config, self.agent.spec.sizes, self.names, self.levels)
         if stop_after_updates is not None:
             self.target = min(self.target, self.update + stop_after_updates)
 
@@ -176,6 +149,22 @@ class FusedRun:
         log.info("resumed from checkpoint %d (update %d, %s env steps)", restored.step,
                  self.update, f"{counters['env_steps']:,}")
 
+    def _start_from_policy(self, source: Path) -> None:
+        """Fine-tuning: the network parameters of `source`'s newest intact checkpoint (a run directory of either
+        mode, or a shipped agent), with this run's fresh optimiser, environments and curriculum, from update 0."""
+        template = {TRAIN: self.carry.train}
+        with Checkpointer(source / self.config.checkpoint.directory, self.config.checkpoint) as checkpoints:
+            try:
+                restored = checkpoints.restore(template)
+            except CheckpointError as err:
+                raise RunError(f"--init-from {source}: {err}") from err
+        self.carry = self.carry._replace(train=self.carry.train._replace(params=restored.items[TRAIN].params))
+        counters = restored.counters
+        self.init_from = {"init_from": str(source), "init_from_step": restored.step,
+                          "init_from_env_steps": int(counters.get("env_steps", 0))}
+        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source, restored.step,
+                 f"{self.init_from['init_from_env_steps']:,}")
+
     @property
     def env_steps(self) -> int:
         return self.update * self.steps_per_update
@@ -195,7 +184,19 @@ class FusedRun:
         metrics["steps_per_s"] = self.steps_per_update / (time.perf_counter() - start)
         if self.carry.curriculum is not None:
             metrics.update(self.curriculum_metrics())
+        if self.eval_sets is not None and self.update % self.config.eval.every_updates == 0:
+            metrics.update(self.evaluation())
         return CycleReport(env_steps=self.steps_per_update, updates=1, metrics=metrics)
+
+    def evaluation(self) -> dict[str, float]:
+        """The current policy scored on the evaluation sets, as the evaluator process scores a distributed run's:
+        the `eval/...` columns of metrics.jsonl."""
+        config = self.config
+        scored = score_policy(self.agent, self.carry.train.params, self.trainer.env_params, self.eval_sets,
+                              jax.random.PRNGKey(config.seed + 1 + self.update), config.eval.attempts)
+        log.info("update %d: evaluation mean solve rate %.0f%%%s", self.update, 100 * scored.mean,
+                 "".join(f", {group} {rate:.0%}" for group, rate in scored.groups.items()))
+        return evaluation_columns(scored.table, scored.groups, self.update)
 
     def curriculum_metrics(self) -> dict[str, float]:
         """A few buffer statistics for metrics.jsonl (prefixed `curriculum_`)."""
@@ -205,7 +206,7 @@ class FusedRun:
         return {f"curriculum_{k}": float(summary[k]) for k in keep if k in summary}
 
     def save(self, summary: dict[str, float]) -> None:
-        counters = {"update": self.update, "env_steps": self.env_steps, **summary}
+        counters = {"update": self.update, "env_steps": self.env_steps, **self.init_from, **summary}
         self.checkpoints.save(self.update, fused_checkpoint_items(self.carry), counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 
@@ -227,15 +228,37 @@ def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams,
     if config.eval.attempts <= 0:
         return None
     names, levels = _levels(config, agent.spec.sizes)
-    eval_names, eval_levels = _eval_levels(config, agent.spec.sizes, names, levels)
-    if eval_levels is None or not eval_names:
+    sets = _eval_sets(config, agent.spec.sizes, names, levels)
+    if sets is None or not sets.names:
         return None
-    scores = evaluate(agent, params, env_params, eval_levels, jax.random.PRNGKey(config.seed + 1),
-                      attempts=config.eval.attempts)
-    table = _scores_table(eval_names, scores)
-    (run_dir / "eval.json").write_text(json.dumps(table, indent=2))
-    log.info("evaluation over %d attempts per level:\n%s", config.eval.attempts, format_scores(table))
-    return table
+    scored = score_policy(agent, params, env_params, sets, jax.random.PRNGKey(config.seed + 1),
+                          config.eval.attempts)
+    (run_dir / "eval.json").write_text(json.dumps(scored.table, indent=2))
+    log.info("evaluation over %d attempts per level:\n%s", config.eval.attempts,
+             format_scores(scored.table, scored.groups))
+    return scored.table
+
+
+def export_policy(config: TrainingSetup, run_dir: Path, out_dir: Path, config_toml: str, step: int | None = None,
+                  note: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The policy of a run's checkpoint (newest intact unless `step`) written alone into `out_dir`'s checkpoints:
+    a small run directory that `impulse eval`, `impulse train --init-from` and `--resume` read (the latter two go
+    on training it on fresh environments). Returns the counters written: the source's, with `note` added."""
+    trainer, _, _, train_levels = build(config)
+    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
+    with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
+        try:
+            restored = checkpoints.restore({TRAIN: template}, step)
+        except CheckpointError as err:
+            raise RunError(str(err)) from err
+    counters = {key: value for key, value in restored.counters.items() if key in ("update", "env_steps",
+                                                                               "policy_version", "solve_rate")}
+    counters.update(note or {}, exported_from_step=restored.step)
+    with Checkpointer(out_dir / config.checkpoint.directory, config.checkpoint) as exported:
+        if exported.latest_step() is not None:
+            raise RunError(f"{out_dir} already holds a checkpoint; export into a new directory")
+        exported.save(restored.step, {TRAIN: restored.items[TRAIN]}, counters, config_toml)
+    return counters
 
 
 def fused_checkpoint_items(carry: FusedCarry) -> dict[str, Any]:
@@ -268,12 +291,12 @@ def evaluate_run(
     sizes = agent.spec.sizes
     if levels:
         try:
-            eval_names, eval_levels = load_level_set(levels, sizes)
-        except ValueError as err:
+            sets = load_level_sets(levels, sizes)
+        except LevelSetError as err:
             raise RunError(str(err)) from err
     else:
-        eval_names, eval_levels = _eval_levels(config, sizes, names, train_levels)
-        if eval_levels is None:
+        sets = _eval_sets(config, sizes, names, train_levels)
+        if sets is None:
             raise RunError("no evaluation levels: pass --levels")
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
@@ -283,10 +306,10 @@ def evaluate_run(
             raise RunError(str(err)) from err
     items, counters = restored.items, restored.counters
     params = items[TRAIN].params
-    scores = evaluate(agent, params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed),
-                      attempts=attempts or config.eval.attempts, greedy=greedy)
+    scored = score_policy(agent, params, trainer.env_params, sets, jax.random.PRNGKey(seed),
+                          attempts or config.eval.attempts, greedy=greedy)
     if recorder is not None:
-        episodes = record_episodes(agent, params, trainer.env_params, eval_levels, jax.random.PRNGKey(seed + 1),
+        episodes = record_episodes(agent, params, trainer.env_params, sets.levels, jax.random.PRNGKey(seed + 1),
                                    greedy)
-        recorder(list(eval_names), episodes, int(counters.get("policy_version", counters.get("update", 0))))
-    return _scores_table(eval_names, scores)
+        recorder(list(sets.names), episodes, int(counters.get("policy_version", counters.get("update", 0))))
+    return scored.table

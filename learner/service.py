@@ -39,7 +39,8 @@ from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_bat
 from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash
 from impulse.bus.codec import Message, Rejected
 from impulse.bus.credits import encode_credit
-from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER
+from impulse.bus.evaluations import decode_evaluation
+from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
@@ -53,6 +54,7 @@ from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
 from impulse.learner.run_directory import existing_run
+from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
 from impulse.learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
 
@@ -178,7 +180,10 @@ class LearnerService:
         self._weights_queries = bus.queryable(keys.weights_latest, 16)
         self._alive = bus.watch_alive(keys.alive_pattern(ACTOR))
         self._peer_statuses = {role: bus.inbox(keys.status_pattern(role), 256, drop_oldest=True)
-                               for role in (ACTOR, CURRICULUM)}
+                               for role in (ACTOR, CURRICULUM, EVALUATOR)}
+        self._evaluations = bus.inbox(keys.evaluations_all, 16, drop_oldest=True)
+        self._evaluation_columns: dict[str, float] = {}  # the newest evaluation, for the next metrics row
+        self.evaluation: dict[str, Any] = {}  # ... and for the status line
         self._status = StatusPublisher(bus, status_every_s)
         self._credit_publishers: dict[str, Any] = {}
         self._acks: dict[str, tuple[int, int]] = {}  # actor -> (incarnation, highest seq taken off the queue)
@@ -295,6 +300,20 @@ class LearnerService:
                 except Rejected as err:
                     self.bus.rejects.record(err.reason, received.key, err.detail)
 
+    def _hear_evaluations(self) -> None:
+        """The evaluator's scores of a policy: written to the next metrics row (`eval/...` columns, as in
+        `impulse train`) and shown on the status line."""
+        for received in self._evaluations.poll():
+            try:
+                heard = decode_evaluation(received.payload, self.bus.keys.run)
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, received.key, err.detail)
+                continue
+            self._evaluation_columns = {**evaluation_columns(heard.levels, heard.groups, heard.policy_version),
+                                        "eval/skipped": float(heard.skipped)}
+            self.evaluation = {"policy_version": heard.policy_version, "groups": heard.groups,
+                               "mean": self._evaluation_columns["eval/mean"]}
+
     def rejected(self) -> dict[str, int]:
         """Messages the learner refused, by reason, over the whole run (restarts included)."""
         return dict(self._rejected_before + Counter(self.bus.rejects.counts()))
@@ -356,6 +375,7 @@ class LearnerService:
             "solve_rate": self._last_metrics.get("window_solve_rate"),
             "finished": self.finished(),
             "peer_drops": self.peer_drops.totals(),
+            "evaluation": self.evaluation,
             **{name: 0 for name in DROP_COUNTS},
             **dict(self.counts),
         }
@@ -366,6 +386,7 @@ class LearnerService:
         self._answer_queries()
         self._watch_actors()
         self._hear_peers()
+        self._hear_evaluations()
         self._ingest()
         self._refresh_acks()
         taken = self._take()
@@ -384,7 +405,9 @@ class LearnerService:
             steps_per_s=self._rate() * self.steps_per_batch,
             queue=len(self._ready),
             **self.drop_metrics(),
+            **self._evaluation_columns,
         )
+        self._evaluation_columns = {}  # each evaluation in one row
         if self.learner.slow_down_s:
             time.sleep(self.learner.slow_down_s)
         self._recent.append(time.monotonic())

@@ -5,6 +5,7 @@ wheel's files alone."""
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -22,8 +23,14 @@ ROOMS = ("engine", "bus", "curriculum", "monitor", "actors", "learner", "deploy"
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("wheel")
-    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-                            "-w", str(out), str(REPO)], capture_output=True, text=True, timeout=300)
+    leftover = REPO / "build"  # setuptools builds in the source tree; what it leaves there is not ours to keep
+    had_leftover = leftover.exists()
+    try:
+        built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                                "-w", str(out), str(REPO)], capture_output=True, text=True, timeout=300)
+    finally:
+        if not had_leftover:
+            shutil.rmtree(leftover, ignore_errors=True)
     assert built.returncode == 0, built.stderr[-3000:]
     [path] = out.glob("impulse-*.whl")
     return path

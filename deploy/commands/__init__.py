@@ -12,9 +12,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from impulse.deploy.commands import curriculum, import_kinetix, launch, levels, services, view
+from impulse.deploy.commands import curriculum, evaluator, import_kinetix, launch, levels, services, view
 from impulse.deploy.commands.router import add_router_arguments, run_router_command
-from impulse.deploy.commands.train import add_eval_arguments, add_train_arguments, run_eval, run_train
+from impulse.deploy.commands.train import (
+    add_eval_arguments,
+    add_export_arguments,
+    add_train_arguments,
+    run_eval,
+    run_export,
+    run_train,
+)
 from impulse.deploy.run_config import RunConfig
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
@@ -77,6 +84,17 @@ COMMANDS: tuple[Command, ...] = (
         arguments=services.add_actor_arguments,
     ),
     Command(
+        "evaluator",
+        "run the evaluator process alone (multi-host)",
+        "The evaluator: follows the learner's weights and scores the newest policy every evaluator.every_updates "
+        "versions on the level sets evaluator.levels names (e.g. kinetix:s,handmade), 20 attempts per level as "
+        "Kinetix scores; the learner writes the scores to metrics.jsonl. `impulse launch` starts it when "
+        "evaluator.levels is set.",
+        config=RunConfig,
+        run=evaluator.run_evaluator,
+        arguments=evaluator.add_evaluator_arguments,
+    ),
+    Command(
         "curriculum",
         "run the curriculum service alone (multi-host)",
         "The curriculum service and its live controls. `serve` runs the service (it keeps the level buffer, "
@@ -105,6 +123,17 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=run_eval,
         arguments=add_eval_arguments,
+    ),
+    Command(
+        "export",
+        "write a run's policy alone into a small directory, to share or ship",
+        "Copy the policy (network parameters and optimiser state) of a run's checkpoint into a new run directory "
+        "with its config.toml and agent.json (source, update, env steps, your --note facts), without the "
+        "environment and curriculum state: what pretrained/ ships. `impulse eval --checkpoint DIR`, `impulse train "
+        "--init-from DIR` and `--resume DIR` read it.",
+        config=RunConfig,
+        run=run_export,
+        arguments=add_export_arguments,
     ),
     Command(
         "import-kinetix",

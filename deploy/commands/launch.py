@@ -51,6 +51,7 @@ EXIT_USAGE = 2
 LEARNER = "learner"
 CURRICULUM = "curriculum"
 VIEWER = "viewer"
+EVALUATOR = "evaluator"
 POLL_S = 0.2
 ACTOR_STOP_TIMEOUT_S = 20.0
 LEARNER_STOP_TIMEOUT_S = 180.0
@@ -119,6 +120,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         children.append(Child(CURRICULUM, lambda restart: _service_argv("curriculum", run_dir, "--resume",
                                                                         action="serve"),
                               run_dir / "logs" / "curriculum.log"))
+    if config.evaluator.levels:
+        children.append(Child(EVALUATOR, lambda restart: _service_argv("evaluator", run_dir),
+                              run_dir / "logs" / "evaluator.log"))
     for index in range(config.actors.num_actors):
         children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
                                                                                         str(i)),
@@ -126,8 +130,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
-    log.info("run %s in %s: learner, %s%d actors; logs in %s", config.name, run_dir,
+    log.info("run %s in %s: learner, %s%s%d actors; logs in %s", config.name, run_dir,
              f"curriculum ({config.curriculum.method}), " if config.uses_curriculum_service else "",
+             f"evaluator ({config.evaluator.levels}), " if config.evaluator.levels else "",
              config.actors.num_actors, run_dir / "logs")
     with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
         statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
@@ -142,7 +147,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                                                                                   config.monitor.web_port)
             log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
-        actors = [c for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
+        actors = [c for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER, EVALUATOR)]
         failed: list[Child] = []  # given up on, and the run cannot go on without them
         with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
             while not stop.stop:
@@ -183,6 +188,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     display.show(render(statuses, children, LEARNER))
                 time.sleep(POLL_S)
             interrupted = stop.stop
+            # The actors and the evaluator first: they follow the learner.
             actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
             supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
             if config.uses_curriculum_service:
@@ -199,7 +205,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_FAILED
     scores = run_dir / "eval.json"
     if finished and scores.is_file():
-        from impulse.learner.run import format_scores  # JAX loads here only, for the table's helper
+        from impulse.learner.scoring import format_scores  # JAX loads here only, for the table's helper
 
         log.info("evaluation of the final policy (%s):\n%s", scores, format_scores(json.loads(scores.read_text())))
     return 0 if finished or interrupted else EXIT_FAILED

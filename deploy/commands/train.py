@@ -4,6 +4,7 @@ evaluation of a checkpoint."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import re
@@ -14,7 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from impulse.deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
+from impulse.deploy.config import (
+    ConfigError,
+    config_to_toml,
+    load_run_config,
+    resolve_config,
+    write_resolved_config,
+)
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.run_dirs import open_run_for
@@ -42,13 +49,16 @@ def train_run(
     config_toml: str,
     resume: bool = False,
     stop_after_updates: int | None = None,
+    init_from: Path | None = None,
 ) -> RunSummary:
     """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
-    checkpointing on the configured cadence and when stopped, then evaluate if the run is complete."""
+    checkpointing on the configured cadence and when stopped, then evaluate if the run is complete. `init_from`: a
+    run directory whose newest policy the new run starts from (fine-tuning)."""
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.learner.run import FusedRun
 
-    run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates)
+    run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates,
+                   init_from=init_from)
     loop = run_loop(run, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
                                      checkpoint_every=config.checkpoint.every_updates,
                                      window_size=config.checkpoint.every_updates))
@@ -73,12 +83,30 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "--updates", type=int, metavar="N",
         help="stop after N more updates (checkpointing), even if total_env_steps is not reached",
     )
+    parser.add_argument(
+        "--init-from", type=Path, metavar="RUN_DIR",
+        help="fine-tune: a new run that starts from the policy of RUN_DIR's newest checkpoint (a run directory or "
+        "a shipped agent such as pretrained/general-s), with a fresh optimiser, environments and curriculum; the "
+        "[network] section comes from RUN_DIR's config.toml",
+    )
 
 
 def run_train(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.run import RunError  # JAX loads only when a run starts
 
     enable_compile_cache()
+    init_from = None
+    if args.init_from is not None:
+        if args.resume is not None:
+            print("impulse train: --init-from starts a new run and --resume continues one: give one of them",
+                  file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            init_from = _run_dir_of(args.init_from)
+            config = dataclasses.replace(config, network=load_run_config(RunConfig, init_from).network)
+        except (FileNotFoundError, ConfigError) as err:
+            print(f"impulse train: --init-from: {err}", file=sys.stderr)
+            return EXIT_USAGE
     opened = open_run_for("train", config, run_dir=args.resume, overrides=args.overrides)
     if opened is None:
         return EXIT_USAGE
@@ -88,7 +116,7 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
     log.info("run directory %s", run_dir)
     try:
         summary = train_run(config, run_dir, config_to_toml(config), resume=args.resume is not None,
-                            stop_after_updates=args.updates)
+                            stop_after_updates=args.updates, init_from=init_from)
     except RunError as err:
         print(f"impulse train: {err}", file=sys.stderr)
         return EXIT_FAILED
@@ -128,7 +156,8 @@ def _run_dir_of(path: Path) -> Path:
 
 
 def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.learner.run import RunError, evaluate_run, format_scores
+    from impulse.learner.run import RunError, evaluate_run
+    from impulse.learner.scoring import format_scores
 
     enable_compile_cache()
     try:
@@ -176,3 +205,45 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
         recording.disconnect()
 
     return record
+
+
+def add_export_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
+                        help="a run directory (its newest checkpoint) or one checkpoint's directory")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="the new, small run directory")
+    parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
+                        help="a fact to keep with the policy (e.g. commit=abc123), in its counters and "
+                        "agent.json")
+
+
+def run_export(args: argparse.Namespace, config: RunConfig) -> int:
+    """`impulse export`: a run's policy alone, in a directory small enough to ship (see `export_policy`)."""
+    from impulse.learner.run import RunError, export_policy
+
+    enable_compile_cache()
+    try:
+        run_dir = _run_dir_of(args.checkpoint)
+        config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
+    except (FileNotFoundError, ConfigError) as err:
+        print(f"impulse export: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    note = {}
+    for item in args.note:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            print(f"impulse export: --note takes KEY=VALUE, got {item!r}", file=sys.stderr)
+            return EXIT_USAGE
+        note[key] = value
+    step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        counters = export_policy(config, run_dir, args.out, config_to_toml(config), step=step, note=note)
+    except RunError as err:
+        print(f"impulse export: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    write_resolved_config(config, args.out)
+    (args.out / "agent.json").write_text(json.dumps({"source": str(run_dir), **counters}, indent=2) + "\n")
+    size = sum(f.stat().st_size for f in args.out.rglob("*") if f.is_file())
+    print(f"exported the policy of {run_dir} (update {counters.get('update')}, "
+          f"{counters.get('env_steps', 0):,} env steps) to {args.out}: {size / 1e6:.1f} MB")
+    return 0

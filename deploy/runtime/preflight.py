@@ -43,13 +43,15 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
     `resume`: the run continues from `run_dir`'s checkpoints (`--resume`). `curriculum_service`: the launch starts
     the curriculum service, which always resumes from its own checkpoints when there are any. `cpu_only`: keep JAX
     in this process on the CPU (for the launcher; not for tests that share a process with others)."""
-    from impulse.bus.keys import ACTOR, CURRICULUM, LEARNER
+    from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
 
-    roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else [])]
+    roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else []),
+             *([EVALUATOR] if config.evaluator.levels else [])]
     check_credentials(config, roles)
     level_sets = [] if config.uses_curriculum_service else [("env.levels", config.env.levels)]
     if config.eval.levels and config.eval.attempts > 0:
-        level_sets.append(("eval.levels", config.eval.levels))
+        level_sets += [("eval.levels", source) for source in _sources(config.eval.levels)]
+    level_sets += [("evaluator.levels", source) for source in _sources(config.evaluator.levels)]
     learner_checkpoints = run_dir / config.checkpoint.directory
     curriculum_checkpoints = run_dir / CURRICULUM_DIR / config.checkpoint.directory
     restores = [(learner_checkpoints, check_learner_checkpoint)] if resume else []
@@ -64,6 +66,11 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
         check_level_set(key, source, config)
     for directory, check in restores:
         check(config, directory)
+
+
+def _sources(spec: str) -> list[str]:
+    """The level sets a comma-separated specification names (as `learner.scoring.set_names`, without JAX)."""
+    return list(dict.fromkeys(part.strip() for part in spec.split(",") if part.strip()))
 
 
 def check_credentials(config: RunConfig, roles: Iterable[str]) -> None:

@@ -43,7 +43,15 @@ def learner_line(status: dict[str, Any] | None) -> str:
     return (f"v{status['policy_version']} epoch {status['epoch']} | update {status['update']:,}/"
             f"{status['num_updates']:,} | {_number(status.get('updates_per_s'), '{:.2f}')} upd/s | "
             f"{_number(status.get('consumed_steps_per_s'))} steps/s consumed | queue {status.get('queue', 0)} | "
-            f"dropped {drops} | rejected {rejected} | solved {_number(status.get('solve_rate'), '{:.0%}')}")
+            f"dropped {drops} | rejected {rejected} | solved {_number(status.get('solve_rate'), '{:.0%}')}"
+            f"{_evaluation_part(status.get('evaluation'))}")
+
+
+def _evaluation_part(evaluation: Any) -> str:
+    """The learner's newest evaluation, for its line ("" before the first)."""
+    if not isinstance(evaluation, dict) or "policy_version" not in evaluation:
+        return ""
+    return f" | eval v{evaluation['policy_version']} {_number(evaluation.get('mean'), '{:.0%}')}"
 
 
 def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
@@ -55,6 +63,20 @@ def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
             f"{status.get('dropped_no_credit', 0)} written off {status.get('written_off', 0)} | rejected "
             f"{_total(status.get('rejected'))} | levels {status.get('levels', '?')}{waiting}"
             f"{streaming_part(status.get('monitor'))}")
+
+
+def evaluator_line(status: dict[str, Any] | None) -> str:
+    """The evaluator's line: the newest policy it holds, the last one it scored and how, what it skipped."""
+    if status is None:
+        return STARTING
+    if status.get("scored_version") is None:
+        held = status.get("policy_version", -1)
+        return "waiting for the learner's weights" if held < 0 else f"v{held} | scoring its first policy"
+    groups = " ".join(f"{name} {rate:.0%}" for name, rate in sorted(status.get("groups", {}).items()))
+    return (f"v{status['policy_version']} | scored v{status['scored_version']}: mean "
+            f"{_number(status.get('mean'), '{:.0%}')}{' ' + groups if groups else ''} in "
+            f"{_number(status.get('seconds'), '{:.1f}')} s | {status.get('evaluations', 0)} evaluations, "
+            f"{status.get('skipped', 0)} points skipped")
 
 
 def streaming_part(monitor: dict[str, Any] | None) -> str:
@@ -78,7 +100,8 @@ def curriculum_line(status: dict[str, Any] | None) -> str:
 
 
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
-           curriculum_name: str = "curriculum", viewer_name: str = "viewer", columns: int | None = None) -> list[str]:
+           curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
+           columns: int | None = None) -> list[str]:
     """The display's lines: every child with its process state, then its latest status. The line of a child that
     has exited ends with its error line and is cut to `columns` (default: the terminal's width)."""
     if columns is None:
@@ -99,6 +122,8 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
                 body = curriculum_line(status)
             elif child.name == viewer_name:
                 body = f"Rerun viewer (its address is logged above and in {child.log_path})"
+            elif child.name == evaluator_name:
+                body = evaluator_line(status)
             else:
                 body = actor_line(status, lags.get(child.name) if isinstance(lags, dict) else None)
         except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types

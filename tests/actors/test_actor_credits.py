@@ -97,7 +97,8 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
             weights.put(flipped)
             cycle_until(actor, lambda: refusals("digest") == 1, 30, "the corrupted version 8 to be refused")
             weights.put(weights_frame(7))
-            cycle_until(actor, lambda: actor.counts["weights_repeated"] >= 1, 30, "version 7 again to be ignored")
-            assert actor.version == 7 and actor.counts["weights_adopted"] == 2
+            cycle_until(actor, lambda: actor.follow.counts["weights_repeated"] >= 1, 30,
+                        "version 7 again to be ignored")
+            assert actor.version == 7 and actor.follow.counts["weights_adopted"] == 2
         received = trajectories.poll()
     assert [len(r.payload) > 0 for r in received] == [True] * 3

@@ -62,6 +62,7 @@ from impulse.bus.codec import (
 )
 from impulse.bus.control import Report, control_reply, control_request, decode_report, encode_refusal, encode_report
 from impulse.bus.credits import Credit, decode_credit, encode_credit
+from impulse.bus.evaluations import Evaluation, decode_evaluation, encode_evaluation
 from impulse.bus.inbox import Received
 from impulse.bus.keys import Keys
 from impulse.bus.levels import decode_level_batch, decode_level_results, encode_level_batch, encode_level_results
@@ -250,6 +251,12 @@ def check_control(request: dict[str, Any]) -> None:
     assert isinstance(request, dict)
 
 
+def check_evaluation(evaluation: Evaluation) -> None:
+    assert type(evaluation.skipped) is int and evaluation.skipped >= 0
+    assert all(0.0 <= scores["solve_rate"] <= 1.0 for scores in evaluation.levels.values())
+    assert all(0.0 <= rate <= 1.0 for rate in evaluation.groups.values())
+
+
 def check_credit(credit: Credit) -> None:
     assert all(type(value) is int for value in credit)
 
@@ -324,6 +331,12 @@ def targets() -> dict[str, Target]:
     levels_frames = [encode_level_batch(stamp, level_batch_arrays(random_like(levels_template, rng)))
                      for _ in (1, 2)]
 
+    evaluation_frames = [
+        encode_evaluation(stamp, {"s/h0_weak_thrust": {"solve_rate": 0.5, "mean_return": 0.1, "mean_length": 40.0},
+                                  "s_easy_car_right": {"solve_rate": 1.0, "mean_return": 0.9, "mean_length": 12.5}},
+                          {"s_all": 0.5, "s_h": 0.5}, skipped=2),
+        encode_evaluation(stamp, {}, {}),
+    ]
     metrics_frames = status_frames([
         ("learner", {"role": "learner", "name": LEARNER_ID, "epoch": 1, "policy_version": 4, "update": 10,
                      "num_updates": 100, "updates_per_s": 2.5, "rejected": {"bad_size": 1}, "solve_rate": None}),
@@ -387,6 +400,9 @@ def targets() -> dict[str, Target]:
                lambda data: read_status(Received(key=Keys(RUN).status("actor", "actor-0"), payload=data,
                                                  attachment=None), Keys(RUN)),
                check_status, framing | {"schema"}, refused_share=0.3),
+        Target("evaluation", tuple(bytes(frame) for frame in evaluation_frames),
+               lambda data: decode_evaluation(data, RUN), check_evaluation, (Rejected,), framing | {"schema"},
+               others(Kind.METRICS), hostile_refused_share=0.3),
         target("control", Kind.CONTROL, lambda data: decode_report(data, RUN), check_report, framing,
                refused_share=0.3),
         Target("any_frame", every, lambda data: decode(data, run=RUN), check_message(None), (Rejected,),
@@ -731,7 +747,8 @@ def fuzz(target: Target, rng: np.random.Generator, cases: int) -> Tally:
     return tally
 
 
-FRAME_READERS = ("trajectory", "weights", "credit", "level_results", "levels", "metrics", "control", "any_frame")
+FRAME_READERS = ("trajectory", "weights", "credit", "level_results", "levels", "metrics", "evaluation", "control",
+                 "any_frame")
 
 
 @pytest.mark.parametrize("name", [*FRAME_READERS, "control_query"])

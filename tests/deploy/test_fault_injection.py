@@ -57,8 +57,12 @@ def pids_of(run_dir, victim: str) -> list[int]:
     return service_pids(run_dir, role, int(index) if index else None)
 
 
+def checkpoint_count(directory) -> int:
+    return sum(p.name.isdigit() for p in directory.iterdir()) if directory.is_dir() else 0
+
+
 def has_checkpoint(directory) -> bool:
-    return directory.is_dir() and any(p.name.isdigit() for p in directory.iterdir())
+    return checkpoint_count(directory) > 0
 
 
 def learner_checkpoints_restore(run_dir) -> list[int]:
@@ -121,6 +125,14 @@ def test_random_kills_over_minutes(tmp_path):
             if victim == "learner" and corrupted is None:  # the launcher restarts it after 1 s at the earliest
                 corrupted = corrupt_newest(run_dir / "checkpoints", TRAIN)
         assert launch.poll() is None, "the launcher is still running"
+        if corrupted is None:  # every learner kill came before its first checkpoint (a slow, cold start): one more,
+            # once there is a checkpoint before the one the test damages
+            wait_for(lambda: (observe(), checkpoint_count(run_dir / "checkpoints") >= 2)[1], 240,
+                     "the learner's second checkpoint", launch, log)
+            for pid in pids_of(run_dir, "learner"):
+                os.kill(pid, signal.SIGKILL)
+            kills.append((round(time.monotonic() - started, 1), "learner"))
+            corrupted = corrupt_newest(run_dir / "checkpoints", TRAIN)
 
         # Still training: every process back and the learner making updates again.
         wait_for(lambda: all(pids_of(run_dir, v) for v in VICTIMS), 120, "every process restarted", launch, log)

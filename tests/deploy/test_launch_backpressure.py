@@ -10,7 +10,9 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    service checkpoints its buffer;
 4. `--view --record`: every process streams to one Rerun recording (the run's name as its id) through the viewer
    the launcher started, and the .rrd file holds the actors' rollouts, the learner's curves and the curriculum's
-   histograms, gallery and knob change. The memory check above runs with the streaming on."""
+   histograms, gallery and knob change. The memory check above runs with the streaming on;
+5. the evaluator the launcher started scores the learner's policies: the scores reach the learner's metrics.jsonl
+   rows, the status display and the recording (the learner's and the evaluator's curves)."""
 
 from __future__ import annotations
 
@@ -37,6 +39,7 @@ from tests.support.launch_procs import (
     StatusWatcher,
     free_port,
     last_update,
+    metrics,
     rss_mib,
     service_pids,
     start_launch,
@@ -127,6 +130,8 @@ def check_recording(path, run: str) -> None:
     assert rows.get("/metrics/learner/status/consumed_steps_per_s", 0) >= 2
     assert rows.get("/curriculum/histograms/score", 0) >= 1 and rows.get("/curriculum/stats/buffer_fill", 0) >= 1
     assert rows.get("/curriculum/top/0/scene/polygons", 0) >= 1
+    assert rows.get("/metrics/learner/eval/mean", 0) >= 1 and rows.get("/metrics/evaluator/eval/mean", 0) >= 1, (
+        sorted(name for name in rows if "eval" in name))
     assert "sfl_ratio: 0.5 -> 1.0" in knob_lines, knob_lines
 
 
@@ -140,6 +145,8 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
                                "env.levels=random", "curriculum=sfl", "curriculum.buffer_size=32",
                                "curriculum.candidate_episodes=1", "curriculum.noop_filter=false",
                                "--view", "--record", str(recording), "monitor.curriculum_every_s=2",
+                               "evaluator.levels=handmade:s_easy_car_right", "evaluator.every_updates=2",
+                               "evaluator.attempts=2",
                                f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy",
                                f"monitor.web_port={free_port()}")
     watcher = StatusWatcher(run_dir.name, port)
@@ -151,6 +158,10 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
         wait_for(lambda: curriculum().get("results", 0) >= 2 and curriculum().get("buffer_fill", 0) > 0, 120,
                  "the curriculum to receive results and keep a level", launch, log)
         check_live_curriculum(run_dir, watcher, tmp_path)
+        # The evaluator scores the learner's policies; the learner writes the scores into its metrics rows.
+        wait_for(lambda: watcher.poll().get("learner", {}).get("evaluation", {}).get("policy_version") is not None
+                 and any("eval/level/s_easy_car_right" in row for row in metrics(run_dir)), 180,
+                 "an evaluation in the learner's metrics", launch, log)
 
         # Ctrl-C: actors stop first, then the curriculum and the learner checkpoint and exit.
         launch.send_signal(signal.SIGINT)
@@ -167,4 +178,5 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     assert f"learner stopped at update {last_update(run_dir)} of" in (run_dir / "logs" / "learner.log").read_text()
     assert any((run_dir / "curriculum" / "checkpoints").iterdir()), "the service checkpointed its buffer"
     assert "Rerun viewer: http://127.0.0.1:" in log.read_text()
+    assert "| scored v" in log.read_text(), "the status display shows the evaluator's scores"
     check_recording(recording, run_dir.name)

@@ -24,8 +24,10 @@ import pytest
 import zenoh
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.config import BusConfig
+from impulse.bus.evaluations import encode_evaluation
 from impulse.bus.keys import Keys
 from impulse.bus.session import zenoh_config
+from impulse.bus.stamp import Stamp
 
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
 from tests.support.namespaces import Hosts, why_not
@@ -65,6 +67,8 @@ class Cluster:
             role, extra = name, [f"--connect={self.endpoints[name]}"]
         if role == "actor":
             extra += ["--index", "0"]
+        if role == "evaluator":
+            extra += ["evaluator.levels=handmade:s_easy_car_right", "evaluator.every_updates=2", "evaluator.attempts=2"]
         command = [*self.prefixes.get(name, []), sys.executable, "-m", "impulse.deploy.cli", role, "--config",
                    str(QUICK_LAUNCH), f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
                    f"router.credentials={self.credentials}", "total_env_steps=100000000",
@@ -74,8 +78,8 @@ class Cluster:
                                                     stderr=subprocess.STDOUT)
         self.logs[name] = log_path
 
-    def start_all(self) -> None:
-        for name in (*self.routers, "learner", "actor"):
+    def start_all(self, *more: str) -> None:
+        for name in (*self.routers, "learner", "actor", *more):
             self.start(name)
 
     def client(self, role: str) -> zenoh.Session:
@@ -108,8 +112,8 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     host_a, host_b = f"tls/localhost:{port}", f"tls/localhost:{port_b}"
     routers = {"router": (host_a, ()), "router-b": (host_b, (host_a,))}
     cluster = Cluster(root / RUN, make_credentials(root / "credentials"), routers,
-                      {"learner": host_a, "actor": host_b, "test": host_b}, port)
-    cluster.start_all()
+                      {"learner": host_a, "actor": host_b, "evaluator": host_b, "test": host_b}, port)
+    cluster.start_all("evaluator")
     try:
         yield cluster
     finally:
@@ -169,7 +173,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
 
         roles = ("actor", "curriculum", "operator", "learner")
         sessions = {role: cluster.client(role) for role in roles}
-        rogues = {role: cluster.client(role) for role in ("actor", "curriculum", "operator")}
+        rogues = {role: cluster.client(role) for role in ("actor", "curriculum", "operator", "evaluator")}
         probe = sessions["actor"]
         try:
             weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
@@ -193,11 +197,15 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             forged_credit = bytes(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=genuine.learner_epoch,
                                          meta={"incarnation": FORGED_VERSION, "acked_seq": FORGED_VERSION}))
             forged_status = bytes(encode(Kind.METRICS, {}, run=RUN, meta={"name": "learner", "finished": True}))
+            forged_evaluation = bytes(encode_evaluation(Stamp(RUN, epoch=genuine.learner_epoch,
+                                                              policy_version=FORGED_VERSION), {}, {"forged": 1.0}))
             for _ in range(5):
-                for rogue in rogues.values():
+                for role, rogue in rogues.items():
                     rogue.put(keys.weights_policy, forged_weights)
                     rogue.put(keys.credit("actor-0"), forged_credit)
                     rogue.put(keys.status("learner", "learner"), forged_status)
+                    if role != "evaluator":
+                        rogue.put(keys.evaluation("evaluator"), forged_evaluation)
                 time.sleep(0.2)
             answers = sorted(r.ok.payload.to_bytes() for r in probe.get(
                 keys.levels_sample, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
@@ -228,6 +236,11 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
         assert actor["policy_version"] < FORGED_VERSION and sum(actor["rejected"].values()) == 0, actor
         assert actor["weights_adopted"] >= 2
+        # The evaluator, alone, across the routers with its own credentials: its scores reach the learner, and
+        # an evaluation forged under another role's credentials never does.
+        evaluation = wait_for(lambda: watcher.poll().get("learner", {}).get("evaluation"), 240,
+                              "the evaluator's scores at the learner")
+        assert evaluation["policy_version"] < FORGED_VERSION and "forged" not in evaluation["groups"], evaluation
         update = int(watcher.poll()["learner"]["update"])
         wait_update(watcher, cluster, update + 1, 120)  # still training: the actor did not stop
         assert cluster.processes["actor"].poll() is None, all_logs(cluster)

@@ -1,5 +1,6 @@
 """The README's main job learns: `configs/quick-cpu.toml` (a small entity network on our easy one-wheel car)
-reaches a 90% solve rate on CPU, starting from a policy that rarely solves the level."""
+reaches a 90% solve rate on CPU, starting from a policy that rarely solves the level; its periodic evaluation
+(`eval.every_updates`) writes the same `eval/...` columns the evaluator process gives a distributed run."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ QUICK = REPO / "configs" / "quick-cpu.toml"
 
 
 def test_quick_cpu_config_learns_the_easy_car(tmp_path):
-    config = resolve_config(RunConfig, QUICK)
+    config = resolve_config(RunConfig, QUICK, ["eval.every_updates=10"])
     trainer, agent, names, levels = build(config)
     untrained = jax.jit(trainer.init)(jax.random.PRNGKey(config.seed), levels)
     before = evaluate(agent, untrained.train.params, trainer.env_params, levels, jax.random.PRNGKey(5), attempts=20)
@@ -34,8 +35,12 @@ def test_quick_cpu_config_learns_the_easy_car(tmp_path):
     solved = summary.eval_scores[names[0]]["solve_rate"]
     assert solved >= 0.9, f"solve rate after training {solved:.0%}: {summary.eval_scores}"
     assert json.loads((tmp_path / "eval.json").read_text())[names[0]]["solve_rate"] == solved
-    lines = (tmp_path / "metrics.jsonl").read_text().splitlines()
-    assert len(lines) == summary.updates
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == summary.updates
+    evaluated = [row for row in rows if "eval/mean" in row]
+    assert [row["update"] for row in evaluated] == list(range(10, summary.updates + 1, 10))
+    assert all(row["eval/policy_version"] == row["update"] for row in evaluated)
+    assert evaluated[-1][f"eval/level/{names[0]}"] >= 0.5, evaluated[-1]  # the trained policy, as eval.json says
 
 
 def test_evaluation_is_reproducible_with_a_fixed_seed():

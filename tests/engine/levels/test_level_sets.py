@@ -21,7 +21,8 @@ from impulse.engine.levels.sets import (
     load_level_set,
 )
 from impulse.engine.physics.sizes import SIZE_L, SIZE_S
-from impulse.learner.run import RunError, _eval_levels, _levels, format_scores, kinetix_groups
+from impulse.learner.run import RunError, _eval_sets, _levels
+from impulse.learner.scoring import format_scores, kinetix_groups
 
 from tests.support.bad_level_files import good_level_text, write_bad_inputs
 from tests.support.paths import SHARED_LEVELS
@@ -156,5 +157,5 @@ def test_training_and_evaluation_level_errors_name_the_file(
     assert str(info.value).startswith(f"env.levels: {path}: not valid JSON: Expecting value: line ")
     bad_eval = dataclasses.replace(config, eval=dataclasses.replace(config.eval, levels=str(path)))
     with caplog.at_level(logging.WARNING, logger="impulse.learner.run"):
-        assert _eval_levels(bad_eval, SIZE_S, ["x"], None) == ([], None)
-    assert f"no evaluation: eval.levels: {path}: not valid JSON" in caplog.text
+        assert _eval_sets(bad_eval, SIZE_S, ["x"], None) is None
+    assert f"no evaluation: eval.levels: level set '{path}': {path}: not valid JSON" in caplog.text
