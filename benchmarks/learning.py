@@ -179,9 +179,10 @@ def mean_and_error(values: list[float]) -> tuple[float, float]:
 
 
 def time_to(points: list[dict[str, float]], target: float) -> float | None:
-    """Seconds from the run's first metrics row to its first evaluation at or above `target` (Kinetix S)."""
+    """Seconds from the run's first metrics row to its first evaluation at or above `target` (Kinetix S); the
+    untrained policy's point (version 0, which only the evaluator scores) does not count."""
     for point in points:
-        if point[KINETIX_S] >= target:
+        if point["env_steps"] > 0 and point[KINETIX_S] >= target:
             return point["time_s"]
     return None
 

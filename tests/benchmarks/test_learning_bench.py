@@ -1,0 +1,68 @@
+"""The bookkeeping of benchmarks/learning.py on synthetic runs and metrics rows: evaluation points, lag and drops,
+the per-mode summary and the issue's bar (no training, so it stays fast)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from impulse.benchmarks.learning import (
+    HANDMADE,
+    KINETIX_S,
+    Settings,
+    command,
+    curve,
+    run_health,
+    summarise,
+)
+
+
+def run(mode: str, seed: int, final: float, curve_points: list[tuple[float, float]]) -> dict:
+    return {"mode": mode, "seed": seed, "wall_s": 100.0, "policy_lag_mean": 1.5 if mode == "distributed" else None,
+            "batches_dropped": 1 if mode == "distributed" else 0,
+            "final": {KINETIX_S: final, HANDMADE: 0.1},
+            "curve": [{"env_steps": 4096, "time_s": t, KINETIX_S: rate, HANDMADE: 0.0} for t, rate in curve_points]}
+
+
+def test_curve_and_health_read_the_learners_rows() -> None:
+    rows = [{"update": 1, "env_steps": 4096, "time_s": 10.0, "policy_lag": 0},
+            {"update": 2, "env_steps": 8192, "time_s": 12.0, "policy_lag": 2, "eval/policy_version": 1.0,
+             f"eval/{KINETIX_S}": 0.3, f"eval/{HANDMADE}": 0.2, "drops/dropped_stale": 3, "drops/lost": 0}]
+    [point] = curve(rows, 4096)
+    assert point == {"env_steps": 4096.0, "time_s": 2.0, KINETIX_S: 0.3, HANDMADE: 0.2}
+    health = run_health(rows)
+    assert health["policy_lag_mean"] == 1.0 and health["policy_lag_max"] == 2
+    assert health["drops"] == {"dropped_stale": 3} and health["batches_dropped"] == 3 and health["updates"] == 2
+
+
+def test_the_bar_holds_within_ninety_percent_and_fails_below() -> None:
+    close = [run("fused", s, 0.30, [(10.0, 0.1), (20.0, 0.3)]) for s in range(3)]
+    close += [run("distributed", s, 0.28, [(15.0, 0.28)]) for s in range(3)]
+    summary = {r["record"] + r.get("mode", ""): r for r in summarise(close, ("fused", "distributed"))}
+    assert summary["bar"]["holds"] and math.isclose(summary["bar"]["ratio"], 0.28 / 0.30)
+    assert math.isclose(summary["summaryfused"]["target_kinetix_s"], 0.9 * 0.28)
+    assert summary["summaryfused"]["seconds_to_target"] == [20.0, 20.0, 20.0]
+    assert summary["summarydistributed"]["policy_lag_mean"] == 1.5
+
+    # Far below, with seeds that agree: neither 90% nor within two standard errors.
+    far = [run("fused", s, 0.30 + 0.01 * s, []) for s in range(3)]
+    far += [run("distributed", s, 0.10 + 0.01 * s, []) for s in range(3)]
+    bar = summarise(far, ("fused", "distributed"))[-1]
+    assert bar["record"] == "bar" and not bar["holds"], bar
+
+    # Far below in the mean, but the seeds scatter so widely that the two are within two standard errors.
+    noisy = [run("fused", s, rate, []) for s, rate in enumerate((0.0, 0.3, 0.9))]
+    noisy += [run("distributed", s, rate, []) for s, rate in enumerate((0.0, 0.1, 0.5))]
+    bar = summarise(noisy, ("fused", "distributed"))[-1]
+    assert bar["ratio"] < 0.9 and bar["holds"], bar
+
+
+def test_both_modes_get_the_same_task_and_their_own_evaluation() -> None:
+    settings = Settings(("fused", "distributed"), (0,), "sfl", 8192, 4, 5, 2, ("ppo.ent_coef=0.02",), 60.0)
+    fused = command("fused", 0, Path("/tmp/f"), settings)
+    distributed = command("distributed", 0, Path("/tmp/d"), settings)
+    assert fused[3] == "train" and distributed[3] == "launch"
+    shared = [a for a in fused if a.startswith(("env.", "network.", "ppo.", "curriculum=", "seed=", "total_env"))]
+    assert shared and all(a in distributed for a in shared), shared
+    assert "eval.every_updates=4" in fused and "evaluator.every_updates=4" in distributed
+    assert "actors.num_actors=2" in distributed and "ppo.ent_coef=0.02" in distributed
