@@ -27,7 +27,7 @@ from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.learner.agent import Agent, make_agent
-from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError
+from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError, Restored
 from impulse.learner.config import TrainingSetup
 from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
@@ -239,18 +239,26 @@ def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams,
     return scored.table
 
 
+def restore_policy(config: TrainingSetup, run_dir: Path, step: int | None = None,
+                   trainer: FusedTrainer | None = None, train_levels: Level | None = None) -> Restored:
+    """The `train` item (the policy) of a run's checkpoint, newest intact unless `step`, whichever mode wrote it;
+    `trainer` and `train_levels` from `build(config)` when the caller has them already."""
+    if trainer is None:
+        trainer, _, _, train_levels = build(config)
+    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
+    with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
+        try:
+            return checkpoints.restore({TRAIN: template}, step)
+        except CheckpointError as err:
+            raise RunError(str(err)) from err
+
+
 def export_policy(config: TrainingSetup, run_dir: Path, out_dir: Path, config_toml: str, step: int | None = None,
                   note: dict[str, Any] | None = None) -> dict[str, Any]:
     """The policy of a run's checkpoint (newest intact unless `step`) written alone into `out_dir`'s checkpoints:
     a small run directory that `impulse eval`, `impulse train --init-from` and `--resume` read (the latter two go
     on training it on fresh environments). Returns the counters written: the source's, with `note` added."""
-    trainer, _, _, train_levels = build(config)
-    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
-    with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
-        try:
-            restored = checkpoints.restore({TRAIN: template}, step)
-        except CheckpointError as err:
-            raise RunError(str(err)) from err
+    restored = restore_policy(config, run_dir, step)
     counters = {key: value for key, value in restored.counters.items() if key in ("update", "env_steps",
                                                                                "policy_version", "solve_rate")}
     counters.update(note or {}, exported_from_step=restored.step)
@@ -298,12 +306,7 @@ def evaluate_run(
         sets = _eval_sets(config, sizes, names, train_levels)
         if sets is None:
             raise RunError("no evaluation levels: pass --levels")
-    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
-    with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
-        try:
-            restored = checkpoints.restore({TRAIN: template}, step)
-        except CheckpointError as err:
-            raise RunError(str(err)) from err
+    restored = restore_policy(config, run_dir, step, trainer, train_levels)
     items, counters = restored.items, restored.counters
     params = items[TRAIN].params
     scored = score_policy(agent, params, trainer.env_params, sets, jax.random.PRNGKey(seed),

@@ -155,18 +155,27 @@ def _run_dir_of(path: Path) -> Path:
     raise FileNotFoundError(f"no config.toml in {path} or above it; --checkpoint takes a run directory")
 
 
+def _open_checkpoint(args: argparse.Namespace, command: str) -> tuple[RunConfig, Path, int | None] | None:
+    """(config, run directory, checkpoint step or None for the newest) of `--checkpoint`, with the key=value
+    overrides; None after printing the problem as `impulse COMMAND: ...`."""
+    try:
+        run_dir = _run_dir_of(args.checkpoint)
+        config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
+    except (FileNotFoundError, ConfigError) as err:
+        print(f"impulse {command}: {err}", file=sys.stderr)
+        return None
+    return config, run_dir, int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+
+
 def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.run import RunError, evaluate_run
     from impulse.learner.scoring import format_scores
 
     enable_compile_cache()
-    try:
-        run_dir = _run_dir_of(args.checkpoint)
-        config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
-    except (FileNotFoundError, ConfigError) as err:
-        print(f"impulse eval: {err}", file=sys.stderr)
+    opened = _open_checkpoint(args, "eval")
+    if opened is None:
         return EXIT_USAGE
-    step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+    config, run_dir, step = opened
     try:
         table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
                              seed=args.seed, greedy=args.greedy,
@@ -221,12 +230,10 @@ def run_export(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.run import RunError, export_policy
 
     enable_compile_cache()
-    try:
-        run_dir = _run_dir_of(args.checkpoint)
-        config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
-    except (FileNotFoundError, ConfigError) as err:
-        print(f"impulse export: {err}", file=sys.stderr)
+    opened = _open_checkpoint(args, "export")
+    if opened is None:
         return EXIT_USAGE
+    config, run_dir, step = opened
     note = {}
     for item in args.note:
         key, sep, value = item.partition("=")
@@ -234,7 +241,6 @@ def run_export(args: argparse.Namespace, config: RunConfig) -> int:
             print(f"impulse export: --note takes KEY=VALUE, got {item!r}", file=sys.stderr)
             return EXIT_USAGE
         note[key] = value
-    step = int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
     args.out.mkdir(parents=True, exist_ok=True)
     try:
         counters = export_policy(config, run_dir, args.out, config_to_toml(config), step=step, note=note)
