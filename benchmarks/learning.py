@@ -13,7 +13,7 @@ is scored the same way. A point's env steps are its policy version x the steps o
 
 At the end every run's newest checkpoint is scored once more in this process (`learner.run.evaluate_run`, the
 function `impulse eval` uses) with one evaluation seed for all runs: that is the final zero-shot table. The bar
-(issue 26): the distributed mode's mean final Kinetix-S solve rate is at least 90% of the fused mode's, or the
+it checks: the distributed mode's mean final Kinetix-S solve rate is at least 90% of the fused mode's, or the
 two means are within two standard errors (of the difference, across seeds).
 
 Output: JSON lines on stdout (`record` = "config", "run" with the curve, the final scores, wall time, policy lag

@@ -152,12 +152,10 @@ class FusedRun:
     def _start_from_policy(self, source: Path) -> None:
         """Fine-tuning: the network parameters of `source`'s newest intact checkpoint (a run directory of either
         mode, or a shipped agent), with this run's fresh optimiser, environments and curriculum, from update 0."""
-        template = {TRAIN: self.carry.train}
-        with Checkpointer(source / self.config.checkpoint.directory, self.config.checkpoint) as checkpoints:
-            try:
-                restored = checkpoints.restore(template)
-            except CheckpointError as err:
-                raise RunError(f"--init-from {source}: {err}") from err
+        try:
+            restored = restore_policy(self.config, source, trainer=self.trainer, train_levels=self.levels)
+        except RunError as err:
+            raise RunError(f"--init-from {source}: {err}") from err
         self.carry = self.carry._replace(train=self.carry.train._replace(params=restored.items[TRAIN].params))
         counters = restored.counters
         self.init_from = {"init_from": str(source), "init_from_step": restored.step,
