@@ -34,6 +34,8 @@ GPU_RESULTS := benchmarks/results/gpu-$(shell date +%Y-%m-%d).jsonl
 BENCH_PYTHON ?= $(VENV)/bin/python
 GPU_LIMIT = timeout --kill-after=30 $(1) $(BENCH_PYTHON) -m
 
+# Preallocation off: the reference systems run in a child process beside ours (see tools/gpu_calls.sh).
+bench-gpu: export XLA_PYTHON_CLIENT_PREALLOCATE = false
 bench-gpu: $(if $(filter $(VENV)/bin/python,$(BENCH_PYTHON)),$(STAMP))
 	@$(BENCH_PYTHON) -c "import sys, jax; b = jax.default_backend(); sys.exit(b != 'gpu' and f'bench-gpu: JAX backend is {b}, not gpu')"
 	mkdir -p benchmarks/results

@@ -3,8 +3,10 @@
 One row per size (S, M, L), steps per second: the engine (ours with the XLA solver and with the fused kernel, and
 Jax2D, at the largest batch measured), the environment (ours and Kinetix's), end-to-end training (our fused
 trainer with each physics backend) and the distributed runtime (learner + 1, 2, 4 actors), then the ratios the
-GPU issue's acceptance names. A run is the lines after a `{"bench_gpu": "start"}` line; the newest run of the
-file is taken unless `--run` picks another (0 = the first). A figure the run did not produce prints as "-".
+GPU issue's acceptance names. A run is the lines after a `{"bench_gpu": "start"}` line; a start line with
+`"call": N` for N > 1 continues the run before it (a run split over several calls to a lent machine, docs/gpu.md).
+The newest run of the file is taken unless `--run` picks another (0 = the first). A figure the run did not produce
+prints as "-".
 
     impulse bench gpu_table benchmarks/results/gpu-2026-11-24.jsonl
 """
@@ -33,7 +35,8 @@ COLUMNS = (
 
 
 def runs(lines: Iterable[str]) -> list[list[dict[str, Any]]]:
-    """The file's records grouped by run (a start line opens one); lines that are not JSON objects are skipped."""
+    """The file's records grouped by run (a start line opens one, unless it continues the run before it as call 2,
+    3, ...); lines that are not JSON objects are skipped."""
     grouped: list[list[dict[str, Any]]] = []
     for line in lines:
         line = line.strip()
@@ -43,7 +46,8 @@ def runs(lines: Iterable[str]) -> list[list[dict[str, Any]]]:
             record = json.loads(line)
         except json.JSONDecodeError:
             continue
-        if record.get("bench_gpu") == "start" or not grouped:
+        continues = isinstance(record.get("call"), int) and record["call"] > 1
+        if (record.get("bench_gpu") == "start" and not continues) or not grouped:
             grouped.append([])
         grouped[-1].append(record)
     return grouped
@@ -103,20 +107,23 @@ def _ratio(numerator: float | None, denominator: float | None) -> str:
 def markdown(run: list[dict[str, Any]]) -> str:
     """The table, a ratio table, and a line naming the run (date, commit, device, JAX version)."""
     start = next((r for r in run if r.get("bench_gpu") == "start"), {})
+    calls = sum(r.get("bench_gpu") == "start" for r in run)
     device = next((r for r in run if "device" in r and "jax_version" in r), {})
     table = figures(run)
-    lines = [f"Run of {start.get('utc', '?')} at commit {start.get('commit', '?')}, device "
+    split = f" (in {calls} calls)" if calls > 1 else ""
+    lines = [f"Run of {start.get('utc', '?')}{split} at commit {start.get('commit', '?')}, device "
              f"{device.get('device', '?')}, JAX {device.get('jax_version', '?')}; steps per second at the largest "
              "batch measured.", "",
              "| size | " + " | ".join(title for title, _ in COLUMNS) + " |",
              "|---|" + "---|" * len(COLUMNS)]
     for size in SIZES:
         lines.append(f"| {size.upper()} | " + " | ".join(_cell(table[size][key]) for _, key in COLUMNS) + " |")
-    lines += ["", "| size | engine: kernel / Jax2D (goal 10x) | engine: kernel / XLA | training: kernel / XLA | "
-              "env: ours / Kinetix |", "|---|---|---|---|---|"]
+    lines += ["", "| size | engine: XLA / Jax2D | engine: kernel / Jax2D (goal 10x) | engine: kernel / XLA | "
+              "training: kernel / XLA | env: ours / Kinetix |", "|---|---|---|---|---|---|"]
     for size in SIZES:
         row = table[size]
-        lines.append(f"| {size.upper()} | {_ratio(row['engine_pallas'], row['engine_jax2d'])} | "
+        lines.append(f"| {size.upper()} | {_ratio(row['engine_xla'], row['engine_jax2d'])} | "
+                     f"{_ratio(row['engine_pallas'], row['engine_jax2d'])} | "
                      f"{_ratio(row['engine_pallas'], row['engine_xla'])} | "
                      f"{_ratio(row['train_pallas'], row['train_xla'])} | "
                      f"{_ratio(row['env_ours'], row['env_kinetix'])} |")

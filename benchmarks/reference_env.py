@@ -224,6 +224,8 @@ def _clean_environment() -> dict[str, str]:
     if site is not None:
         env["PYTHONPATH"] = str(site)
     env["PYTHONUNBUFFERED"] = "1"
+    # The runner shares the GPU with the process that called it, which may already hold most of its memory.
+    env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     return env
 
 

@@ -110,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
         if distribution_name(wheel) in DEVICE_HAS:
             wheel.unlink()
     shutil.copytree(args.levels, BUNDLE / "kinetix-levels", ignore=shutil.ignore_patterns("*.py", "__pycache__"))
+    # The lent machine gets the working tree without .git: the commit its results name travels in a file.
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout
+    (BUNDLE / "commit").write_text(commit.strip() + "\n")
     tracked = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
     tree = sum((REPO / name).stat().st_size for name in tracked.decode().split("\0") if name and
                (REPO / name).is_file())

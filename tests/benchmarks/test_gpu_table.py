@@ -37,5 +37,17 @@ def test_the_newest_run_becomes_a_table_of_the_largest_batches_with_ratios() -> 
     text = markdown(grouped[-1])
     assert "commit abc1234" in text and "NVIDIA H100 80GB HBM3" in text and "JAX 0.11.2" in text
     assert "| S | 40.00M | 160.00M | 4.00M | 2.00M | 500.0k | 300.0k | 450.0k | - | 250.0k | - |" in text
-    assert "| S | 40.00x | 4.00x | 1.50x | 4.00x |" in text
-    assert "| M | - | - | - | - |" in text
+    assert "| S | 10.00x | 40.00x | 4.00x | 1.50x | 4.00x |" in text
+    assert "| M | - | - | - | - | - |" in text
+
+
+def test_a_run_split_over_calls_is_one_run() -> None:
+    second_call = [{"bench_gpu": "start", "utc": "2026-12-01T10:09:00Z", "commit": "abc1234", "call": 2},
+                   {"measure": "throughput", "system": "impulse-distributed", "actors": 1, "size": "s",
+                    "env_steps_per_s": 1.5e5}]
+    first_call = [{**RUN[0], "call": 1}, *RUN[1:]]
+    grouped = runs(json.dumps(r) for r in first_call + second_call)
+    assert len(grouped) == 1
+    table = figures(grouped[0])
+    assert table["s"]["engine_xla"] == 4.0e7 and table["s"]["distributed_1"] == 1.5e5
+    assert "Run of 2026-12-01T10:00:00Z (in 2 calls) at commit abc1234" in markdown(grouped[0])
