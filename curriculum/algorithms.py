@@ -15,7 +15,10 @@
   not kept, even in a free slot). Kinetix rebuilds its
   SFL buffer from scratch every 128 updates from dedicated evaluation rollouts; this streaming form scores the
   fresh half of each batch while training on it and re-scores buffered levels whenever they are replayed, with
-  `score_memory` forgetting old outcomes, so its scores age continuously instead of in steps.
+  `score_memory` forgetting old outcomes, so its scores age continuously instead of in steps. With
+  `sfl_scoring="batch"` it takes Kinetix's form instead: the caller, who holds the policy, scores
+  `sfl_candidates` fresh levels every `sfl_refresh_updates` updates and `refill` makes the buffer the most
+  learnable of them; replay starts at the first batch and training results do not change the buffer.
 
 Scores, the replay distribution and eviction are in `curriculum.priority`; staging in `curriculum.staging`.
 """
@@ -29,13 +32,14 @@ import jax
 import jax.numpy as jnp
 from impulse.curriculum.config import CurriculumConfig
 from impulse.curriculum.noop_filter import NoopFilterConfig, sample_filtered_levels
-from impulse.curriculum.priority import LEARNABILITY, eviction_slot, pick_replays, score_of
+from impulse.curriculum.priority import LEARNABILITY, eviction_slot, learnability, pick_replays, score_of
 from impulse.curriculum.results import LevelResults
 from impulse.curriculum.staging import Candidates, add_result, find, take_candidates
 from impulse.curriculum.state import (
     ORIGIN_MUTATED,
     ORIGIN_NEW,
     ORIGIN_REPLAY,
+    Buffer,
     CurriculumState,
     LevelBatch,
     empty_state,
@@ -75,6 +79,12 @@ class Curriculum:
     @property
     def method(self) -> str:
         return self.config.method
+
+    @property
+    def batch_scored(self) -> bool:
+        """SFL in Kinetix's form: the buffer is rebuilt by `refill` from levels the caller scored, not from the
+        results of training episodes."""
+        return self.method == "sfl" and self.config.sfl_scoring == "batch"
 
     def init(self, key: Array) -> CurriculumState:
         """An empty curriculum (the example level only gives the shapes)."""
@@ -156,15 +166,20 @@ class Curriculum:
     def _sample_sfl(self, state: CurriculumState, key: Array) -> tuple[CurriculumState, LevelBatch]:
         pick_key, fresh_key = jax.random.split(key)
         b = self.batch_size
-        from_buffer = jnp.where(self._can_replay(state), jnp.round(state.knobs.sfl_ratio * b).astype(jnp.int32), 0)
+        can_replay = state.buffer.filled.any() if self.batch_scored else self._can_replay(state)
+        from_buffer = jnp.where(can_replay, jnp.round(state.knobs.sfl_ratio * b).astype(jnp.int32), 0)
         buffer = state.buffer
         logits = jnp.where(buffer.filled, 0.0, -jnp.inf)
         slots = jax.random.categorical(pick_key, logits, shape=(b,))
         row = jnp.arange(b)
         picked = row < from_buffer
         replays = buffer.replays.at[jnp.where(picked, slots, buffer.replays.shape[0])].add(1, mode="drop")
-        staging, counters, candidates, origin = take_candidates(
-            state.staging, state.counters, state.knobs, self._fresh(fresh_key), b - from_buffer, rehand=True)
+        if self.batch_scored:  # fresh levels are only trained on; the next refill scores others
+            staging, counters = state.staging, state.counters
+            candidates, origin = self.new_levels(fresh_key, b), jnp.full(b, ORIGIN_NEW, jnp.int32)
+        else:
+            staging, counters, candidates, origin = take_candidates(
+                state.staging, state.counters, state.knobs, self._fresh(fresh_key), b - from_buffer, rehand=True)
         candidate_row = jnp.clip(row - from_buffer, 0, b - 1)
         candidates = jax.tree.map(lambda x: x[candidate_row], candidates)
         levels = _select_rows(picked, jax.tree.map(lambda x: x[slots], buffer.levels), candidates)
@@ -174,13 +189,50 @@ class Curriculum:
         state = state._replace(buffer=buffer._replace(replays=replays), staging=staging, counters=counters)
         return state, LevelBatch(levels, jnp.ones(b, bool), origin)
 
+    def refill(self, state: CurriculumState, candidates: Level, solve_rate: Array,
+               policy_version: Array) -> CurriculumState:
+        """Batch-scored SFL: the buffer becomes the `buffer_size` most learnable of `candidates` [C], given each
+        one's solve rate under the current policy (from `sfl_attempts` episodes). Learnability is scored as in
+        the online form (`curriculum.priority.learnability`); a level never solved is not kept, as there, so the
+        buffer may be left partly empty."""
+        n = state.buffer.filled.shape[0]
+        kept = min(n, solve_rate.shape[0])
+        attempts = jnp.float32(self.config.sfl_attempts)
+        score, picked = jax.lax.top_k(learnability(jnp.full_like(solve_rate, attempts), solve_rate * attempts), kept)
+
+        def slots(values: Array, fill=0) -> Array:  # the kept rows, padded to the buffer's N slots
+            padding = jnp.full((n - kept,) + values.shape[1:], fill, values.dtype)
+            return jnp.concatenate([values, padding])
+
+        filled = slots(score > 0, False)
+        clock = state.counters.clock + 1
+        old = state.buffer
+        buffer = Buffer(
+            levels=jax.tree.map(lambda x: slots(x[picked]), candidates),
+            filled=filled,
+            score=slots(score),
+            last_sampled=jnp.full(n, clock, jnp.int32),
+            inserted_at=jnp.full(n, clock, jnp.int32),
+            max_return=jnp.zeros_like(old.max_return),
+            episodes=jnp.where(filled, attempts, 0.0),
+            solved=jnp.where(filled, slots(solve_rate[picked]) * attempts, 0.0),
+            score_version=jnp.full(n, policy_version, jnp.int32),
+            parent_id=jnp.zeros_like(old.parent_id),
+            generation=jnp.zeros_like(old.generation),
+            replays=jnp.zeros_like(old.replays),
+        )
+        counters = state.counters._replace(clock=clock, inserted=state.counters.inserted + filled.sum(),
+                                           evicted=state.counters.evicted + old.filled.sum(),
+                                           rejected=state.counters.rejected + (solve_rate.shape[0] - filled.sum()))
+        return state._replace(buffer=buffer, counters=counters)
+
     # -- update ---------------------------------------------------------------------------------------------------
 
     def update(self, state: CurriculumState, results: LevelResults) -> CurriculumState:
         """Apply per-level results (any number of rows, in any order, from any mix of batches): buffered levels
         are re-scored, staged candidates accumulate and are offered to the buffer once played enough, results for
         unknown ids are counted and dropped."""
-        if self.method == "dr":
+        if self.method == "dr" or self.batch_scored:
             counters = state.counters._replace(results=state.counters.results + results.valid.sum())
             return state._replace(counters=counters)
         by_score_only = self.method == "sfl"

@@ -14,12 +14,14 @@ from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 Method = Literal["dr", "plr", "accel", "sfl"]
+SflScoring = Literal["online", "batch"]
 ScoreFunction = Literal["maxmc", "pvl", "l1_value_loss", "learnability"]
 Prioritization = Literal["rank", "power"]
 
 METHODS: tuple[str, ...] = ("dr", "plr", "accel", "sfl")
 SCORE_FUNCTIONS: tuple[str, ...] = ("maxmc", "pvl", "l1_value_loss", "learnability")
 PRIORITIZATIONS: tuple[str, ...] = ("rank", "power")
+SFL_SCORINGS: tuple[str, ...] = ("online", "batch")
 
 LIVE_KNOBS: tuple[str, ...] = (
     "score",
@@ -61,6 +63,20 @@ class CurriculumConfig:
     """No-op filter: candidates generated per level kept."""
     filter_steps: int = 64
     """No-op filter: env steps of the all-zero policy per candidate."""
+    sfl_scoring: SflScoring = "online"
+    """SFL: how levels are scored for learnability. "online": from the episodes the agent trains on (a candidate
+    after `candidate_episodes` episodes, a buffered level whenever it is replayed), replaying once the buffer is
+    `min_fill` full; "batch": Kinetix's form, in which every `sfl_refresh_updates` updates (and before the first)
+    `sfl_candidates` fresh levels are each played `sfl_attempts` times by the current policy, the buffer becomes
+    the most learnable of them, and replay starts at the first update. "batch" needs the policy beside the
+    curriculum, so it runs in fused training (`impulse train`) only."""
+    sfl_candidates: int = 1024
+    """SFL batch scoring: fresh levels scored at each refresh (Kinetix: 3 x 4,096)."""
+    sfl_attempts: int = 4
+    """SFL batch scoring: episodes per candidate from its start (stochastic policy); its solve rate p gives the
+    learnability p (1 - p)."""
+    sfl_refresh_updates: int = 32
+    """SFL batch scoring: updates between refreshes of the buffer (Kinetix: 128)."""
     devices: tuple[int, ...] = ()
     """The GPU the curriculum service runs on, as a one-item list of its position among the GPUs the process may
     see (it then sees only that one); empty: every GPU is visible and JAX uses the first. Fused training ignores
@@ -106,6 +122,12 @@ class CurriculumConfig:
             problems.append(f"curriculum.staging_factor must be >= 2, got {self.staging_factor}")
         if self.max_edits < 0:
             problems.append(f"curriculum.max_edits must be >= 0, got {self.max_edits}")
+        if self.sfl_scoring not in SFL_SCORINGS:
+            problems.append(f"curriculum.sfl_scoring must be one of {', '.join(SFL_SCORINGS)}, got "
+                            f"{self.sfl_scoring!r}")
+        for name in ("sfl_candidates", "sfl_attempts", "sfl_refresh_updates"):
+            if getattr(self, name) < 1:
+                problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("filter_ratio", "filter_steps"):
             if getattr(self, name) < 1:
                 problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
@@ -118,6 +140,15 @@ def candidate_episodes(config: CurriculumConfig) -> int:
     if config.candidate_episodes is not None:
         return config.candidate_episodes
     return 4 if config.method == "sfl" else 1
+
+
+def service_problem(config: CurriculumConfig) -> str | None:
+    """Why the curriculum service cannot run this configuration, or None: batch-scored SFL plays candidates with
+    the current policy, which only the fused trainer holds beside its curriculum."""
+    if config.method == "sfl" and config.sfl_scoring == "batch":
+        return ("curriculum.sfl_scoring=batch runs in fused training only (impulse train): the curriculum service "
+                "holds no policy to score candidate levels with; use curriculum.sfl_scoring=online")
+    return None
 
 
 def knob_problems(config: CurriculumConfig) -> list[str]:

@@ -73,6 +73,14 @@ def evaluate(
     )
 
 
+def solve_rates(agent: Agent, params: Any, env_params: EnvParams, levels: Level, key: Array, attempts: int,
+                greedy: bool = False) -> Array:
+    """The fraction of `attempts` episodes solved on each of `levels` [K], as a traced array, so that a jitted
+    caller can score levels inside its own step (the fused trainer's batch-scored SFL, `learner.fused`)."""
+    solved, *_ = _play(agent, params, env_params, levels, key, attempts, greedy)
+    return solved.mean(axis=1)
+
+
 class RecordedEpisodes(NamedTuple):
     """One episode per level, [T, K]: T = the longest episode allowed, K levels (environment k plays level k)."""
 

@@ -27,6 +27,7 @@ from impulse.engine.levels.level import Level
 from impulse.learner.agent import Agent
 from impulse.learner.config import PPOConfig
 from impulse.learner.curriculum_inputs import batch_level_results
+from impulse.learner.evaluate import solve_rates
 from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
 Array = jax.Array
@@ -78,6 +79,14 @@ class FusedTrainer:
         then the curriculum learns from the levels' results."""
         key, level_key, update_key = jax.random.split(carry.key, 3)
         curriculum, flags, origin_metrics = carry.curriculum, None, {}
+        if self.curriculum is not None and self.curriculum.batch_scored:
+            # Due before the first update too (Kinetix fills its buffer before training starts).
+            version = carry.train.policy_version
+            due = version % self.curriculum.config.sfl_refresh_updates == 0
+            refill_key = jax.random.fold_in(level_key, 1)  # the other curricula's random streams stay as they were
+            curriculum = jax.lax.cond(
+                due, lambda c: self.refill_curriculum(c, carry.train.params, refill_key, version), lambda c: c,
+                curriculum)
         if self.curriculum is not None:
             curriculum, chosen = self.curriculum.sample(curriculum, level_key)
             levels, flags = chosen.levels, chosen.train
@@ -109,6 +118,17 @@ class FusedTrainer:
             **origin_metrics,
         }
         return FusedCarry(train, envs, key, curriculum), metrics
+
+    def refill_curriculum(self, curriculum: CurriculumState, params: Any, key: Array,
+                          policy_version: Array) -> CurriculumState:
+        """Batch-scored SFL: `sfl_candidates` fresh levels, each played `sfl_attempts` times by `params`, and the
+        buffer refilled with the most learnable of them (`Curriculum.refill`). Its episodes are not training
+        steps and are not counted in the run's env steps, as in Kinetix."""
+        config = self.curriculum.config
+        level_key, play_key = jax.random.split(key)
+        candidates = self.curriculum.new_levels(level_key, config.sfl_candidates)
+        rates = solve_rates(self.agent, params, self.env_params, candidates, play_key, config.sfl_attempts)
+        return self.curriculum.refill(curriculum, candidates, rates, policy_version)
 
     def jitted(self) -> tuple[Callable[..., FusedCarry], Callable[..., tuple[FusedCarry, dict[str, Any]]]]:
         """(init, iterate) compiled; `iterate` donates its carry so the environments are updated in place."""

@@ -17,6 +17,7 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from impulse.curriculum.config import service_problem
 from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
@@ -206,6 +207,9 @@ def serve(args: argparse.Namespace) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir = opened
+    if problem := service_problem(config.curriculum):
+        print(f"impulse curriculum serve: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     from impulse.deploy.runtime.devices import restrict_gpus
 
     try:

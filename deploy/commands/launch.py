@@ -34,6 +34,7 @@ from impulse.bus.inbox import Received
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
+from impulse.curriculum.config import service_problem
 from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
@@ -85,6 +86,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     if config.curriculum.method != "dr" and not config.uses_curriculum_service:
         print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
               f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
+        return EXIT_USAGE
+    if config.uses_curriculum_service and (problem := service_problem(config.curriculum)):
+        print(f"impulse launch: {problem}", file=sys.stderr)
         return EXIT_USAGE
     expected_lag = config.actors.num_actors * config.actors.credits
     if expected_lag > config.ppo.max_policy_lag:

@@ -119,3 +119,33 @@ def test_accel_children_are_valid_levels_with_their_parents_recorded():
     for i in range(BATCH):
         child = jax.tree.map(lambda x, i=i: np.asarray(x[i]), children.levels)
         assert not validate_scene(child.state), i
+
+
+def test_batch_scored_sfl_keeps_the_most_learnable_candidates_and_replays_at_once():
+    curriculum, init, sample, update = compiled(method="sfl", sfl_scoring="batch", sfl_ratio=0.5)
+    state = init(jax.random.PRNGKey(0))
+    candidates = jax.jit(curriculum.new_levels, static_argnums=1)(jax.random.PRNGKey(1), 64)
+    ids = level_id_values(np.asarray(candidates.level_id))
+    rates = true_rate(ids)  # learnability 0, 0.19, 0.25, 0.19 and 0.001 (always solved) by id modulo 5
+    state = jax.jit(curriculum.refill)(state, candidates, jax.numpy.asarray(rates, jax.numpy.float32), 7)
+    kept = buffered_ids(state)
+    learnable = ids[(rates > 0) & (rates < 1)]
+    assert not set(kept) & set(ids[rates == 0]), "a never-solved level entered the buffer"
+    assert kept.size == min(32, (rates > 0).sum())
+    if learnable.size >= 32:  # the learnable levels come before the always-solved ones
+        assert set(kept) <= set(learnable)
+    else:
+        assert set(kept) >= set(learnable)
+    # the most learnable first: every level at p = 0.5 is kept before any at p = 0.25 or 0.75
+    half = ids[rates == 0.5]
+    assert set(half[:32]) <= set(kept)
+    assert (np.asarray(state.buffer.score_version)[np.asarray(state.buffer.filled)] == 7).all()
+
+    state, batch = sample(state, jax.random.PRNGKey(2))
+    from_buffer = np.asarray(batch.origin) == ORIGIN_REPLAY
+    assert from_buffer.sum() == BATCH // 2, "batch-scored SFL replays from its first batch"
+    assert set(level_id_values(np.asarray(batch.levels.level_id))[from_buffer]) <= set(kept)
+    # training results do not touch the buffer: only the next refill does
+    after = update(state, play(batch, np.random.default_rng(0), 4, 8))
+    np.testing.assert_array_equal(np.asarray(after.buffer.score), np.asarray(state.buffer.score))
+    assert int(after.counters.results) > int(state.counters.results)

@@ -78,6 +78,14 @@ def test_a_curriculum_on_a_fixed_level_set_is_a_usage_error(tmp_path: Path, caps
     assert "curriculum.method=plr needs env.levels=random" in capsys.readouterr().err
 
 
+def test_batch_scored_sfl_is_refused_by_the_curriculum_service(tmp_path: Path, capsys) -> None:
+    sfl_batch = ["curriculum=sfl", "curriculum.sfl_scoring=batch", "env.levels=random"]
+    assert main(["launch", f"run_dir={tmp_path / 'run'}", *sfl_batch]) == 2
+    assert "sfl_scoring=batch runs in fused training only" in capsys.readouterr().err
+    assert main(["curriculum", "serve", f"run_dir={tmp_path / 'serve'}", *sfl_batch]) == 2
+    assert "sfl_scoring=batch runs in fused training only" in capsys.readouterr().err
+
+
 def test_eval_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--checkpoint", str(tmp_path)]) == 2
     assert "no config.toml" in capsys.readouterr().err
