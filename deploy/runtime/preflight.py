@@ -13,8 +13,10 @@ JAX is imported only by the checks that need it (level sets, checkpoints); in th
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import math
+import socket
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,6 +50,7 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
     roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else []),
              *([EVALUATOR] if config.evaluator.levels else [])]
     check_credentials(config, roles)
+    check_hub_port(config)
     level_sets = [] if config.uses_curriculum_service else [("env.levels", config.env.levels)]
     if config.eval.levels and config.eval.attempts > 0:
         level_sets += [("eval.levels", source) for source in _sources(config.eval.levels)]
@@ -71,6 +74,29 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
 def _sources(spec: str) -> list[str]:
     """The level sets a comma-separated specification names (as `learner.scoring.set_names`, without JAX)."""
     return list(dict.fromkeys(part.strip() for part in spec.split(",") if part.strip()))
+
+
+def check_hub_port(config: RunConfig) -> None:
+    """On one machine (no `bus.connect`) the launcher listens on `bus.hub`; a port another process holds (a second
+    run, most often) would fail deep inside zenoh, so say it here, with a free port to use instead."""
+    if config.bus.connect:
+        return
+    protocol, _, address = config.bus.hub.partition("/")
+    host, _, port = address.rpartition(":")
+    if protocol != "tcp" or not port.isdigit():
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a port in TIME_WAIT is free for zenoh too
+        try:
+            probe.bind((host.strip("[]"), int(port)))
+        except OSError as err:
+            if err.errno != errno.EADDRINUSE:
+                return  # not ours to judge (an address this machine lacks): zenoh will say
+            probe.bind((host.strip("[]"), 0))
+            free = probe.getsockname()[1]
+            raise PreflightError(
+                f"bus.hub {config.bus.hub} is already in use (another run on this machine?); give this run its own "
+                f"hub, for example bus.hub=tcp/{host}:{free}") from None
 
 
 def check_credentials(config: RunConfig, roles: Iterable[str]) -> None:

@@ -136,3 +136,22 @@ def test_level_set_names_and_credentials_are_checked(tmp_path: Path) -> None:
     (secrets / "learner.password").write_text("x\n")
     with pytest.raises(PreflightError, match="the actor's credentials: .*neither ca.pem nor actor.password"):
         run_preflight(config_for(tmp_path, *remote), tmp_path, resume=False, curriculum_service=False)
+
+
+def test_a_hub_port_in_use_is_one_clear_error_with_a_free_port_to_use(tmp_path: Path) -> None:
+    import re
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        config = config_for(tmp_path / "run", f"bus.hub=tcp/127.0.0.1:{port}")
+        with pytest.raises(PreflightError, match=f"bus.hub tcp/127.0.0.1:{port} is already in use") as raised:
+            run_preflight(config, tmp_path / "run", resume=False, curriculum_service=False)
+        suggested = int(re.search(r"bus.hub=tcp/127.0.0.1:(\d+)", str(raised.value)).group(1))
+        assert suggested != port
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", suggested))  # free when suggested (nothing else took it since)
+    run_preflight(config_for(tmp_path / "run", f"bus.hub=tcp/127.0.0.1:{port}"), tmp_path / "run", resume=False,
+                  curriculum_service=False)  # the port is free again: no complaint
