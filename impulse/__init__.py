@@ -7,8 +7,9 @@ The one import name of the project: its rooms are `impulse.engine`, `impulse.bus
 installation (pyproject.toml's `package-dir`); run from a checkout without installing (a lent GPU machine), this
 package finds them beside itself.
 
-The public face, imported on first use so that `import impulse` stays light: `RunConfig` (the run configuration,
-`impulse.deploy.run_config`), `EnvConfig` (`impulse.engine.env.config`) and `__version__`.
+The public face, imported on first use so that `import impulse` stays light: `make_env` and `Env` (the environment
+as a library, `impulse.engine.env.api`), `RunConfig` (the run configuration, `impulse.deploy.run_config`),
+`EnvConfig` (`impulse.engine.env.config`) and `__version__`.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ try:
 except metadata.PackageNotFoundError:  # a checkout that was never installed
     __version__ = "0+unknown"
 
-_PUBLIC = {"RunConfig": "impulse.deploy.run_config", "EnvConfig": "impulse.engine.env.config"}
+_PUBLIC = {"RunConfig": "impulse.deploy.run_config", "EnvConfig": "impulse.engine.env.config",
+           "make_env": "impulse.engine.env.api", "Env": "impulse.engine.env.api"}
 
 
 def __getattr__(name: str) -> Any:
@@ -37,4 +39,4 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'impulse' has no attribute {name!r}")
 
 
-__all__ = ["EnvConfig", "RunConfig", "__version__"]
+__all__ = ["Env", "EnvConfig", "RunConfig", "__version__", "make_env"]

@@ -15,7 +15,8 @@ order of one step and the auto-reset rule):
 Modules: `config` (EnvConfig, plain settings), `spec` (EnvSpec, EnvParams, env_from_config), `state` (EnvState),
 `actions` (action types, action spaces, bindings), `observations` (entity, flat symbolic and pixel observations),
 `pixels` (drawing the scene as Kinetix's pixel observation), `observation_types` (the observation layouts),
-`reward` (sparse outcome and dense shaping), `env` (reset, step),
+`reward` (sparse outcome and dense shaping), `env` (reset, step), `api` (`make_env`: the public, gymnax-style face
+over reset and step),
 `episodes` (the one episode loop: E environments stepped for T steps with caller-chosen actions, and the outcome of
 each one's first episode), `scripted` (playing the hand-made levels' scripted controllers).
 This package file imports nothing, so reading the configuration does not load JAX.
