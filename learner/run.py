@@ -31,6 +31,7 @@ from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, Ch
 from impulse.learner.config import TrainingSetup
 from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
+from impulse.learner.memory import DoesNotFit, check_fits, warn_if_gpu_sized
 from impulse.learner.networks import describe_parameters
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import LevelSets, evaluation_columns, format_scores, load_level_sets, score_policy
@@ -94,6 +95,7 @@ class FusedRun:
         if not resume and self.checkpoints.latest_step() is not None:
             self.checkpoints.close()
             raise RunError(existing_run(run_dir))
+        warn_if_gpu_sized(config.ppo.num_envs, config.ppo.num_steps)
         init, iterate = self.trainer.jitted()
         self.carry: FusedCarry = init(jax.random.PRNGKey(config.seed), self.levels)
         log.info(
@@ -109,11 +111,17 @@ class FusedRun:
             self._restore()
         elif init_from is not None:
             self._start_from_policy(init_from)
+        log.info("compiling the training step (%s envs x %s steps) ...", config.ppo.num_envs, config.ppo.num_steps)
         start = time.perf_counter()
         self._iterate = iterate.lower(self.carry, self.levels).compile()
         self.compile_s = time.perf_counter() - start
         log.info("compiled the training step in %.1f s (%s envs x %s steps)", self.compile_s,
                  config.ppo.num_envs, config.ppo.num_steps)
+        try:
+            check_fits(self._iterate, "the training step", config.ppo.num_envs, config.ppo.num_steps)
+        except DoesNotFit as err:
+            self.checkpoints.close()
+            raise RunError(str(err)) from None
         self.target = self.trainer.num_updates
         self.eval_sets = None
         if config.eval.every_updates and config.eval.attempts:
