@@ -91,6 +91,7 @@ class CurriculumConfig:
     """Replay weights from scores: "rank" (1 / rank) or "power" (the score itself, clipped at 0), each raised to
     1 / temperature."""
     temperature: float = 1.0
+    """Replay weights are raised to 1 / temperature: above 1 flattens the distribution, below 1 sharpens it."""
     staleness_coef: float = 0.3
     """Share of the replay distribution given to levels by how long ago they were last sampled."""
     replay_prob: float = 0.5

@@ -36,6 +36,7 @@ class RunConfig:
     name: str = "default"
     """Run name; also the run id in bus key expressions of distributed runs."""
     seed: int = 0
+    """Seeds parameters, environments, levels and the curriculum: the same seed and config give the same run."""
     run_dir: str = "runs/{name}"
     """Where checkpoints, logs and the resolved config go; "{name}" is replaced by the run name."""
     total_env_steps: int = 2**30

@@ -23,20 +23,29 @@ class PPOConfig:
     """PPO hyper-parameters, plus the correction for data collected by an older policy (distributed actors)."""
 
     num_envs: int = 2048
+    """Environments stepped side by side per rollout (in fused mode; in each actor, in distributed mode)."""
     num_steps: int = 256
     """Environment steps per rollout, per environment."""
     num_minibatches: int = 32
     """Minibatches split across environments (whole sequences), so it must divide num_envs."""
     update_epochs: int = 8
+    """Passes over each rollout batch per update."""
     learning_rate: float = 1e-4
+    """Adam step size (at the start of the run when anneal_lr)."""
     anneal_lr: bool = True
     """Decay the learning rate linearly to zero over the run."""
     gamma: float = 0.995
+    """Discount factor."""
     gae_lambda: float = 0.9
+    """GAE lambda: how far advantages look ahead before trusting the value estimate."""
     clip_eps: float = 0.2
+    """PPO clip range of the probability ratio."""
     ent_coef: float = 0.01
+    """Weight of the entropy bonus."""
     vf_coef: float = 0.5
+    """Weight of the value loss."""
     max_grad_norm: float = 0.5
+    """Gradients are clipped to this global norm."""
     normalize_advantages: bool = True
     """Standardise advantages within each minibatch (Kinetix does)."""
     clip_value: bool = True
@@ -112,6 +121,7 @@ class NetworkConfig:
     entity_encoder_size: int = 64
     """Permutation-invariant MLP: per-entity embedding width, of which 4 are the entity-type one-hot."""
     entity_heads: int = 8
+    """Entity network: heads of the per-shape encoding, each entity_head_size wide, summed over the shapes."""
     entity_head_size: int = 32
     """Permutation-invariant MLP: per-entity multi-head Dense (heads x size, ReLU), summed over entities."""
     flat_embedding_size: int = 128

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from impulse.deploy.commands import curriculum, evaluator, import_kinetix, launch, levels, services, view
+from impulse.deploy.commands import config, curriculum, evaluator, import_kinetix, launch, levels, services, view
 from impulse.deploy.commands.router import add_router_arguments, run_router_command
 from impulse.deploy.commands.train import (
     add_eval_arguments,
@@ -156,6 +156,14 @@ COMMANDS: tuple[Command, ...] = (
         "s|m|l` re-sizes and normalises it.",
         run=levels.run,
         arguments=levels.add_arguments,
+    ),
+    Command(
+        "config",
+        "describe the configuration keys",
+        "The configuration reference: `describe [KEY]` prints every key (or one key, or a section's keys) with "
+        "its type, default and meaning, from the config dataclasses themselves (docs/config.md holds the same).",
+        run=config.run,
+        arguments=config.add_arguments,
     ),
     Command(
         "view",
