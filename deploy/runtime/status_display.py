@@ -102,8 +102,9 @@ def curriculum_line(status: dict[str, Any] | None) -> str:
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
            curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
            columns: int | None = None) -> list[str]:
-    """The display's lines: every child with its process state, then its latest status. The line of a child that
-    has exited ends with its error line and is cut to `columns` (default: the terminal's width)."""
+    """The display's lines: every child with its process state, then its latest status (the line of a child that
+    has exited ends with its error line), each cut to `columns` (default: the terminal's width) so that a redraw
+    never wraps."""
     if columns is None:
         columns = shutil.get_terminal_size((COLUMNS_WITHOUT_TERMINAL, 24)).columns
     learner = statuses.get(learner_name)
@@ -128,7 +129,7 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
                 body = actor_line(status, lags.get(child.name) if isinstance(lags, dict) else None)
         except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types
             body = "malformed status"
-        lines.append(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}")
+        lines.append(_cut(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}", columns))
     return lines
 
 

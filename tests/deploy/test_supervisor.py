@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from impulse.deploy.runtime.status_display import render
+from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
 
 FAST = {"give_up_after": 3, "backoff_s": (0.05,)}
@@ -140,3 +140,51 @@ def test_the_status_display_shows_how_a_child_ended(tmp_path: Path) -> None:
     assert len(lines[0]) == 140 and lines[0].endswith("...")
     assert lines[1] == ("actor-1  killed by SIGSEGV; restarting in 4 s (restarts 0) | Fatal Python error: "
                         "Segmentation fault")
+
+
+class _Terminal:
+    """A pyte screen behind a file-like object that says it is a terminal, as the launcher's stdout is."""
+
+    def __init__(self, columns: int) -> None:
+        import pyte
+
+        self.screen = pyte.Screen(columns, 12)
+        self._stream = pyte.Stream(self.screen)
+
+    def isatty(self) -> bool:
+        return True
+
+    def write(self, text: str) -> None:
+        self._stream.feed(text.replace("\n", "\r\n"))  # a tty's output post-processing turns \n into \r\n
+
+    def flush(self) -> None:
+        pass
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("columns", [80, 120])
+def test_the_status_display_redraws_in_place_without_wrapping(tmp_path: Path, columns: int) -> None:
+    children = [child(tmp_path, "import time; time.sleep(60)", name)
+                for name in ("learner", "curriculum", "actor-0", "actor-1")]
+    for running in children:
+        running.start({})
+    try:
+        _check_redraws(children, columns)
+    finally:
+        for running in children:
+            running.process.kill()
+            running.process.wait()
+
+
+def _check_redraws(children: list[Child], columns: int) -> None:
+    learner = {"policy_version": 12, "epoch": 1, "update": 12, "num_updates": 1000, "updates_per_s": 0.5,
+               "consumed_steps_per_s": 123456.0, "queue": 1, "solve_rate": 0.25, "rejected": {}}
+    terminal = _Terminal(columns)
+    display = StatusDisplay(stream=terminal)
+    for update in (12, 13, 14):  # three redraws of the same block
+        lines = render({"learner": {**learner, "update": update}}, children, "learner", columns=columns)
+        display.show(lines)
+    shown = [row.rstrip() for row in terminal.screen.display]
+    assert shown[:4] == [line.rstrip() for line in lines], shown  # in place: the last block on the first rows
+    assert not any(shown[4:]), f"wrapped or stacked lines below the block: {shown[4:]}"
+    assert all(len(line) <= columns for line in lines) and lines[0].endswith("...")
