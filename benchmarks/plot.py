@@ -255,12 +255,18 @@ def main(argv: list[str] | None = None) -> int:
     records = read_records(args.files, where)
     if not records:
         parser.error("no records matched")
+    missing = [field for field in (args.x, args.group, *args.y) if not any(field in r for r in records)]
+    if missing:
+        present = sorted({field for r in records for field in r})
+        parser.error(f"no record has the field(s) {', '.join(missing)}; the records have: {', '.join(present)}")
     groups = sorted({str(r[args.group]) for r in records if args.group in r})
     colors = {name: PALETTE[i % len(PALETTE)] for i, name in enumerate(groups)}
     panels = []
     for y in args.y:
         curves = mean_curves(records, args.x, y, args.group)
         series = [Series(name, *curves[name], color=colors[name]) for name in groups if name in curves]
+        if not series:
+            parser.error(f"no record has {args.x}, {y} and {args.group} together: nothing to draw for {y}")
         panels.append(Panel(y, series, x_label=args.x, y_range=tuple(args.y_range) if args.y_range else None))
     print(render(panels, args.out, args.title))
     return 0

@@ -242,7 +242,7 @@ def run_reference(args: list[str], timeout: float, script: Path = RUNNER) -> lis
     command = [str(python), isolation, str(script), *args]
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
-        env=_clean_environment(), cwd=str(RUNNER.parent),
+        env=_clean_environment(),  # the caller's working directory: relative paths mean the same on both sides
     )
     assert process.stdout is not None and process.stderr is not None
     err_tail: collections.deque[str] = collections.deque(maxlen=PIP_TAIL_LINES)

@@ -63,6 +63,11 @@ def run(args: argparse.Namespace, _config: object) -> int:
     if opened is None:
         return EXIT_USAGE
     config, _ = opened
+    if not config.uses_curriculum_service:
+        print(f"impulse curriculum {args.curriculum_action}: run {config.name!r} has no curriculum service: it plays "
+              f"the fixed level set env.levels={config.env.levels!r} (a curriculum runs with env.levels=random)",
+              file=sys.stderr)
+        return EXIT_USAGE
     if args.curriculum_action == "inspect":
         return inspect(args, config)
     request: dict[str, Any] = {}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pytest
 from impulse.benchmarks.plot import Panel, Series, main, mean_curves, nice_ticks, render
 from PIL import Image
 
@@ -48,3 +49,12 @@ def test_main_plots_json_lines(tmp_path: Path) -> None:
     assert main([str(lines), "--where", "record=eval", "--x", "x", "--y", "y", "--group", "method",
                  "--out", str(tmp_path / "p.png")]) == 0
     assert (tmp_path / "p.png").stat().st_size > 0
+
+
+def test_main_fails_clearly_when_a_field_is_missing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    lines = tmp_path / "r.jsonl"
+    lines.write_text('{"method": "dr", "x": 0, "y": 0.5}\n{"method": "dr", "x": 1, "y": 0.7}\n')
+    with pytest.raises(SystemExit) as exited:
+        main([str(lines), "--x", "x", "--y", "y", "--group", "name", "--out", str(tmp_path / "p.png")])
+    assert exited.value.code == 2 and not (tmp_path / "p.png").exists()
+    assert "no record has the field(s) name; the records have: method, x, y" in capsys.readouterr().err

@@ -73,6 +73,13 @@ def test_curriculum_knob_commands_need_a_run_directory(tmp_path: Path, capsys: p
     assert "no config.toml" in capsys.readouterr().err
 
 
+def test_curriculum_commands_against_a_run_without_a_curriculum_fail_at_once(tmp_path: Path, capsys) -> None:
+    (tmp_path / "config.toml").write_text("name = 'fixed'\n[env]\nlevels = 'handmade'\n")
+    for action in (["get"], ["set", "replay_prob=0.2"], ["inspect"]):
+        assert main(["curriculum", *action, "--run", str(tmp_path)]) == 2
+        assert "has no curriculum service: it plays the fixed level set" in capsys.readouterr().err
+
+
 def test_a_curriculum_on_a_fixed_level_set_is_a_usage_error(tmp_path: Path, capsys) -> None:
     assert main(["launch", f"run_dir={tmp_path / 'run'}", "curriculum=plr", "env.levels=handmade"]) == 2
     assert "curriculum.method=plr needs env.levels=random" in capsys.readouterr().err
