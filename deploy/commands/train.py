@@ -145,6 +145,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=Path, metavar="FILE.rrd",
                         help="also play one episode per level and write it to a Rerun recording (open it with "
                         "`rerun FILE.rrd`), drawn as live rollouts are")
+    parser.add_argument("--video", type=Path, metavar="FILE.gif",
+                        help="also play one episode per level and write them side by side as an animated GIF or "
+                        "WebP (30 frames per second; a finished level is framed green if solved, red if not)")
 
 
 def _run_dir_of(path: Path) -> Path:
@@ -176,16 +179,23 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir, step = opened
+    if args.video is not None and args.video.suffix.lower() not in (".gif", ".webp"):
+        print(f"impulse eval: --video {args.video}: write a .gif or .webp file", file=sys.stderr)
+        return EXIT_USAGE
+    recorders = ([_recorder(config.name, args.record)] if args.record is not None else []) + \
+        ([_video_writer(args.video)] if args.video is not None else [])
     try:
         table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
                              seed=args.seed, greedy=args.greedy,
-                             recorder=_recorder(config.name, args.record) if args.record is not None else None)
+                             recorder=(lambda *a: [r(*a) for r in recorders]) if recorders else None)
     except RunError as err:
         print(f"impulse eval: {err}", file=sys.stderr)
         return EXIT_FAILED
     print(format_scores(table))
     if args.record is not None:
         print(f"recorded one episode per level in {args.record} (open it with `rerun {args.record}`)")
+    if args.video is not None:
+        print(f"wrote one episode per level to {args.video}")
     if args.json is not None:
         args.json.write_text(json.dumps(table, indent=2))
     return 0
@@ -214,6 +224,20 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
         recording.disconnect()
 
     return record
+
+
+def _video_writer(path: Path) -> Callable[[list[str], Any, int], None]:
+    """Writes evaluation episodes side by side as an animated GIF or WebP (`monitor.video`)."""
+
+    def write(names: list[str], episodes: Any, policy_version: int) -> None:
+        from impulse.monitor.video import episode_grid_frames, save_video
+
+        labels = [Path(name).stem or name for name in names]
+        frames = episode_grid_frames(episodes.watched.state, episodes.watched.actuation, episodes.first,
+                                     episodes.steps.solved, labels)
+        save_video(frames, path, fps=1 / EVAL_SECONDS_PER_STEP)
+
+    return write
 
 
 def add_export_arguments(parser: argparse.ArgumentParser) -> None:

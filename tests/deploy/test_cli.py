@@ -93,6 +93,12 @@ def test_batch_scored_sfl_is_refused_by_the_curriculum_service(tmp_path: Path, c
     assert "sfl_scoring=batch runs in fused training only" in capsys.readouterr().err
 
 
+def test_eval_video_takes_gif_or_webp(tmp_path: Path, capsys) -> None:
+    assert main(["eval", "--checkpoint", str(REPO / "pretrained" / "general-s"), "--video", str(tmp_path / "a.mp4")]) \
+        == 2
+    assert "--video" in capsys.readouterr().err and not (tmp_path / "a.mp4").exists()
+
+
 def test_eval_without_a_run_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "--checkpoint", str(tmp_path)]) == 2
     assert "no config.toml" in capsys.readouterr().err
