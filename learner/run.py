@@ -237,8 +237,12 @@ def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams,
     sets = _eval_sets(config, agent.spec.sizes, names, levels)
     if sets is None or not sets.names:
         return None
+    log.info("final evaluation: %d levels x %d attempts (compiling, then %s episodes) ...", len(sets.names),
+             config.eval.attempts, f"{len(sets.names) * config.eval.attempts:,}")
+    start = time.perf_counter()
     scored = score_policy(agent, params, env_params, sets, jax.random.PRNGKey(config.seed + 1),
                           config.eval.attempts)
+    log.info("final evaluation done in %.0f s", time.perf_counter() - start)
     (run_dir / "eval.json").write_text(json.dumps(scored.table, indent=2))
     log.info("evaluation over %d attempts per level:\n%s", config.eval.attempts,
              format_scores(scored.table, scored.groups))

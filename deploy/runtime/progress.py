@@ -100,7 +100,9 @@ class ProgressLine:
     def update(self, done: int, steps_per_second: float, metrics: dict[str, Any]) -> None:
         fraction = min(done / max(self.total, 1), 1.0)
         eta = max(self.total - done, 0) / steps_per_second if steps_per_second > 0 else math.inf
-        parts = [f"{done:,}/{self.total:,} steps", f"{steps_per_second:,.0f} steps/s", f"ETA {_duration(eta)}"]
+        # An actor may produce more than the run's budget (batches the learner dropped): never past 100%.
+        parts = [f"{min(done, self.total):,}/{self.total:,} steps", f"{steps_per_second:,.0f} steps/s",
+                 f"ETA {_duration(eta)}"]
         for key, label, fmt in (
             ("episode_return", "return", "{:.3f}"),
             ("solve_rate", "solved", "{:.0%}"),

@@ -76,3 +76,14 @@ def test_a_resumed_run_has_one_metrics_row_per_update(tmp_path) -> None:
     assert [row["update"] for row in rows] == [1, 2, 3, 4, 5, 6, 7]
     aside = (tmp_path / "metrics-superseded.jsonl").read_text().splitlines()
     assert [json.loads(line)["update"] for line in aside[:2]] == [4, 5] and aside[2] == '{"update": 6, "env_st'
+
+
+def test_a_progress_line_never_passes_the_runs_budget(caplog) -> None:
+    import logging
+
+    stream = io.StringIO()
+    line = ProgressLine(61_440, stream=stream, log_every_s=0)
+    with caplog.at_level(logging.INFO):
+        line.update(65_536, 1000.0, {})
+    text = stream.getvalue() + caplog.text
+    assert "61,440/61,440 steps" in text and "65,536" not in text, text
