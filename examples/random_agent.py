@@ -1,5 +1,6 @@
 """A random agent on Impulse's hand-made S levels, through the environment API (`impulse.make_env`): 64
-environments stepped side by side for one episode's worth of steps, jitted and vmapped as any gymnax environment.
+environments stepped side by side for one 64-step episode's worth of steps, jitted and vmapped as any gymnax
+environment.
 
     python examples/random_agent.py
 """
@@ -15,7 +16,7 @@ NUM_ENVS = 64
 
 
 def main() -> None:
-    env = impulse.make_env(levels="handmade", size="s")
+    env = impulse.make_env(levels="handmade", size="s", max_timesteps=64)  # short episodes for a quick look
     print(f"{env.num_levels} levels, actions {env.action_space.kind} {env.action_space.shape}")
     reset = jax.jit(jax.vmap(env.reset))
     step = jax.jit(jax.vmap(env.step))
