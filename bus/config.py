@@ -8,12 +8,19 @@ import ipaddress
 from dataclasses import dataclass
 
 
+def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, host, port) of a network endpoint such as "tcp/127.0.0.1:7447" or "tcp/[::1]:7447?opt=1", host
+    without brackets (for a unix socket's path the parts mean nothing: check the protocol first)."""
+    protocol, _, address = endpoint.partition("/")
+    host, _, port = address.split("?")[0].rpartition(":")
+    return protocol, host.strip("[]"), port
+
+
 def is_loopback(endpoint: str) -> bool:
     """Whether a listen endpoint is reachable from this machine only (127.x, ::1, localhost, a unix socket)."""
-    protocol, _, address = endpoint.partition("/")
+    protocol, host, _ = endpoint_parts(endpoint)
     if protocol.startswith("unixsock"):
         return True
-    host = address.split("?")[0].rsplit(":", 1)[0].strip("[]")
     if host == "localhost":
         return True
     try:

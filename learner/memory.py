@@ -70,9 +70,8 @@ def check_fits(compiled: Any, what: str, num_envs: int, num_steps: int, free: in
     log.info("%s needs %.2f GiB of the %.1f GiB free", what, need / 2**30, free / 2**30)
     if need <= MARGIN * free:
         return
-    scale = MARGIN * free / need
-    envs = num_envs
-    while envs > 1 and envs * num_steps > scale * num_envs * num_steps:
+    envs = num_envs  # memory grows about linearly with the batch: halve it until it would fit
+    while envs > 1 and envs / num_envs > MARGIN * free / need:
         envs //= 2
     raise DoesNotFit(
         f"{what} needs about {need / 2**30:.1f} GiB ({num_envs:,} envs x {num_steps:,} steps per update), more "

@@ -21,6 +21,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from impulse.bus.config import endpoint_parts
+
 if TYPE_CHECKING:
     from impulse.deploy.run_config import RunConfig
     from impulse.engine.physics.sizes import SceneSizes
@@ -81,18 +83,17 @@ def check_hub_port(config: RunConfig) -> None:
     run, most often) would fail deep inside zenoh, so say it here, with a free port to use instead."""
     if config.bus.connect:
         return
-    protocol, _, address = config.bus.hub.partition("/")
-    host, _, port = address.rpartition(":")
+    protocol, host, port = endpoint_parts(config.bus.hub)
     if protocol != "tcp" or not port.isdigit():
         return
-    with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as probe:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a port in TIME_WAIT is free for zenoh too
         try:
-            probe.bind((host.strip("[]"), int(port)))
+            probe.bind((host, int(port)))
         except OSError as err:
             if err.errno != errno.EADDRINUSE:
                 return  # not ours to judge (an address this machine lacks): zenoh will say
-            probe.bind((host.strip("[]"), 0))
+            probe.bind((host, 0))
             free = probe.getsockname()[1]
             raise PreflightError(
                 f"bus.hub {config.bus.hub} is already in use (another run on this machine?); give this run its own "
