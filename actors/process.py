@@ -42,7 +42,7 @@ import numpy as np
 from impulse.actors.config import ActorConfig
 from impulse.actors.follow import LearnerFollower
 from impulse.actors.levels import LevelSource
-from impulse.actors.rollout import rollout, start_rollout
+from impulse.actors.rollout import RolloutCarry, rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
@@ -110,11 +110,10 @@ class Actor:
         self.env_steps_goal = env_steps_goal
         # Seeded by the run, the actor and the incarnation: a restarted actor does not replay its predecessor.
         seed = (seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
-        self.key, level_key, rollout_key = jax.random.split(jax.random.PRNGKey(seed), 3)
-        first = levels.next_batch(level_key)
-        if first is None:  # only a `while_waiting` that gives up ends a wait without levels
-            raise RuntimeError("the level source returned no first batch")
-        self.carry = start_rollout(agent.spec, env_params, first.levels, self.num_envs, rollout_key, first.train)
+        self.key = jax.random.PRNGKey(seed)
+        self.env_params = env_params
+        self.level_results = level_results
+        self.carry: RolloutCarry | None = None  # set by `start`, from the first level batch
         spec, steps = agent.spec, self.num_steps
         monitor_config = monitor_config or MonitorConfig()
         self.watch = min(monitor_config.watch_envs, self.num_envs) if monitor is not None else 0
@@ -123,8 +122,6 @@ class Actor:
                                                  batch.train, self.watch),
             donate_argnums=1,
         )
-        rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
-        self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
         self.follow = LearnerFollower(bus, jax.eval_shape(agent.init, jax.random.PRNGKey(0)))
 
         keys = bus.keys
@@ -267,11 +264,24 @@ class Actor:
         self._publish_status_if_due()
         return not self._stop_requested
 
+    def start(self) -> None:
+        """Fetch the first level batch (from the curriculum service, waiting for it as long as no stop is asked)
+        and reset the environments on it."""
+        self.key, level_key, rollout_key = jax.random.split(self.key, 3)
+        first = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
+        if first is None:  # only a stop request ends a wait without levels
+            return
+        self.carry = start_rollout(self.agent.spec, self.env_params, first.levels, self.num_envs, rollout_key,
+                                   first.train)
+        rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
+        level_results = self.level_results
+        self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
+
     def cycle(self) -> CycleReport | None:
         self._publish_status_if_due()
         self._follow_learner()
         self._receive_acks()
-        if self.params is None:
+        if self.params is None or self.carry is None:
             return None
         if self._held is not None and self._has_credit():
             self._send(self._held)

@@ -37,8 +37,14 @@ class Progress:
 
 
 class Service(Protocol):
-    """One process's work as the run loop drives it. A service may also define `request_stop()`, which the loop
-    calls as soon as a stop signal arrives (the actor uses it to stop waiting for levels mid-cycle)."""
+    """One process's work as the run loop drives it. The constructor assembles (restores a checkpoint, opens its
+    bus entities); `start` begins the work, under the loop's stop signal and with `close` guaranteed after it. A
+    service may also define `request_stop()`, which the loop calls as soon as a stop signal arrives (the actor uses
+    it to stop waiting for levels)."""
+
+    def start(self) -> None:
+        """Begin: what must happen once before the first cycle and may take long or talk to peers (the first
+        weights published, the first levels fetched, a compile that must not delay the first query)."""
 
     def progress(self) -> Progress:
         """Where the service stands now (read once, when the loop starts)."""

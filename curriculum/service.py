@@ -41,9 +41,14 @@ from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
 from impulse.curriculum.results import empty_results
 from impulse.curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
-from impulse.curriculum.stats import buffer_summary, buffer_table, histogram
+from impulse.curriculum.stats import (
+    buffer_summary,
+    inspect_report,
+    json_scalar,
+    live_knob_values,
+    top_levels,
+)
 from impulse.curriculum.wire import ResultsError, level_batch_arrays, results_from_message
-from impulse.engine.levels.level import Level
 from impulse.engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
@@ -130,7 +135,7 @@ class CurriculumService:
 
     # -- lifecycle -------------------------------------------------------------------------------------------------
 
-    def warm_up(self) -> None:
+    def start(self) -> None:
         """Compile sample and update before serving, so the first actor's query does not wait for XLA (a query
         times out after a few seconds)."""
         start = time.perf_counter()
@@ -235,8 +240,7 @@ class CurriculumService:
     # -- control -------------------------------------------------------------------------------------------------------
 
     def live_knobs(self) -> dict[str, Any]:
-        config = self.config
-        return {name: getattr(config, name) for name in LIVE_KNOBS}
+        return live_knob_values(self.curriculum.config, self.state)
 
     def set_knobs(self, assignments: list[str]) -> dict[str, list[Any]]:
         """Apply `key=value` assignments (keys relative to the curriculum section); returns {name: [old, new]}
@@ -269,40 +273,17 @@ class CurriculumService:
         query.reply(_json(reply))
 
     def inspect(self, top: int = 10) -> dict[str, Any]:
-        """What `impulse curriculum inspect` shows: statistics, histograms, the top levels by score and lineage."""
-        sizes = self.curriculum.spec.sizes
-        table = buffer_table(self.state, sizes)
-        order = np.argsort(-table["score"], kind="stable")
-        rows = [{name: _plain(column[i]) for name, column in table.items()} for i in order]
-        mutated = [row for row in rows if row["generation"] > 0]
-        return {
-            "method": self.curriculum.method,
-            "knobs": self.live_knobs(),
-            "policy_version": self.policy_version,
-            "summary": buffer_summary(self.state, sizes, self.policy_version),
-            "histograms": {
-                "score": histogram(table["score"]),
-                "solve_rate": histogram(table["solve_rate"], np.linspace(0.0, 1.0, 11)),
-                "age": histogram(table["age"]),
-                "replays": histogram(table["replays"]),
-            },
-            "top": rows[:top],
-            "lineage": [{"level_id": r["level_id"], "parent_id": r["parent_id"], "generation": r["generation"]}
-                        for r in mutated[:top]],
-        }
-
-    def top_levels(self, top: int) -> Level:
-        """The `top` buffered levels by score, best first (as `inspect` ranks them), as one batch on the host."""
-        table = buffer_table(self.state, self.curriculum.spec.sizes)
-        slots = table["slot"][np.argsort(-table["score"], kind="stable")[:top]]
-        return jax.device_get(jax.tree.map(lambda x: x[slots], self.state.buffer.levels))
+        """What `impulse curriculum inspect` shows (`curriculum.stats.inspect_report`)."""
+        return inspect_report(self.state, self.curriculum.spec.sizes, self.curriculum.config, self.policy_version,
+                              top)
 
     def _answer_inspect(self, query: IncomingQuery) -> None:
         try:
             request = control_reply(query.payload or b"{}")
             top = int(request.get("top", 10))
             report = self.inspect(top)
-            arrays = tree_arrays(self.top_levels(top)) if request.get("levels") else {}
+            wanted = request.get("levels")
+            arrays = tree_arrays(top_levels(self.state, self.curriculum.spec.sizes, top)) if wanted else {}
             query.reply(encode_report(self.bus.stamp, report, arrays))
         except (ValueError, TypeError, OverflowError) as err:
             query.reply(encode_refusal(self.bus.stamp, str(err)))
@@ -315,16 +296,8 @@ class CurriculumService:
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes,
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
-                **{k: _plain(v) for k, v in summary.items()}}
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
+                **{k: json_scalar(v) for k, v in summary.items()}}
 
 
 def _json(value: dict[str, Any]) -> bytes:
-    return json.dumps(value, default=_plain).encode("utf-8")
+    return json.dumps(value, default=json_scalar).encode("utf-8")

@@ -2,8 +2,9 @@
 
 `buffer_summary` gives the scalar statistics the service publishes and the fused trainer logs: fill, score
 distribution, replay-weighted score and staleness, policy lag of the scores, turnover counters, solve-rate
-extremes, lineage depth and level complexity. `buffer_table` lists the buffered levels one per row (what
-`impulse curriculum inspect` prints and sorts), and `histogram` bins a column for display.
+extremes, lineage depth and level complexity. `buffer_table` lists the buffered levels one per row, and
+`histogram` bins a column for display. `inspect_report` and `top_levels` are what `impulse curriculum inspect`
+shows, from a live service or from a checkpoint (the same report either way).
 """
 
 from __future__ import annotations
@@ -12,9 +13,10 @@ from typing import Any
 
 import jax
 import numpy as np
+from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
 from impulse.curriculum.priority import replay_distribution
-from impulse.curriculum.state import CurriculumState
-from impulse.engine.levels.level import level_id_values
+from impulse.curriculum.state import CurriculumState, config_with_knobs
+from impulse.engine.levels.level import Level, level_id_values
 from impulse.engine.physics.sizes import SceneSizes
 
 SOLVE_RATE_BINS = np.linspace(0.0, 1.0, 11)
@@ -99,3 +101,50 @@ def buffer_summary(state: CurriculumState, sizes: SceneSizes, policy_version: in
         summary["score_lag_mean"] = float(lag.mean())
         summary["score_lag_replay_weighted"] = float((weight * lag).sum())
     return summary
+
+
+def json_scalar(value: Any) -> Any:
+    """A numpy scalar as a plain Python one, and a non-finite float as None (JSON has no NaN)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def live_knob_values(config: CurriculumConfig, state: CurriculumState) -> dict[str, Any]:
+    """The live knobs' current values (they are arrays in the state, changed while a service runs)."""
+    current = config_with_knobs(config, state.knobs)
+    return {name: getattr(current, name) for name in LIVE_KNOBS}
+
+
+def inspect_report(state: CurriculumState, sizes: SceneSizes, config: CurriculumConfig, policy_version: int,
+                   top: int = 10) -> dict[str, Any]:
+    """What `impulse curriculum inspect` shows: method, live knobs, statistics, histograms, the `top` levels by
+    score and the lineage of mutated ones (JSON-ready)."""
+    table = buffer_table(state, sizes)
+    order = np.argsort(-table["score"], kind="stable")
+    rows = [{name: json_scalar(column[i]) for name, column in table.items()} for i in order]
+    mutated = [row for row in rows if row["generation"] > 0]
+    return {
+        "method": config.method,
+        "knobs": live_knob_values(config, state),
+        "policy_version": policy_version,
+        "summary": buffer_summary(state, sizes, policy_version),
+        "histograms": {
+            "score": histogram(table["score"]),
+            "solve_rate": histogram(table["solve_rate"], SOLVE_RATE_BINS),
+            "age": histogram(table["age"]),
+            "replays": histogram(table["replays"]),
+        },
+        "top": rows[:top],
+        "lineage": [{"level_id": r["level_id"], "parent_id": r["parent_id"], "generation": r["generation"]}
+                    for r in mutated[:top]],
+    }
+
+
+def top_levels(state: CurriculumState, sizes: SceneSizes, top: int) -> Level:
+    """The `top` buffered levels by score, best first (as `inspect_report` ranks them), as one batch on the host."""
+    table = buffer_table(state, sizes)
+    slots = table["slot"][np.argsort(-table["score"], kind="stable")[:top]]
+    return jax.device_get(jax.tree.map(lambda x: x[slots], state.buffer.levels))

@@ -104,6 +104,9 @@ class EvaluatorService:
             **self.follow.counts,
         }
 
+    def start(self) -> None:
+        """Nothing to prepare: it scores once weights arrive."""
+
     def progress(self) -> Progress:
         return Progress()
 

@@ -175,6 +175,10 @@ class FusedRun:
     def env_steps(self) -> int:
         return self.update * self.steps_per_update
 
+    def start(self) -> None:
+        """Nothing left: construction compiled the training step and checked that it fits, so that a refusal
+        comes before the run directory's loop starts."""
+
     def progress(self) -> Progress:
         return Progress(env_steps_done=self.env_steps, updates_done=self.update,
                         total_env_steps=self.trainer.num_updates * self.steps_per_update)

@@ -194,7 +194,6 @@ class LearnerService:
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
         self._weights_hash = weights_hash(self.train.params)
-        self._publish_weights()
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
         self._max_frame_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape)
@@ -424,6 +423,10 @@ class LearnerService:
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
         self.checkpoints.save(self.update, {TRAIN: self.train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
+
+    def start(self) -> None:
+        """Publish the starting weights (fresh, or the resumed checkpoint's): actors wait for them."""
+        self._publish_weights()
 
     def progress(self) -> Progress:
         return Progress(env_steps_done=self.env_steps, updates_done=self.update,

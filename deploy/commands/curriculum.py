@@ -2,7 +2,9 @@
 
 `serve` runs the service process (`impulse launch` starts it with `--run RUN_DIR` when the run trains on random
 levels). `set`, `get` and `inspect` find a running service through the run directory's config (run name and bus
-hub) and query it over the bus; they print what it answered and exit 1 if no service answered.
+hub) and query it over the bus; they print what it answered and exit 1 if no service answered. `inspect
+--checkpoint [STEP]` reads the level buffer from the run's checkpoints instead, with no service: a finished or
+stopped run, distributed (the curriculum service's checkpoints) or fused (`impulse train` on random levels).
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inspect.add_argument("--top", type=int, default=10, metavar="K", help="levels to list (default 10)")
     inspect.add_argument("--json", action="store_true", help="print the whole report as JSON")
     inspect.add_argument("--render", type=Path, metavar="DIR", help="draw the top K levels as PNG files in DIR")
+    inspect.add_argument("--checkpoint", nargs="?", const=-1, type=int, metavar="STEP",
+                         help="read the buffer from the run's checkpoint STEP (default: the newest) instead of "
+                         "asking the live service")
     for p in (set_, get, inspect):
         p.add_argument("--run", type=Path, metavar="RUN_DIR", required=True, help="the run's directory")
         p.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint instead of the run's bus.hub")
@@ -62,7 +67,9 @@ def run(args: argparse.Namespace, _config: object) -> int:
     opened = open_run_for("curriculum", None, run_dir=args.run, connect=args.connect)
     if opened is None:
         return EXIT_USAGE
-    config, _ = opened
+    config, run_dir = opened
+    if args.curriculum_action == "inspect" and args.checkpoint is not None:
+        return inspect_checkpoint(args, config, run_dir)
     if not config.uses_curriculum_service:
         print(f"impulse curriculum {args.curriculum_action}: run {config.name!r} has no curriculum service: it plays "
               f"the fixed level set env.levels={config.env.levels!r} (a curriculum runs with env.levels=random)",
@@ -127,6 +134,60 @@ def _ask_knobs(config: RunConfig, request: dict[str, Any]) -> dict[str, Any] | N
             return None
 
 
+def _show(args: argparse.Namespace, config: RunConfig, report: dict[str, Any], arrays: dict[str, Any]) -> None:
+    if args.render:
+        _render(config, arrays, report, args.render)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(format_report(report))
+
+
+def inspect_checkpoint(args: argparse.Namespace, config: RunConfig, run_dir: Path) -> int:
+    """`inspect --checkpoint [STEP]`: the report of the buffer a checkpoint holds (read only: a corrupt checkpoint
+    is named, never moved)."""
+    import jax
+    from impulse.curriculum.algorithms import Curriculum
+    from impulse.curriculum.stats import inspect_report, top_levels
+    from impulse.engine.env.spec import env_from_config
+    from impulse.engine.pytree import tree_arrays
+    from impulse.learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
+
+    if config.env.levels != "random":
+        print(f"impulse curriculum inspect: run {config.name!r} plays the fixed level set "
+              f"env.levels={config.env.levels!r}: it has no curriculum to inspect", file=sys.stderr)
+        return EXIT_USAGE
+    # A distributed run's curriculum service checkpoints beside the learner; a fused run keeps it in its own.
+    service_dir = run_dir / "curriculum" / config.checkpoint.directory
+    directory = service_dir if service_dir.is_dir() else run_dir / config.checkpoint.directory
+    if not directory.is_dir():
+        print(f"impulse curriculum inspect: {run_dir} holds no checkpoints yet ({directory} is missing)",
+              file=sys.stderr)
+        return EXIT_FAILED
+    spec, env_params = env_from_config(config.env)
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    template = jax.eval_shape(curriculum.init, jax.random.PRNGKey(0))
+    with Checkpointer(directory) as checkpoints:
+        step = checkpoints.latest_step() if args.checkpoint < 0 else args.checkpoint
+        if step is None:
+            print(f"impulse curriculum inspect: no complete checkpoint in {directory}", file=sys.stderr)
+            return EXIT_FAILED
+        try:
+            restored = checkpoints.restore({CURRICULUM: template}, step=step)
+        except CheckpointError as err:
+            print(f"impulse curriculum inspect: {err}", file=sys.stderr)
+            return EXIT_FAILED
+    state = restored.items[CURRICULUM]
+    counters = restored.counters
+    version = int(counters.get("policy_version", counters.get("update", 0)))
+    report = inspect_report(state, spec.sizes, config.curriculum, version, args.top)
+    report["checkpoint"] = {"directory": str(directory), "step": restored.step}
+    arrays = tree_arrays(top_levels(state, spec.sizes, args.top)) if args.render else {}
+    print(f"checkpoint {restored.step} of {directory}")
+    _show(args, config, report, arrays)
+    return 0
+
+
 def inspect(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.bus.codec import Rejected
     from impulse.bus.control import control_request, decode_report
@@ -144,13 +205,8 @@ def inspect(args: argparse.Namespace, config: RunConfig) -> int:
         if reply.error is not None:
             print(f"impulse curriculum inspect: refused: {reply.error}", file=sys.stderr)
             return EXIT_USAGE
-        report = reply.report
-        if args.render:
-            _render(config, reply.arrays, report, args.render)
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        print(format_report(report))
+        report, arrays = reply.report, reply.arrays
+    _show(args, config, report, arrays)
     return 0
 
 
@@ -256,7 +312,6 @@ def serve(args: argparse.Namespace) -> int:
         except CheckpointError as err:
             print(f"impulse curriculum serve: cannot resume: {err}", file=sys.stderr)
             return EXIT_FAILED
-        service.warm_up()
         log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
                  config.curriculum.buffer_size, curriculum.batch_size)
         watcher = CurriculumLogger(monitor, service, config) if monitor is not None else None

@@ -14,7 +14,7 @@ none should copy:
   one that "already holds checkpoints");
 - `metrics.jsonl` (one line per cycle that did something; a resumed run first sets aside the rows of the updates
   it redoes) and the progress line;
-- closing the service, once, whatever ended the loop.
+- starting the service (`Service.start`) under the stop signal, and closing it, once, whatever ended the loop.
 
 Services implement `bus.service.Service` (a Protocol) and report with `bus.service.CycleReport`, so the rooms that
 implement them never import `deploy`: the learner, the actor, the curriculum service and the fused trainer all run
@@ -128,9 +128,10 @@ class LoopOptions:
 
 
 def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSummary:
-    """Drive `service` until it is finished, a signal arrives or `options.should_stop()` is true, then checkpoint
-    once more if it made updates since the last checkpoint, and close it. A resumed service's progress (env steps
-    and updates done) continues its counters; each metrics.jsonl line carries the running totals."""
+    """Start `service` and drive it until it is finished, a signal arrives or `options.should_stop()` is true,
+    then checkpoint once more if it made updates since the last checkpoint, and close it. A resumed service's
+    progress (env steps and updates done) continues its counters; each metrics.jsonl line carries the running
+    totals."""
     start_at = service.progress()
     updates_done = start_at.updates_done
     metrics_path, checkpoint_every = options.metrics_path, options.checkpoint_every
@@ -142,12 +143,14 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
     env_steps, updates, cycles = start_at.env_steps_done, updates_done, 0
     saved_at = updates_done
     last: dict[str, float] = {}
-    start = time.perf_counter()
+    start = time.perf_counter()  # again once the service has started: its rate counts the cycles only
     steps_here = 0
     stopped = False
     try:
         says = "stopping after this cycle" + (" (checkpointing first)" if checkpoint_every > 0 else "")
         with StopFlag(says, getattr(service, "request_stop", None)) as stop:
+            service.start()
+            start = time.perf_counter()
             while not service.finished():
                 if stop.stop or (options.should_stop is not None and options.should_stop()):
                     stopped = True

@@ -63,6 +63,7 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
                           seed=config.seed, index=0, bus=bus, agent=agent, env_params=env_params,
                           levels=LocalLevels(config.env, spec.sizes),
                           level_results=partial(batch_level_results, agent, config.ppo))
+            actor.start()
             cycle_until(actor, lambda: actor.counts["sent"] == 1, 120, "the first batch")
             assert actor.version == 5 and actor.in_flight == 1
             for _ in range(20):

@@ -49,7 +49,8 @@ def start_service(bus: Bus, directory, resume: bool) -> tuple[CurriculumService,
     checkpoints = Checkpointer(directory)
     service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "", resolve_knobs,
                                 item=CURRICULUM, resume=resume)
-    service.warm_up()  # as `impulse curriculum serve` does: a cold compile on a loaded machine outlasts a query
+    # As the run loop does in `impulse curriculum serve`: a cold compile on a loaded machine outlasts a query.
+    service.start()
     return service, checkpoints
 
 

@@ -16,12 +16,16 @@ class CountingService:
     """A service that makes one update per cycle until `updates` and records the updates it was saved at."""
 
     def __init__(self, updates: int, done: int = 0):
-        self.update = self.start = done
+        self.update = self.first = done
         self.target = done + updates
-        self.closed = 0
+        self.started = self.closed = 0
         self.saved_at: list[int] = []
 
+    def start(self) -> None:
+        self.started += 1
+
     def cycle(self) -> CycleReport:
+        assert self.started == 1, "the loop starts the service once, before its first cycle"
         self.update += 1
         return CycleReport(env_steps=10, updates=1, metrics={"episodes": 1.0, "solved": 1.0, "return_sum": 1.0})
 
@@ -32,7 +36,7 @@ class CountingService:
         return self.update >= self.target
 
     def progress(self) -> Progress:
-        return Progress(env_steps_done=10 * self.start, updates_done=self.start, total_env_steps=1000)
+        return Progress(env_steps_done=10 * self.first, updates_done=self.first, total_env_steps=1000)
 
     def close(self) -> None:
         self.closed += 1
@@ -41,7 +45,7 @@ class CountingService:
 def run(service: CountingService, *, every: int, stop_after: int | None = None) -> None:
     run_loop(service, LoopOptions(checkpoint_every=every, progress=ProgressLine(1000, stream=io.StringIO()),
                                   should_stop=None if stop_after is None else lambda: service.update >= stop_after))
-    assert service.closed == 1, "the loop closes the service once, whatever ended it"
+    assert service.started == 1 and service.closed == 1, "the loop starts and closes the service once"
 
 
 def test_a_service_stopped_before_its_first_update_writes_no_checkpoint() -> None:

@@ -219,6 +219,7 @@ def test_command_writes_a_run_directory_with_the_imported_parameters(tmp_path):
     try:
         start = np.asarray(run.carry.train.params["params"]["torso"]["embed"]["kernel"])
         np.testing.assert_array_equal(start, expected["params"]["torso"]["embed"]["kernel"])
+        run.start()
         run.cycle()
         assert run.update == 1 and run.finished()
         tuned = np.asarray(run.carry.train.params["params"]["torso"]["embed"]["kernel"])

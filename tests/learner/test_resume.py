@@ -1,7 +1,8 @@
 """`impulse train curriculum=sfl` on random levels, killed with SIGKILL mid-training, its newest checkpoint then
 damaged (a data file cut short), resumes from the checkpoint before it (the damaged one set aside, kept) and ends
 with exactly the parameters, environments and curriculum buffer of a run that was never interrupted (real
-`impulse train` processes, real orbax checkpoints with the `curriculum` item)."""
+`impulse train` processes, real orbax checkpoints with the `curriculum` item). The finished run's buffer is then
+read back by `impulse curriculum inspect --checkpoint`, with no service running."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import Checkpointer
@@ -63,7 +65,7 @@ def _final_params(run_dir: Path):
     return items
 
 
-def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
+def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path, capsys):
     # One run straight through first: it also fills the compilation cache that the next two processes reuse.
     straight = _train(tmp_path / "straight")
     straight_out, _ = straight.communicate(timeout=400)
@@ -103,3 +105,16 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
     # Every update appears in the resumed run's metrics, the recomputed ones after the kill included.
     lines = (killed_dir / "metrics.jsonl").read_text().splitlines()
     assert len(lines) >= UPDATES
+
+    # A finished fused run's buffer, read from its newest checkpoint without any service.
+    top = tmp_path / "top"
+    assert main(["curriculum", "inspect", "--run", str(tmp_path / "straight"), "--checkpoint", "--json", "--top", "3",
+                 "--render", str(top)]) == 0
+    out = capsys.readouterr().out
+    report = json.loads(out[out.index("{"):])
+    assert report["checkpoint"]["step"] == UPDATES and report["method"] == "sfl"
+    assert report["summary"]["buffer_fill"] == pytest.approx(filled.mean())
+    assert len(report["top"]) == 3 and all(row["solve_rate"] > 0 for row in report["top"])
+    assert len(list(top.glob("*.png"))) == 3
+    assert main(["curriculum", "inspect", "--run", str(tmp_path / "straight"), "--checkpoint", "3"]) == 1
+    assert "checkpoint 3" in capsys.readouterr().err
