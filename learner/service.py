@@ -53,6 +53,7 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
+from impulse.learner.memory import check_fits, warn_if_gpu_sized
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
@@ -425,8 +426,17 @@ class LearnerService:
                               solve_rate=summary.get("solve_rate"))
 
     def start(self) -> None:
-        """Publish the starting weights (fresh, or the resumed checkpoint's): actors wait for them."""
+        """Publish the starting weights (fresh, or the resumed checkpoint's), which actors wait for; then compile
+        the update and check that it fits in memory (`DoesNotFit`, naming the sizes and an override that would
+        fit). The compiled program is the one the first update runs: `jit` reuses it."""
         self._publish_weights()
+        ppo = self.ppo
+        warn_if_gpu_sized(ppo.num_envs, ppo.num_steps)
+        log.info("compiling the update (%s envs x %s steps) ...", ppo.num_envs, ppo.num_steps)
+        started = time.perf_counter()
+        compiled = self._update.lower(self.train, self._template, self.key).compile()
+        log.info("compiled the update in %.1f s", time.perf_counter() - started)
+        check_fits(compiled, "the learner's update", ppo.num_envs, ppo.num_steps)
 
     def progress(self) -> Progress:
         return Progress(env_steps_done=self.env_steps, updates_done=self.update,

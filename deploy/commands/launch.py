@@ -42,7 +42,7 @@ from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.deploy.runtime.run_dirs import open_run_for
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, render
-from impulse.deploy.runtime.supervisor import Child, Supervisor, describe_failure
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
 from impulse.learner.run_directory import existing_run, holds_checkpoints
 
 log = logging.getLogger("impulse.launch")
@@ -218,8 +218,12 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
 def _gave_up(child: Child, actors: list[Child]) -> list[Child]:
     """Say that the launcher gave up on `child`; returns the children without which the run cannot go on (the
     learner, the curriculum service, or every actor once all have given up), or [] when it goes on without it."""
-    log.error("%s failed %d times in a row the same way (%s): not restarting it; its log: %s", child.name,
-              child.streak, describe_failure(child), child.log_path)
+    if child.last_exit == EXIT_CANNOT_RUN:
+        log.error("%s cannot run with this configuration (%s): not restarting it; its log: %s", child.name,
+                  describe_failure(child), child.log_path)
+    else:
+        log.error("%s failed %d times in a row the same way (%s): not restarting it; its log: %s", child.name,
+                  child.streak, describe_failure(child), child.log_path)
     if child.name in (LEARNER, CURRICULUM):
         return [child]
     if child.name not in {actor.name for actor in actors}:

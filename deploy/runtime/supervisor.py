@@ -10,7 +10,9 @@ exception line of a Python traceback, else the last non-empty line (a leading cl
 fails GIVE_UP_AFTER times in a row the same way (the same exit code and error line, each time within
 STABLE_AFTER_S of its start) is not restarted: the same start-up will fail again, and a crash loop only hides the
 error. Failures are non-zero exit statuses and crash signals (SIGSEGV, SIGABRT, ...); SIGKILL, SIGTERM, SIGINT
-and SIGHUP come from outside (a user, a test, the OOM killer) and never count towards giving up.
+and SIGHUP come from outside (a user, a test, the OOM killer) and never count towards giving up. A child that
+exits with EXIT_CANNOT_RUN has said its configuration cannot run on this machine (a training step that does not
+fit in memory): it is given up on at once, however long it took to find out.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ RESTART_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
 STABLE_AFTER_S = 60.0
 GIVE_UP_AFTER = 3
 """Identical quick failures in a row after which a child is not restarted."""
+EXIT_CANNOT_RUN = 78
+"""Exit status of a process whose configuration cannot run here (sysexits' EX_CONFIG): restarting it would fail
+the same way, after the same long compile, so it is never restarted."""
 EXTERNAL_SIGNALS = frozenset({signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP})
 """Signals that end a child from outside: they say nothing about how its start-up goes, so they never count."""
 LOG_TAIL_BYTES = 64 * 1024
@@ -219,7 +224,7 @@ class Supervisor:
         else:
             child.streak = 0
             child.last_failure = None
-        child.gave_up = child.streak >= self.give_up_after
+        child.gave_up = child.streak >= self.give_up_after or code == EXIT_CANNOT_RUN
 
     def restart_later(self, child: Child) -> float:
         """Schedule a restart after the back-off; returns the delay."""

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from impulse.deploy.runtime.status_display import StatusDisplay, render
-from impulse.deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, error_line, is_failure
 
 FAST = {"give_up_after": 3, "backoff_s": (0.05,)}
 
@@ -54,6 +54,18 @@ def test_a_child_that_fails_the_same_way_is_given_up_after_three(tmp_path: Path)
     drive(supervisor, lambda: True)
     assert failing.pid is None and failing.restart_at is None and failing.restarts == 2, "restarted after giving up"
     assert failing.log_path.read_text().count("Traceback") == 3
+
+
+@pytest.mark.heavy
+def test_a_child_whose_configuration_cannot_run_is_given_up_at_once(tmp_path: Path) -> None:
+    """However long it took to find out (stable_after_s=0: a slow start-up, such as a long compile)."""
+    failing = child(tmp_path, "import sys\nprint('impulse learner: the update needs about 23.2 GiB', flush=True)\n"
+                              f"sys.exit({EXIT_CANNOT_RUN})")
+    supervisor = Supervisor([failing], give_up_after=3, backoff_s=(0.05,), stable_after_s=0.0)
+    supervisor.start(failing.name)
+    drive(supervisor, lambda: failing.gave_up)
+    assert failing.history == [EXIT_CANNOT_RUN] and failing.restarts == 0
+    assert failing.error_line == "impulse learner: the update needs about 23.2 GiB"
 
 
 @pytest.mark.heavy

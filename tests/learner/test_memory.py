@@ -1,12 +1,22 @@
 """A training step that does not fit is refused after compiling, before it runs (learner/memory.py): XLA's own
-account of the compiled program against the memory free, with the overrides that would fit."""
+account of the compiled program against the memory free, with the overrides that would fit; in `impulse train`
+and in the learner service of `impulse launch`."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import pytest
+from impulse.bus.session import Bus
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.learner import memory
+from impulse.learner.agent import make_agent
 from impulse.learner.memory import DoesNotFit, check_fits, free_bytes, program_bytes
+from impulse.learner.service import LearnerService
+
+from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
 
 @pytest.fixture(scope="module")
@@ -28,3 +38,22 @@ def test_a_step_that_does_not_fit_is_refused_with_sizes_and_an_override(compiled
                                          r"update\).*use fewer, for example ppo.num_envs=\d+"):
         check_fits(compiled, "the training step", 2048, 256, free=4 * 2**20)
     check_fits(compiled, "the training step", 2048, 256, free=2**30)  # fits: no complaint
+
+
+def test_the_learner_refuses_an_update_that_does_not_fit(tmp_path, monkeypatch) -> None:
+    """The learner service compiles its update when it starts and checks it the same way (here against 1 MiB
+    free), so an `impulse launch` at GPU sizes on a CPU stops with the sizes instead of being killed later."""
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", "ppo.num_envs=8",
+                                                      "ppo.num_steps=8", "ppo.num_minibatches=1"])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    monkeypatch.setattr(memory, "free_bytes", lambda device=None: 2**20)
+    with Bus(config.bus, "memory-test", "learner", "learner", listen=True) as bus:
+        service = LearnerService(config.ppo, config.learner, config.checkpoint, seed=0, num_updates=1,
+                                 batches_in_flight=1, status_every_s=1.0, run_dir=tmp_path, config_toml="", bus=bus,
+                                 agent=agent, env_params=env_params)
+        try:
+            with pytest.raises(DoesNotFit, match=r"the learner's update needs about .* \(8 envs x 8 steps per update"):
+                service.start()
+        finally:
+            service.close()
