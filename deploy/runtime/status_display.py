@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any, TextIO
 
-from impulse.deploy.runtime.supervisor import Child, describe_exit
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, describe_exit
 
 log = logging.getLogger("impulse.launch")
 
@@ -29,6 +29,12 @@ def _total(counts: Any) -> int:
 
 
 STARTING = "starting (importing JAX, compiling; cached after the first run)"
+
+
+def starting_part(elapsed_s: float) -> str:
+    """The line of a process that has published no status yet, with how long it has been starting (a compile of
+    a large batch takes minutes on a CPU: the count shows it is not stuck)."""
+    return f"starting for {elapsed_s:.0f} s (importing JAX, compiling; cached after the first run)"
 COLUMNS_WITHOUT_TERMINAL = 200
 """The width lines of exited processes are cut to when the output is not a terminal (a log file)."""
 
@@ -117,7 +123,9 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
             continue
         status = statuses.get(child.name)
         try:
-            if child.name == learner_name:
+            if status is None and child.name != viewer_name:  # nothing heard yet: say how long it has been
+                body = starting_part(time.monotonic() - child.started_at)
+            elif child.name == learner_name:
                 body = learner_line(status)
             elif child.name == curriculum_name:
                 body = curriculum_line(status)
@@ -138,7 +146,9 @@ def exited_state(child: Child) -> str:
     if child.last_exit is None:
         return f"stopped (restarts {child.restarts})"
     state = describe_exit(child.last_exit)
-    if child.gave_up:
+    if child.gave_up and child.last_exit == EXIT_CANNOT_RUN:
+        state += "; cannot run with this configuration"
+    elif child.gave_up:
         state += f"; gave up after {child.streak} identical failures"
     elif child.restart_at is not None:
         state += f"; restarting in {max(child.restart_at - time.monotonic(), 0):.0f} s"

@@ -152,6 +152,25 @@ def test_the_status_display_shows_how_a_child_ended(tmp_path: Path) -> None:
     assert len(lines[0]) == 140 and lines[0].endswith("...")
     assert lines[1] == ("actor-1  killed by SIGSEGV; restarting in 4 s (restarts 0) | Fatal Python error: "
                         "Segmentation fault")
+    cannot = child(tmp_path, "", "learner")
+    cannot.last_exit, cannot.gave_up, cannot.streak = EXIT_CANNOT_RUN, True, 1
+    cannot.error_line = "impulse learner: the learner's update needs about 23.2 GiB"
+    assert render({}, [cannot], "learner", columns=200) == [
+        "learner  exit status 78; cannot run with this configuration (restarts 0) | impulse learner: the learner's "
+        "update needs about 23.2 GiB"]
+
+
+@pytest.mark.heavy
+def test_a_process_that_has_said_nothing_yet_shows_how_long_it_has_been_starting(tmp_path: Path) -> None:
+    quiet = child(tmp_path, "import time; time.sleep(30)", "actor-0")
+    supervisor = Supervisor([quiet], **FAST)
+    supervisor.start(quiet.name)
+    try:
+        quiet.started_at -= 42  # as if it had been compiling for 42 s
+        [line] = render({}, [quiet], "learner", columns=200)
+        assert line.startswith(f"actor-0  pid {quiet.pid} restarts 0 | starting for 42 s (importing JAX, compiling")
+    finally:
+        supervisor.stop([quiet.name], 5)
 
 
 class _Terminal:
