@@ -5,7 +5,9 @@ All K x attempts episodes run side by side in one jitted scan of `max_timesteps`
 episode is the one counted, whatever it does after its auto-reset.
 
 `record_episodes` plays one more episode per level through the rollout with every environment watched, so that
-`impulse eval --record` can draw them (`monitor.rollouts`) with the same code that draws live rollouts.
+`impulse eval --record` can draw them (`monitor.rollouts`) with the same code that draws live rollouts, and
+`impulse eval --video` as a video (`monitor.video`). `play_episodes` is the same with any policy, or none (the
+no-op action throughout: `impulse levels render --video` shows a level's own dynamics that way).
 """
 
 from __future__ import annotations
@@ -16,10 +18,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from impulse.actors.rollout import Watched, rollout, start_rollout
+from impulse.actors.rollout import Policy, Watched, rollout, start_rollout
 from impulse.actors.trajectory import Trajectory
+from impulse.engine.env.actions import noop_action
 from impulse.engine.env.episodes import first_episodes
-from impulse.engine.env.spec import EnvParams
+from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.env.state import EnvState
 from impulse.engine.levels.level import Level
 from impulse.learner.agent import Agent
@@ -91,9 +94,15 @@ class RecordedEpisodes(NamedTuple):
 
 def record_episodes(agent: Agent, params: Any, env_params: EnvParams, levels: Level, key: Array,
                     greedy: bool = False) -> RecordedEpisodes:
-    """Play each of `levels` [K] once from its start, recording every step for drawing."""
-    spec = agent.spec
-    policy = agent.act_greedy if greedy else agent.act
+    """Play each of `levels` [K] once from its start with the agent's policy, recording every step for drawing."""
+    return play_episodes(agent.act_greedy if greedy else agent.act, params, agent.spec, env_params, levels, key)
+
+
+def play_episodes(policy: Policy | None, params: Any, spec: EnvSpec, env_params: EnvParams, levels: Level,
+                  key: Array) -> RecordedEpisodes:
+    """Play each of `levels` [K] once from its start for at most `spec.max_timesteps` agent steps, recording every
+    step for drawing. `policy` None: the no-op action at every step (`engine.env.actions.noop_action`)."""
+    policy = policy if policy is not None else noop_policy(spec)
     num_levels = levels.roles.shape[0]
     carry = start_rollout(spec, env_params, levels, num_levels, key)
     played = jax.jit(lambda c: rollout(policy, params, spec, env_params, c, levels, spec.max_timesteps,
@@ -101,3 +110,14 @@ def record_episodes(agent: Agent, params: Any, env_params: EnvParams, levels: Le
     done = np.asarray(played.steps.done)
     ended_before = np.cumsum(done, axis=0) - done
     return RecordedEpisodes(played.watched, jax.device_get(played.steps), ended_before == 0)
+
+
+def noop_policy(spec: EnvSpec) -> Policy:
+    """A rollout policy that drives nothing: the no-op action for every environment (log-probability and value 0)."""
+    action = noop_action(spec)
+
+    def act(params: Any, obs: Any, key: Array) -> tuple[Array, Array, Array]:
+        num = jax.tree.leaves(obs)[0].shape[0]
+        return jnp.broadcast_to(action, (num, *action.shape)), jnp.zeros(num), jnp.zeros(num)
+
+    return act

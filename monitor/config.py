@@ -1,4 +1,5 @@
-"""The `[monitor]` section: what the processes of a run stream to the Rerun viewer (docs/monitoring.md)."""
+"""The `[monitor]` section: what the processes of a run stream to the Rerun viewer (docs/monitoring.md), and where
+its metrics go besides `metrics.jsonl` (TensorBoard, W&B: docs/metrics.md)."""
 
 from __future__ import annotations
 
@@ -34,6 +35,13 @@ class MonitorConfig:
     """The native viewer's store; it forgets the oldest data beyond this (`rerun --memory-limit`)."""
     web_port: int = 9090
     """Port of the web viewer `impulse view` serves on a machine without a display."""
+    tensorboard: bool = True
+    """Also write each metrics.jsonl row as TensorBoard scalars under RUN_DIR/tensorboard/ (step: env_steps)."""
+    wandb_project: str = ""
+    """Also log each metrics.jsonl row to this Weights & Biases project (step: env_steps); empty: no W&B. Needs
+    `pip install 'impulse[wandb]'`."""
+    wandb_entity: str = ""
+    """The W&B team or user the project belongs to; empty: the logged-in user's default entity."""
 
     def __post_init__(self) -> None:
         if not (self.url.startswith("rerun") and self.url.endswith("/proxy")):

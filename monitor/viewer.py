@@ -7,6 +7,8 @@ to and a person has something to look at.
   HTTP; `web_viewer_address` is the address to open (through an SSH tunnel of both ports when remote).
 - `--record FILE` adds a headless recorder: a Rerun process connected to the server that appends everything it
   receives to an .rrd file (the whole run, for `rerun FILE` later).
+- `--headless --record FILE` (what `impulse launch --record FILE` starts without `--view`): no viewer at all, one
+  Rerun process that is the gRPC server and writes everything it receives to the .rrd file.
 
 The server keeps at most its memory limit for late viewers, dropping the oldest first; the native and web viewers
 keep theirs. That is the retention of a live run: the last `server_memory_limit` of data, and the .rrd file when
@@ -56,7 +58,10 @@ class ViewerPlan:
     commands: tuple[tuple[str, ...], ...]
     native: bool
     address: str
-    """What to open: the web viewer's address, or the gRPC url the native viewer serves."""
+    """What to open: the web viewer's address, or the gRPC url the native viewer (or the headless recorder)
+    serves."""
+    headless: bool = False
+    """No viewer: the server only records (`address` is then the gRPC url)."""
 
 
 def web_viewer_address(url: str, web_port: int, host: str | None = None) -> str:
@@ -68,11 +73,19 @@ def web_viewer_address(url: str, web_port: int, host: str | None = None) -> str:
 
 def viewer_plan(url: str, *, web: bool | None = None, web_port: int = 9090, bind: str = "127.0.0.1",
                 server_memory_limit: str = "1GiB", viewer_memory_limit: str = "2GiB",
-                record: Path | None = None) -> ViewerPlan:
+                record: Path | None = None, headless: bool = False) -> ViewerPlan:
     """The Rerun commands for a run streaming to `url`: native viewer or web viewer (`web`=None: web exactly when
-    there is no display), plus a recorder when `record` is given."""
+    there is no display), plus a recorder when `record` is given; `headless`: no viewer, only a server that
+    records to `record` (which it then needs)."""
     _, port = server_address(url)
     rerun = rerun_binary()
+    if headless:
+        if record is None:
+            raise ValueError("a headless Rerun server only records: give it a file to record to (--record FILE.rrd)")
+        # With --save and no url, `rerun` hosts the gRPC server itself and streams what it receives to the file.
+        serve = (rerun, "--save", str(record), "--port", str(port), "--bind", bind, "--server-memory-limit",
+                 server_memory_limit)
+        return ViewerPlan((serve,), native=False, address=url, headless=True)
     native = not web if web is not None else has_display()
     if native:
         serve = (rerun, "--port", str(port), "--bind", bind, "--memory-limit", viewer_memory_limit,

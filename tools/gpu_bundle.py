@@ -31,7 +31,7 @@ PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x
 PYTHON_VERSION = "3.12"
 
 # Ours, beyond what the machine has (rerun-sdk is left out: see the module docstring).
-OURS = ["eclipse-zenoh>=1.0", "tomli-w>=1.0"]
+OURS = ["eclipse-zenoh>=1.0", "tomli-w>=1.0", "tensorboardX>=2.6"]
 # The reference systems and what they import (benchmarks/reference_env.py's list), then the two packages
 # installed without their stale pins.
 REFERENCE_DEPENDENCIES = ["gymnax", "jaxgl", "distrax", "omegaconf", "grain", "wandb", "zarr==2.18.3",

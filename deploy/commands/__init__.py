@@ -12,7 +12,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from impulse.deploy.commands import config, curriculum, evaluator, import_kinetix, launch, levels, services, view
+from impulse.deploy.commands import (
+    compare,
+    config,
+    curriculum,
+    evaluator,
+    import_kinetix,
+    launch,
+    levels,
+    services,
+    tensorboard,
+    view,
+)
 from impulse.deploy.commands.router import add_router_arguments, run_router_command
 from impulse.deploy.commands.train import (
     add_eval_arguments,
@@ -57,7 +68,8 @@ COMMANDS: tuple[Command, ...] = (
         "launch",
         "run learner, curriculum and actors as local processes",
         "Local multi-process run: one learner, actors.num_actors actors and, when env.levels is random, the "
-        "curriculum service (and, with --view, the Rerun viewer) as separate processes talking over Zenoh, with a "
+        "curriculum service (and, with --view, the Rerun viewer; with --record alone, a Rerun server that records) "
+        "as separate processes talking over Zenoh, with a "
         "live status display. A "
         "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
         "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
@@ -152,10 +164,30 @@ COMMANDS: tuple[Command, ...] = (
         "levels",
         "inspect, validate, convert and render level files",
         "Level file tools for Kinetix JSON files (also Impulse's own level format): `validate FILE...` prints "
-        "every problem, `show FILE` describes a level, `render FILE -o OUT.png` draws it, `convert IN OUT --size "
-        "s|m|l` re-sizes and normalises it.",
+        "every problem, `show FILE` describes a level, `render FILE -o OUT.png` draws it (`render PATH... --video "
+        "OUT.mp4` plays levels with no-op actions into a video), `convert IN OUT --size s|m|l` re-sizes and "
+        "normalises it.",
         run=levels.run,
         arguments=levels.add_arguments,
+    ),
+    Command(
+        "compare",
+        "compare training runs of either mode: progress, metrics, config differences",
+        "Compare run directories of `impulse train` and `impulse launch` (running ones too): one table row per "
+        "run with its mode, progress, wall clock and the final and best value of each --metric (default: "
+        "solve_rate, and eval/mean when a run has it), with --threshold the env steps and time to reach it, then "
+        "the config keys whose values differ. --plot FILE.png draws the curves against --by, --json prints JSON.",
+        run=compare.run,
+        arguments=compare.add_arguments,
+    ),
+    Command(
+        "tensorboard",
+        "write TensorBoard event files for runs from their metrics.jsonl",
+        "Write RUN_DIR/tensorboard/ from RUN_DIR/metrics.jsonl, the scalars a run writes live when "
+        "monitor.tensorboard is on (one per numeric column, step env_steps), for runs that have none. A folder that "
+        "already holds event files is refused unless --replace. View with `tensorboard --logdir runs/`.",
+        run=tensorboard.run,
+        arguments=tensorboard.add_arguments,
     ),
     Command(
         "config",
@@ -170,8 +202,8 @@ COMMANDS: tuple[Command, ...] = (
         "open the Rerun viewer on a run",
         "The Rerun viewer for a run, live: starts the server the run's processes stream to (monitor.url) and "
         "the native viewer when there is a display, else the web viewer, whose address it prints. --record "
-        "FILE.rrd also writes everything streamed to a file (open it later with `rerun FILE.rrd`). `impulse "
-        "launch --view` starts it for you.",
+        "FILE.rrd also writes everything streamed to a file (open it later with `rerun FILE.rrd`); --headless "
+        "--record FILE.rrd records with no viewer. `impulse launch --view` (or `--record` alone) starts it for you.",
         config=RunConfig,
         run=view.run_view,
         arguments=view.add_view_arguments,

@@ -16,7 +16,8 @@ the process, its exit status and its error line; without some of its actors, the
 
 `--view` turns monitoring on for every process (`monitor.enabled`) and starts `impulse view RUN_DIR` first, so
 the run streams its rollouts, curves and curriculum to a Rerun viewer from the start (`--record FILE.rrd` also
-writes them to a file); the viewer is stopped last.
+writes them to a file); the viewer is stopped last. `--record FILE.rrd` without `--view` does the same with no
+viewer: `impulse view RUN_DIR --headless --record FILE.rrd`, a Rerun server that only writes the file.
 """
 
 from __future__ import annotations
@@ -34,7 +35,6 @@ from impulse.bus.inbox import Received
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
-from impulse.curriculum.config import service_problem
 from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
@@ -67,7 +67,9 @@ def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stream to a Rerun viewer: starts `impulse view` (native with a display, else the web "
                         "viewer, whose address is logged) and turns monitoring on in every process")
     parser.add_argument("--record", type=Path, metavar="FILE.rrd",
-                        help="with --view: also write everything streamed to FILE.rrd")
+                        help="write everything the processes stream to FILE.rrd (open it later with `rerun "
+                        "FILE.rrd`); turns monitoring on like --view, and without --view starts no viewer, only a "
+                        "Rerun server that records (`impulse view --headless`)")
 
 
 def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
@@ -87,19 +89,13 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
               f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
         return EXIT_USAGE
-    if config.uses_curriculum_service and (problem := service_problem(config.curriculum)):
-        print(f"impulse launch: {problem}", file=sys.stderr)
-        return EXIT_USAGE
     expected_lag = config.actors.num_actors * config.actors.credits
     if expected_lag > config.ppo.max_policy_lag:
         log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "
                     "ppo.max_policy_lag=%d: a learner-bound run will drop batches as stale", config.actors.num_actors,
                     config.actors.credits, expected_lag, config.ppo.max_policy_lag)
-    if args.record is not None and not args.view:
-        print("impulse launch: --record needs --view (it records what the processes stream to the viewer)",
-              file=sys.stderr)
-        return EXIT_USAGE
-    if args.view:
+    streams = args.view or args.record is not None  # the processes stream to a Rerun server `impulse view` starts
+    if streams:
         config = viewer_config(config)
     try:  # before anything is written or started: a problem every process would hit is one error, not a crash loop
         run_preflight(config, run_dir, resume=args.resume is not None,
@@ -112,8 +108,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
 
     resume_first = args.resume is not None
     children = []
-    if args.view:
+    if streams:
         record = ["--record", str(args.record)] if args.record is not None else []
+        record += [] if args.view else ["--headless"]
         children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "impulse.deploy.cli", "view", str(run_dir),
                                                        *record], run_dir / "logs" / "viewer.log"))
     children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
@@ -144,7 +141,10 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         statuses: dict[str, dict] = {}
         for child in children:
             supervisor.start(child.name)
-        if args.view:
+        if streams and not args.view:
+            log.info("recording what the processes stream to %s (no viewer; the Rerun server is %s)", args.record,
+                     config.monitor.url)
+        elif args.view:
             from impulse.monitor.viewer import has_display, web_viewer_address
 
             where = "the native viewer" if has_display() else web_viewer_address(config.monitor.url,
@@ -200,7 +200,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
             if not finished:
                 log.info("stopping the learner (it writes a final checkpoint)")
                 supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
-            if args.view:
+            if streams:
                 supervisor.stop([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
             display.forget()
             display.show(render(statuses, children, LEARNER))

@@ -13,6 +13,7 @@ from pathlib import Path
 EXIT_INVALID = 1
 EXIT_USAGE = 2
 _SIZES = ("s", "m", "l")
+_VIDEO_STEPS = 256
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,17 +37,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--size", choices=_SIZES, type=str.lower, help="load into this size first")
 
     render = actions.add_parser(
-        "render", help="draw a level's initial scene as a PNG",
+        "render", help="draw a level's initial scene as a PNG, or play levels into a video",
         description="Draw the level's initial scene (the 5 m x 5 m arena, y up) as a PNG: shapes in role colours, "
         "fixed shapes darker, joints as dots (fixed joints as squares) and thrusters as triangles pointing the way "
-        "they push, coloured by binding.",
+        "they push, coloured by binding. With --video instead: play each level (files, or folders of them) from "
+        "its start with the no-op action (motors and thrusters off: the level's own dynamics) for --steps agent "
+        "steps and write the episodes side by side as a video, drawn as `impulse eval --video` draws a policy's "
+        "episodes (a level whose episode ends holds its last frame, framed green if solved, red if not). To watch "
+        "a policy play levels instead: `impulse eval --checkpoint RUN_DIR --levels FILE --video OUT.mp4`.",
     )
-    render.add_argument("path", type=Path, metavar="FILE")
-    render.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.png", help="PNG file to write")
+    render.add_argument("paths", nargs="+", type=Path, metavar="PATH",
+                        help="the level file (with --video: level files or folders of them)")
+    written = render.add_mutually_exclusive_group(required=True)
+    written.add_argument("-o", "--output", type=Path, metavar="OUT.png", help="PNG file to write")
+    written.add_argument("--video", type=Path, metavar="OUT.gif|.webp|.mp4",
+                         help="play the levels and write an animated GIF or WebP, or an MP4 (H.264), by the suffix")
     render.add_argument(
-        "--scale", type=float, default=1.0,
-        help="image size as a multiple of Kinetix's 500 x 500 screen (default 1: 100 pixels per metre)",
+        "--scale", type=float,
+        help="image size as a multiple of Kinetix's 500 x 500 screen (default 1: 100 pixels per metre; with "
+        "--video 0.4 per level, as impulse eval's videos)",
     )
+    render.add_argument("--steps", type=int, default=_VIDEO_STEPS, metavar="N",
+                        help=f"with --video: agent steps to play, at most (default {_VIDEO_STEPS}, a training "
+                        "episode's length: env.max_timesteps; 30 steps per second of video)")
+    render.add_argument("--size", choices=_SIZES, type=str.lower,
+                        help="with --video: load every level into this size (default: the smallest that fits all)")
 
     convert = actions.add_parser(
         "convert", help="load a level into a size and save it (resize, normalise)",
@@ -145,19 +160,79 @@ def _show(args: argparse.Namespace) -> int:
 def _render(args: argparse.Namespace) -> int:
     from impulse.monitor.png import render_level, save_png
 
-    if not args.scale > 0:
+    if args.scale is not None and not args.scale > 0:
         print(f"impulse levels render: --scale must be positive, got {args.scale}", file=sys.stderr)
         return EXIT_USAGE
-    loaded = _load(args.path, None, validate=False)
+    if args.video is not None:
+        return _render_video(args)
+    if len(args.paths) != 1:
+        print("impulse levels render: a PNG draws one level file; --video plays several", file=sys.stderr)
+        return EXIT_USAGE
+    [path] = args.paths
+    loaded = _load(path, None, validate=False)
     if loaded is None:
         return EXIT_INVALID
-    image = render_level(loaded.level, scale=args.scale)
+    image = render_level(loaded.level, scale=1.0 if args.scale is None else args.scale)
     try:
         save_png(image, args.output)
     except OSError as err:
         print(f"impulse levels render: cannot write {args.output}: {err}", file=sys.stderr)
         return EXIT_INVALID
     print(f"wrote {args.output} ({image.shape[1]} x {image.shape[0]} pixels)")
+    return 0
+
+
+def _render_video(args: argparse.Namespace) -> int:
+    """`levels render --video`: the levels played with no-op actions (`learner.evaluate.play_episodes`) and drawn
+    as `impulse eval --video` draws episodes (`monitor.video.write_episodes_video`)."""
+    import jax
+    from impulse.engine.env.spec import EnvParams, EnvSpec
+    from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
+    from impulse.engine.levels.level import stack_levels
+    from impulse.engine.physics.sizes import size_preset
+    from impulse.learner.evaluate import play_episodes
+    from impulse.monitor.video import DEFAULT_SCALE, check_video_path, write_episodes_video
+
+    try:
+        check_video_path(args.video)
+    except ValueError as err:
+        print(f"impulse levels render: --video: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.steps < 1:
+        print(f"impulse levels render: --steps must be at least 1, got {args.steps}", file=sys.stderr)
+        return EXIT_USAGE
+    files, missing = _level_files(args.paths)
+    for line in missing:
+        print(f"impulse levels render: {line}", file=sys.stderr)
+    if missing:
+        return EXIT_INVALID
+    try:
+        own = [load_kinetix_level(file, validate=False).sizes for file in files]
+    except LevelFileError as err:
+        print(f"impulse levels render: {err}", file=sys.stderr)
+        return EXIT_INVALID
+    fitting = [name for name in _SIZES if all(sizes.fits_in(size_preset(name)) for sizes in own)]
+    size = args.size or (fitting[0] if fitting else None)
+    if size is None:
+        print("impulse levels render: these levels fit no size class together (s, m, l)", file=sys.stderr)
+        return EXIT_INVALID
+    levels = []
+    for file in files:
+        loaded = _load(file, size)
+        if loaded is None:
+            return EXIT_INVALID
+        levels.append(loaded.level)
+    spec = EnvSpec(sizes=size_preset(size), max_timesteps=args.steps)
+    episodes = play_episodes(None, None, spec, EnvParams(), stack_levels(levels), jax.random.PRNGKey(0))
+    try:
+        write_episodes_video(args.video, [str(file) for file in files], episodes,
+                             scale=DEFAULT_SCALE if args.scale is None else args.scale)
+    except OSError as err:
+        print(f"impulse levels render: cannot write {args.video}: {err}", file=sys.stderr)
+        return EXIT_INVALID
+    longest = int(episodes.first.sum(axis=0).max())
+    print(f"wrote {args.video}: {len(files)} level{'s' * (len(files) > 1)} played with no-op actions for up to "
+          f"{longest} steps (size {size.upper()})")
     return 0
 
 

@@ -21,8 +21,9 @@ from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
-from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
+from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
 from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 
 log = logging.getLogger("impulse.service")
 
@@ -66,11 +67,19 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     except ValueError as err:
         print(f"impulse learner: learner.devices: {err}", file=sys.stderr)
         return EXIT_USAGE
+    from impulse.monitor.scalars import ScalarSinkError
+
+    try:
+        sinks = scalar_sinks_for(config, run_dir)
+    except ScalarSinkError as err:
+        print(f"impulse learner: {err}", file=sys.stderr)
+        return EXIT_USAGE
     enable_compile_cache()
     from impulse.bus.session import Bus
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
+    from impulse.learner.memory import DoesNotFit
     from impulse.learner.run import final_evaluation
     from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
 
@@ -92,10 +101,14 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
             return EXIT_FAILED
         log.info("learner up: run %s, epoch %d, policy version %d, %d of %d updates done", config.name,
                  service.epoch, service.version, service.update, service.num_updates)
-        run_loop(service, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
-                                      checkpoint_every=config.checkpoint.every_updates,
-                                      window_size=config.checkpoint.every_updates,
-                                      on_cycle=_learner_on_cycle(service, monitor)))
+        try:
+            run_loop(service, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
+                                          checkpoint_every=config.checkpoint.every_updates,
+                                          window_size=config.checkpoint.every_updates,
+                                          on_cycle=_learner_on_cycle(service, monitor), scalar_sinks=sinks))
+        except DoesNotFit as err:
+            print(f"impulse learner: {err}", file=sys.stderr)
+            return EXIT_CANNOT_RUN
         finished = service.finished()
         params = service.train.params
     if finished:

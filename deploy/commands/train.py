@@ -54,14 +54,16 @@ def train_run(
     """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
     checkpointing on the configured cadence and when stopped, then evaluate if the run is complete. `init_from`: a
     run directory whose newest policy the new run starts from (fine-tuning)."""
+    from impulse.deploy.runtime.monitoring import scalar_sinks_for
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.learner.run import FusedRun
 
+    sinks = scalar_sinks_for(config, run_dir)
     run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates,
                    init_from=init_from)
     loop = run_loop(run, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
                                      checkpoint_every=config.checkpoint.every_updates,
-                                     window_size=config.checkpoint.every_updates))
+                                     window_size=config.checkpoint.every_updates, scalar_sinks=sinks))
     scores = run.evaluate_at_end()
     return RunSummary(
         updates=run.update,
@@ -93,7 +95,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_train(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.run import RunError  # JAX loads only when a run starts
+    from impulse.monitor.scalars import ScalarSinkError, check_sinks
 
+    try:
+        check_sinks(config.monitor)
+    except ScalarSinkError as err:
+        print(f"impulse train: {err}", file=sys.stderr)
+        return EXIT_USAGE
     enable_compile_cache()
     init_from = None
     if args.init_from is not None:
@@ -145,9 +153,10 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=Path, metavar="FILE.rrd",
                         help="also play one episode per level and write it to a Rerun recording (open it with "
                         "`rerun FILE.rrd`), drawn as live rollouts are")
-    parser.add_argument("--video", type=Path, metavar="FILE.gif",
+    parser.add_argument("--video", type=Path, metavar="FILE.gif|.webp|.mp4",
                         help="also play one episode per level and write them side by side as an animated GIF or "
-                        "WebP (30 frames per second; a finished level is framed green if solved, red if not)")
+                        "WebP, or an MP4 (H.264) by the suffix (30 frames per second; a finished level is framed "
+                        "green if solved, red if not)")
 
 
 def _run_dir_of(path: Path) -> Path:
@@ -179,9 +188,14 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir, step = opened
-    if args.video is not None and args.video.suffix.lower() not in (".gif", ".webp"):
-        print(f"impulse eval: --video {args.video}: write a .gif or .webp file", file=sys.stderr)
-        return EXIT_USAGE
+    if args.video is not None:
+        from impulse.monitor.video import check_video_path
+
+        try:
+            check_video_path(args.video)
+        except ValueError as err:
+            print(f"impulse eval: --video: {err}", file=sys.stderr)
+            return EXIT_USAGE
     recorders = ([_recorder(config.name, args.record)] if args.record is not None else []) + \
         ([_video_writer(args.video)] if args.video is not None else [])
     try:
@@ -227,15 +241,12 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
 
 
 def _video_writer(path: Path) -> Callable[[list[str], Any, int], None]:
-    """Writes evaluation episodes side by side as an animated GIF or WebP (`monitor.video`)."""
+    """Writes evaluation episodes side by side as an animated GIF or WebP, or an MP4 (`monitor.video`)."""
 
     def write(names: list[str], episodes: Any, policy_version: int) -> None:
-        from impulse.monitor.video import episode_grid_frames, save_video
+        from impulse.monitor.video import write_episodes_video
 
-        labels = [Path(name).stem or name for name in names]
-        frames = episode_grid_frames(episodes.watched.state, episodes.watched.actuation, episodes.first,
-                                     episodes.steps.solved, labels)
-        save_video(frames, path, fps=1 / EVAL_SECONDS_PER_STEP)
+        write_episodes_video(path, names, episodes, fps=1 / EVAL_SECONDS_PER_STEP)
 
     return write
 

@@ -3,7 +3,9 @@
 It starts the Rerun server the run's processes stream to (the port of `monitor.url` in the run's config): the
 native viewer when there is a display, else the web viewer, whose address it prints (on a remote machine, tunnel
 both ports: `ssh -L 9090:localhost:9090 -L 9876:localhost:9876 HOST`). `--record FILE.rrd` also writes everything
-the run streams to a file. It runs until Ctrl-C; `impulse launch --view` starts it as one of the run's processes.
+the run streams to a file; with `--headless` there is no viewer, only the server writing that file (what `impulse
+launch --record FILE.rrd` starts without `--view`). It runs until Ctrl-C; `impulse launch --view` starts it as one
+of the run's processes.
 The processes stream only while a viewer is up (see `monitor.stream`), so it can be started and stopped at any
 time during a run.
 """
@@ -38,6 +40,8 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     shown = parser.add_mutually_exclusive_group()
     shown.add_argument("--web", action="store_true", help="serve the web viewer even when there is a display")
     shown.add_argument("--native", action="store_true", help="open the native viewer (needs a display)")
+    shown.add_argument("--headless", action="store_true",
+                       help="no viewer: only the server the run streams to, writing everything to --record FILE.rrd")
     parser.add_argument("--bind", default="127.0.0.1", metavar="HOST",
                         help="address the servers listen on (default 127.0.0.1; 0.0.0.0 exposes them to the network)")
 
@@ -65,6 +69,9 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_USAGE
     config, _ = opened
     monitor = config.monitor
+    if args.headless and args.record is None:
+        print("impulse view: --headless only records: give it --record FILE.rrd", file=sys.stderr)
+        return EXIT_USAGE
     if server_reachable(monitor.url):
         print(f"impulse view: something already listens on {monitor.url} (another viewer?); stop it, or choose "
               "another port with monitor.url=rerun+http://127.0.0.1:PORT/proxy for the whole run", file=sys.stderr)
@@ -73,7 +80,8 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
         plan = viewer_plan(monitor.url, web=True if args.web else False if args.native else None,
                            web_port=monitor.web_port, bind=args.bind,
                            server_memory_limit=monitor.server_memory_limit,
-                           viewer_memory_limit=monitor.viewer_memory_limit, record=args.record)
+                           viewer_memory_limit=monitor.viewer_memory_limit, record=args.record,
+                           headless=args.headless)
     except (FileNotFoundError, ValueError) as err:
         print(f"impulse view: {err}", file=sys.stderr)
         return EXIT_FAILED
@@ -89,7 +97,10 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
                     print(f"impulse view: the Rerun server did not come up on {monitor.url}; see {output.name}",
                           file=sys.stderr)
                     return EXIT_FAILED
-            if plan.native:
+            if plan.headless:
+                log.info("no viewer for run %s: a Rerun server at %s records everything streamed", config.name,
+                         plan.address)
+            elif plan.native:
                 log.info("native Rerun viewer open for run %s, serving %s", config.name, plan.address)
             else:
                 log.info("Rerun web viewer for run %s: open %s", config.name, plan.address)

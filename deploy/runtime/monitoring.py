@@ -7,16 +7,23 @@ statistics, histograms, top-level gallery and knob changes (`CurriculumLogger`).
 
 Rerun is imported only once monitoring is on, so a run with it off needs no rerun-sdk (a lent GPU machine, whose
 package set cannot take its 170 MB wheel, runs the distributed benchmark that way: docs/gpu.md).
+
+The processes that write `metrics.jsonl` also hand its rows to TensorBoard and W&B (`monitor.scalars`), whatever
+`monitor.enabled` says: `scalar_sinks_for` is their run loop's opener.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+import tomllib
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from impulse.deploy.config import config_to_toml
 from impulse.deploy.run_config import RunConfig
+from impulse.monitor.scalars import ScalarSink, check_sinks, open_sinks
 
 if TYPE_CHECKING:
     from impulse.monitor.stream import Monitor
@@ -95,11 +102,12 @@ class CurriculumLogger:
 
     def _log_buffer(self) -> None:
         import jax
+        from impulse.curriculum.stats import top_levels
         from impulse.engine.levels.drawing import scene_drawing
         from impulse.monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars
 
         report = self.service.inspect(self.gallery)
-        levels = self.service.top_levels(self.gallery)
+        levels = top_levels(self.service.state, self.service.curriculum.spec.sizes, self.gallery)
         drawings = [scene_drawing(jax.tree.map(lambda x, i=i: x[i], levels)) for i in range(len(report["top"]))]
         captions = [_caption(rank, row) for rank, row in enumerate(report["top"])]
         summary = report["summary"]
@@ -122,3 +130,16 @@ def _caption(rank: int, row: dict[str, Any]) -> str:
 def viewer_config(config: RunConfig) -> RunConfig:
     """The run's config with monitoring on, as `impulse launch --view` writes it."""
     return dataclasses.replace(config, monitor=dataclasses.replace(config.monitor, enabled=True))
+
+
+def scalar_sinks_for(config: RunConfig, run_dir: Path) -> Callable[[int], list[ScalarSink]]:
+    """The run loop's `scalar_sinks` for a process writing `run_dir`'s metrics.jsonl: TensorBoard and W&B as
+    `config.monitor` says, W&B with the resolved config. Checks first what they need (`ScalarSinkError`), so that a
+    missing W&B client stops the process before its run starts."""
+    check_sinks(config.monitor)
+    resolved = tomllib.loads(config_to_toml(config))
+
+    def open_for(resume_env_steps: int) -> list[ScalarSink]:
+        return open_sinks(config.monitor, run_dir, config.name, resolved, resume_env_steps)
+
+    return open_for

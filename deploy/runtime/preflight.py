@@ -53,6 +53,7 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
              *([EVALUATOR] if config.evaluator.levels else [])]
     check_credentials(config, roles)
     check_hub_port(config)
+    check_scalar_sinks(config)
     level_sets = [] if config.uses_curriculum_service else [("env.levels", config.env.levels)]
     if config.eval.levels and config.eval.attempts > 0:
         level_sets += [("eval.levels", source) for source in _sources(config.eval.levels)]
@@ -98,6 +99,16 @@ def check_hub_port(config: RunConfig) -> None:
             raise PreflightError(
                 f"bus.hub {config.bus.hub} is already in use (another run on this machine?); give this run its own "
                 f"hub, for example bus.hub=tcp/{host}:{free}") from None
+
+
+def check_scalar_sinks(config: RunConfig) -> None:
+    """What the learner's TensorBoard and W&B sinks need (the W&B client when `monitor.wandb_project` is set)."""
+    from impulse.monitor.scalars import ScalarSinkError, check_sinks
+
+    try:
+        check_sinks(config.monitor)
+    except ScalarSinkError as err:
+        raise PreflightError(str(err)) from err
 
 
 def check_credentials(config: RunConfig, roles: Iterable[str]) -> None:

@@ -13,7 +13,7 @@ none should copy:
   update 0 holds nothing worth resuming, and it would make the next start of the same run refuse the directory as
   one that "already holds checkpoints");
 - `metrics.jsonl` (one line per cycle that did something; a resumed run first sets aside the rows of the updates
-  it redoes) and the progress line;
+  it redoes), the same rows to the scalar sinks (TensorBoard, W&B: `monitor.scalars`) and the progress line;
 - starting the service (`Service.start`) under the stop signal, and closing it, once, whatever ended the loop.
 
 Services implement `bus.service.Service` (a Protocol) and report with `bus.service.CycleReport`, so the rooms that
@@ -34,6 +34,7 @@ from typing import Any
 
 from impulse.bus.service import Service
 from impulse.deploy.runtime.progress import MetricsFile, ProgressLine
+from impulse.monitor.scalars import ScalarSink
 
 log = logging.getLogger("impulse.run")
 
@@ -125,6 +126,9 @@ class LoopOptions:
     """Sees every metrics record and the window summary after it (Rerun logging, the learner's status line)."""
     every_turn: Callable[[], None] | None = None
     """Called at every turn of the loop, busy or idle (a monitor that logs on a schedule of its own)."""
+    scalar_sinks: Callable[[int], list[ScalarSink]] | None = None
+    """Opens the sinks (TensorBoard, W&B) that get every metrics.jsonl row too, given the env steps the service
+    resumes at (so they can drop what the rewound metrics.jsonl drops); closed when the loop ends."""
 
 
 def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSummary:
@@ -146,7 +150,10 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
     start = time.perf_counter()  # again once the service has started: its rate counts the cycles only
     steps_here = 0
     stopped = False
+    sinks: list[ScalarSink] = []
     try:
+        if options.scalar_sinks is not None:
+            sinks = options.scalar_sinks(start_at.env_steps_done)
         says = "stopping after this cycle" + (" (checkpointing first)" if checkpoint_every > 0 else "")
         with StopFlag(says, getattr(service, "request_stop", None)) as stop:
             service.start()
@@ -171,6 +178,8 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                         **report.metrics}
                 if metrics_file is not None:
                     metrics_file.write(last)
+                for sink in sinks:
+                    sink.write(last)
                 if options.on_cycle is not None:
                     options.on_cycle(last, window.summary())
                 if progress is not None:
@@ -190,4 +199,6 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 progress.close()
             if metrics_file is not None:
                 metrics_file.close()
+            for sink in sinks:
+                sink.close()
     return LoopSummary(cycles, updates, env_steps, time.perf_counter() - start, stopped, last, window.summary())

@@ -8,9 +8,10 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    at the next sample), reads it back with `get` and looks at its buffer with `inspect`;
 3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
    service checkpoints its buffer;
-4. `--view --record`: every process streams to one Rerun recording (the run's name as its id) through the viewer
-   the launcher started, and the .rrd file holds the actors' rollouts, the learner's curves and the curriculum's
-   histograms, gallery and knob change. The memory check above runs with the streaming on;
+4. `--record` without `--view`: every process streams to one Rerun recording (the run's name as its id) through
+   the headless recording server the launcher started (no viewer), and the .rrd file holds the actors' rollouts,
+   the learner's curves and the curriculum's histograms, gallery and knob change. The memory check above runs
+   with the streaming on;
 5. the evaluator the launcher started scores the learner's policies: the scores reach the learner's metrics.jsonl
    rows, the status display and the recording (the learner's and the evaluator's curves)."""
 
@@ -114,7 +115,7 @@ def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
 
 
 def check_recording(path, run: str) -> None:
-    """The .rrd the viewer wrote: one recording of the run, with what every process streamed."""
+    """The .rrd the recording server wrote: one recording of the run, with what every process streamed."""
     reader = RrdReader(path)
     assert [(s.application_id, s.recording_id) for s in reader.recordings()] == [("impulse", run)]
     rows: dict[str, int] = {}
@@ -144,7 +145,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
                                "actors.credits=1", "total_env_steps=40960000", "checkpoint.every_updates=1000",
                                "env.levels=random", "curriculum=sfl", "curriculum.buffer_size=32",
                                "curriculum.candidate_episodes=1", "curriculum.noop_filter=false",
-                               "--view", "--record", str(recording), "monitor.curriculum_every_s=2",
+                               "--record", str(recording), "monitor.curriculum_every_s=2",
                                "evaluator.levels=handmade:s_easy_car_right", "evaluator.every_updates=2",
                                "evaluator.attempts=2",
                                f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy",
@@ -177,6 +178,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
     assert "curriculum stopped" in (run_dir / "logs" / "curriculum.log").read_text()
     assert f"learner stopped at update {last_update(run_dir)} of" in (run_dir / "logs" / "learner.log").read_text()
     assert any((run_dir / "curriculum" / "checkpoints").iterdir()), "the service checkpointed its buffer"
-    assert "Rerun viewer: http://127.0.0.1:" in log.read_text()
+    assert f"recording what the processes stream to {recording} (no viewer" in log.read_text()
+    assert "no viewer for run slow: a Rerun server at" in (run_dir / "logs" / "viewer.log").read_text()
     assert "| scored v" in log.read_text(), "the status display shows the evaluator's scores"
     check_recording(recording, run_dir.name)

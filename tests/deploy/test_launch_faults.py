@@ -25,6 +25,7 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.checkpoint import Checkpointer
 from impulse.learner.service import batch_template
+from impulse.monitor.runs import SHARED_COLUMNS
 from rerun.chunk import RrdReader
 
 from tests.support.launch_procs import (
@@ -218,6 +219,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     # update has one row.
     rows = metrics(run_dir)
     assert [row["update"] for row in rows] == list(range(1, UPDATES + 1))
+    # The columns both modes write (tests/learner/test_learns.py checks a fused run's rows).
+    assert {row["update"]: sorted(set(SHARED_COLUMNS) - row.keys()) for row in rows
+            if not set(SHARED_COLUMNS) <= row.keys()} == {}
     last = rows[-1]
     assert all(last.get(f"rejected/{reason}", 0) >= 1 for reason in set(malformed.frames) - {"old_epoch"}), last
     assert last["drops/dropped_old_epoch"] >= 1 and "drops/dropped_inbox_full" in last, last

@@ -1,11 +1,13 @@
-"""`impulse levels`: validate (exit codes, every problem printed), show, render (PNG of the scene) and convert; files
-that are not level files (binary, empty, cut short, a folder) give one line naming the file, never a traceback."""
+"""`impulse levels`: validate (exit codes, every problem printed), show, render (PNG of the scene, or a video of
+levels played with no-op actions) and convert; files that are not level files (binary, empty, cut short, a folder)
+give one line naming the file, never a traceback."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import av
 import jax
 import numpy as np
 import pytest
@@ -16,10 +18,12 @@ from impulse.engine.levels.level import level_from_scene
 from impulse.engine.physics.building import empty_scene
 from impulse.engine.physics.sizes import SIZE_M, SIZE_S
 from impulse.monitor.png import world_to_pixel
+from impulse.monitor.video import BORDER, UNSOLVED_FRAME
 from PIL import Image
 
 from tests.support.bad_level_files import write_bad_inputs
 from tests.support.monitor_scenes import BLUE_AT, GREEN_AT, small_level
+from tests.support.paths import REPO
 
 
 @pytest.fixture(scope="module")
@@ -103,6 +107,37 @@ def test_render_draws_the_scene(tmp_path: Path, level_file: Path, capsys: pytest
     small = np.asarray(Image.open(half).convert("RGB"))
     assert small.shape == (250, 250, 3)
     assert tuple(small[world_to_pixel(*GREEN_AT, scale=0.5)]) == green
+
+
+def test_render_video_plays_levels_with_no_op_actions(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two hand-made S levels side by side (200-pixel tiles, the default) for 12 no-op steps: the lander's green
+    ball falls (the level's own dynamics), both episodes time out unsolved and are framed red on the last of the 13
+    frames. A format other than .gif, .webp or .mp4 is refused before anything plays; a PNG draws one file."""
+    handmade = REPO / "engine" / "levels" / "handmade"
+    video = tmp_path / "levels.mp4"
+    assert main(["levels", "render", str(handmade / "s_lander.json"), str(handmade / "s_hop_over.json"),
+                 "--video", str(video), "--steps", "12"]) == 0
+    assert "2 levels played with no-op actions for up to 12 steps (size S)" in capsys.readouterr().out
+    with av.open(str(video)) as container:
+        frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+    assert len(frames) == 13 and frames[0].shape == (200, 400, 3)  # two 200-pixel tiles, a frame per step + 1
+
+    def green_rows(frame: np.ndarray) -> float:  # mean row of the lander tile's green pixels (y down)
+        tile = frame[BORDER + 12:, BORDER:200 - BORDER].astype(int)  # below the name
+        rows, _ = np.nonzero(np.abs(tile - ROLE_COLOURS[1]).max(axis=-1) < 40)
+        assert rows.size > 5
+        return rows.mean()
+
+    assert green_rows(frames[11]) > green_rows(frames[0]) + 5  # falling: gravity, no thrust
+    for k in (0, 1):
+        assert np.abs(frames[-1][BORDER // 2, k * 200 + 100].astype(int) - UNSOLVED_FRAME).max() < 40
+        assert np.abs(frames[-2][BORDER // 2, k * 200 + 100].astype(int) - UNSOLVED_FRAME).max() > 40
+
+    assert main(["levels", "render", str(handmade / "s_lander.json"), "--video", str(tmp_path / "x.avi")]) == 2
+    assert ".gif, .webp or .mp4" in capsys.readouterr().err and not (tmp_path / "x.avi").exists()
+    assert main(["levels", "render", str(handmade / "s_lander.json"), str(handmade / "s_hop_over.json"), "-o",
+                 str(tmp_path / "two.png")]) == 2
+    assert "--video plays several" in capsys.readouterr().err
 
 
 def test_convert_resizes_and_loads_at_the_new_size(

@@ -1,7 +1,9 @@
 """A trained policy shipped and fine-tuned: `impulse export` writes a run's policy alone into a small directory
 (config.toml, agent.json, a checkpoint with only the `train` item), `impulse eval` scores it, and `impulse train
 --init-from` starts a new run from exactly its parameters, with the source's network whatever the command line
-says (real `impulse` processes, real orbax checkpoints)."""
+says (real `impulse` processes, real orbax checkpoints). The source run's metrics also reach TensorBoard (read
+back with TensorBoard's reader) and W&B (offline; read back from its run file), equal to its metrics.jsonl, and
+`impulse tensorboard` writes the same event files from that metrics.jsonl."""
 
 from __future__ import annotations
 
@@ -14,12 +16,14 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.run import build
 
 from tests.support.paths import REPO
+from tests.support.scalars import expected_points, metrics_rows, tensorboard_points, wandb_run
 
 pytestmark = pytest.mark.heavy
 
@@ -48,10 +52,32 @@ def same_tree(a, b) -> bool:
     return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
-def test_export_eval_and_fine_tune(tmp_path):
+def test_export_eval_and_fine_tune(tmp_path, monkeypatch):
     source = tmp_path / "source"
-    trained = impulse("train", f"run_dir={source}", *SETTINGS)
+    monkeypatch.setenv("WANDB_MODE", "offline")  # W&B writes its run file and contacts no server
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path / "wandb-home"))
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    trained = impulse("train", f"run_dir={source}", *SETTINGS, "monitor.wandb_project=impulse-tests")
     assert trained.returncode == 0, trained.stdout
+
+    # Its metrics, as TensorBoard and W&B hold them: the metrics.jsonl rows, one point per column and update.
+    rows = metrics_rows(source / "metrics.jsonl")
+    assert [row["env_steps"] for row in rows] == [32 * 32, 2 * 32 * 32]
+    expected = expected_points(rows)
+    assert {"update", "episodes", "policy_loss", "entropy"} <= set(expected)
+    live, wall = tensorboard_points(source / "tensorboard")
+    assert live == expected
+    assert wall == {row["env_steps"]: pytest.approx(row["time_s"]) for row in rows}
+    run, logged = wandb_run(source / "wandb")
+    assert run.display_name == run.run_group == "quick-cpu" and run.project == "impulse-tests"
+    config = {item.key: json.loads(item.value_json) for item in run.config.update}
+    assert config["ppo"]["num_envs"] == 32 and config["total_env_steps"] == 2 * 32 * 32, config
+    assert logged == expected_points(rows, precision=float)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    (copy / "metrics.jsonl").write_text((source / "metrics.jsonl").read_text())
+    assert main(["tensorboard", str(copy)]) == 0
+    assert tensorboard_points(copy / "tensorboard") == (live, wall)
 
     shipped = tmp_path / "shipped"
     exported = impulse("export", "--checkpoint", str(source), "--out", str(shipped), "--note", "commit=abc123")

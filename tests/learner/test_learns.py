@@ -13,6 +13,7 @@ from impulse.deploy.config import config_to_toml, resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.evaluate import evaluate
 from impulse.learner.run import build
+from impulse.monitor.runs import EVAL_COLUMNS, SHARED_COLUMNS
 
 from tests.support.paths import REPO
 
@@ -37,7 +38,11 @@ def test_quick_cpu_config_learns_the_easy_car(tmp_path):
     assert json.loads((tmp_path / "eval.json").read_text())[names[0]]["solve_rate"] == solved
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == summary.updates
+    # The columns both modes write (tests/deploy/test_launch_faults.py checks a distributed run's rows).
+    assert {row["update"]: sorted(set(SHARED_COLUMNS) - row.keys()) for row in rows
+            if not set(SHARED_COLUMNS) <= row.keys()} == {}
     evaluated = [row for row in rows if "eval/mean" in row]
+    assert all(set(EVAL_COLUMNS) <= row.keys() for row in evaluated), evaluated
     assert [row["update"] for row in evaluated] == list(range(10, summary.updates + 1, 10))
     assert all(row["eval/policy_version"] == row["update"] for row in evaluated)
     assert evaluated[-1][f"eval/level/{names[0]}"] >= 0.5, evaluated[-1]  # the trained policy, as eval.json says

@@ -22,9 +22,11 @@ from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import Checkpointer
 from impulse.learner.run import build, fused_checkpoint_items
+from impulse.monitor.scalars import event_files
 
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.paths import REPO
+from tests.support.scalars import expected_points, metrics_rows, tensorboard_points
 
 pytestmark = pytest.mark.heavy
 
@@ -105,6 +107,11 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path, capsys):
     # Every update appears in the resumed run's metrics, the recomputed ones after the kill included.
     lines = (killed_dir / "metrics.jsonl").read_text().splitlines()
     assert len(lines) >= UPDATES
+    # TensorBoard shows what the rewound metrics.jsonl holds, each step once: the resumed process's event file hid
+    # the victim's points past the checkpoint it resumed from.
+    assert len(event_files(killed_dir / "tensorboard")) == 2
+    points, _ = tensorboard_points(killed_dir / "tensorboard")
+    assert points == expected_points(metrics_rows(killed_dir / "metrics.jsonl"))
 
     # A finished fused run's buffer, read from its newest checkpoint without any service.
     top = tmp_path / "top"

@@ -1,6 +1,7 @@
 """Rollouts in Rerun: a known short rollout logged to an .rrd file and read back with Rerun's own reader (entities,
-component types, timelines, row counts, colours by role, the geometry the PNG renderer draws), and the background
-logger's promise: under load it drops rollouts instead of blocking, and with no viewer it logs nothing."""
+component types, timelines, row counts, colours by role, the geometry the PNG renderer draws), the background
+logger's promise: under load it drops rollouts instead of blocking, and with no viewer it logs nothing; and
+`impulse view` coming and going during a run, or recording with no viewer at all (`--headless`)."""
 
 from __future__ import annotations
 
@@ -256,3 +257,36 @@ def test_impulse_view_can_come_and_go_during_a_run(tmp_path) -> None:
         assert monitor.counts["no_viewer"] == 15 and monitor.counts["records_logged"] == 10
     assert rows_of(tmp_path / "first.rrd", "/metrics/test/x") == [5, 6, 7, 8, 9]
     assert rows_of(tmp_path / "second.rrd", "/metrics/test/x") == [15, 16, 17, 18, 19]
+
+
+def test_impulse_view_headless_records_without_a_viewer(tmp_path) -> None:
+    """`impulse view --headless --record FILE` (what `impulse launch --record FILE` starts without --view): one
+    Rerun process, no viewer, is the server a process streams to, and the file holds the rollout and the curves
+    it streamed; Ctrl-C ends it, leaving no Rerun server behind. Without --record it is refused."""
+    port = free_port()
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    (tmp_path / "config.toml").write_text(f"name = 'run-a'\n[monitor]\nurl = '{url}'\nweb_port = {free_port()}\n")
+    refused = subprocess.run([sys.executable, "-m", "impulse.deploy.cli", "view", str(tmp_path), "--headless"],
+                             cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "--record" in refused.stderr
+    record = tmp_path / "headless.rrd"
+    recorder = subprocess.Popen([sys.executable, "-m", "impulse.deploy.cli", "view", str(tmp_path), "--headless",
+                                 "--record", str(record)], cwd=REPO, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    try:
+        with Monitor("run-a", url=url, probe_every_s=0.1) as monitor:
+            wait_for(lambda: monitor.viewer_up, 30, "the monitor to see the recording server")
+            assert len(processes_using(port)) == 1  # one Rerun process: the server, recording; no viewer
+            assert monitor.offer_frames(lambda recording: log_rollout(recording, frames()))
+            for value in range(3):
+                monitor.log(lambda recording, value=value: log_scalars(recording, "metrics/test", {"x": value}))
+            wait_for(lambda: monitor.counts["rollouts_logged"] == 1 and monitor.counts["records_logged"] == 3, 30,
+                     "the monitor to log")
+        time.sleep(1.0)
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        assert recorder.wait(30) == 0
+    assert processes_using(port) == []
+    chunks = read_back(record)
+    assert sum(c.num_rows for c in chunks[f"{ENTITY}/scene/polygons"]) == STEPS
+    assert rows_of(record, "/metrics/test/x") == [0, 1, 2]

@@ -1,11 +1,13 @@
 """Videos of evaluation episodes (monitor/video.py): one tile per level, a frame per step of the longest episode
 plus a last one on which each tile is framed by its outcome, written as an animated GIF that reads back with as
-many frames. The scenes are hand-made levels in their start state, held for a few steps."""
+many frames, and as an MP4 (H.264, yuv420p, padded to even sizes) that PyAV reads back frame for frame, close to
+the drawn pixels. The scenes are hand-made levels in their start state, held for a few steps."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import av
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,5 +52,26 @@ def test_tiles_are_framed_by_outcome_when_their_episode_ends(episodes, tmp_path:
             gif.seek(index)
             played_ms += gif.info["duration"]
         assert abs(played_ms - (STEPS + 1) * 1000 / 30) <= 10 * (STEPS + 1)  # GIF keeps hundredths of a second
-    with pytest.raises(ValueError, match=r"write \.gif or \.webp"):
-        save_video(frames, tmp_path / "episodes.mp4")
+    with pytest.raises(ValueError, match=r"write \.gif, \.webp or \.mp4"):
+        save_video(frames, tmp_path / "episodes.avi")
+
+
+def test_an_mp4_is_h264_yuv420p_padded_to_even_sizes_and_reads_back(episodes, tmp_path: Path) -> None:
+    names, states, actuation, keep, solved = episodes
+    frames = episode_grid_frames(states, actuation, keep, solved, names, scale=0.2, columns=3)
+    odd = [frame[:99, :299] for frame in frames]  # 299 x 99: yuv420p needs even sides
+    path = save_video(odd, tmp_path / "episodes.mp4", fps=30)
+    with av.open(str(path)) as container:
+        [stream] = container.streams.video
+        assert stream.codec_context.name == "h264" and stream.codec_context.pix_fmt == "yuv420p"
+        assert (stream.width, stream.height) == (300, 100) and stream.average_rate == 30
+        decoded = [frame.to_ndarray(format="rgb24") for frame in container.decode(stream)]
+    assert len(decoded) == len(odd) == STEPS + 1  # every frame kept, the held ones too
+    for drawn, back in zip(odd, decoded, strict=True):
+        assert back.shape == (100, 300, 3)
+        error = np.abs(back[:99, :299].astype(int) - drawn.astype(int)).max(axis=-1)
+        # Lossy, but close: H.264 and yuv420p's colour sampled per 2 x 2 pixels blur edges and text a little.
+        assert error.mean() < 5 and np.percentile(error, 95) < 20 and (error > 48).mean() < 0.01
+        assert back[99].mean() > 200 and back[:, 299].mean() > 200  # padded with white (blurred by the edge)
+    tile = 100
+    assert np.abs(decoded[1][2, tile + tile // 2].astype(int) - UNSOLVED_FRAME).max() < 30  # outcome frames survive

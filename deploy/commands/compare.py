@@ -1,0 +1,162 @@
+"""`impulse compare RUN_DIR [RUN_DIR ...]`: training runs of either mode side by side, as a table.
+
+One row per run: its label, mode, progress (share of `total_env_steps` done, updates, env steps, wall clock), and
+for each metric (default: `solve_rate`, and `eval/mean` when a run has it) the final and best values and, with
+`--threshold`, the env steps and time at which it first reached the bar. Below the table, the config keys whose
+values differ between the runs. `--plot FILE.png` draws the curves, `--json` prints the same as JSON. Reading,
+summarising and diffing are `monitor.runs`'s; this module parses and prints. Exit status 2, with one line on
+stderr, for a path that is not a run, a run without metrics yet, or a metric no run has.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from impulse.monitor.runs import (
+    AXES,
+    MISSING,
+    Axis,
+    RunError,
+    RunSummary,
+    check_metrics,
+    config_diff,
+    default_metrics,
+    plot_runs,
+    read_runs,
+    summarise,
+)
+
+EXIT_USAGE = 2
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR",
+                        help="run directories of `impulse train` or `impulse launch` (running ones too)")
+    parser.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
+                        help="a metrics.jsonl column to compare (repeatable; default: solve_rate, and eval/mean when "
+                        "a run has it)")
+    parser.add_argument("--by", choices=AXES, default="env_steps",
+                        help="the x axis of --plot and where the best value is placed (default: env_steps; time_s "
+                        "counts seconds since each run's first update)")
+    parser.add_argument("--threshold", type=float, metavar="VALUE",
+                        help="also show the env steps and time at which each metric first reached VALUE")
+    parser.add_argument("--plot", type=Path, metavar="FILE.png", help="draw each metric against --by, a line per run")
+    parser.add_argument("--json", action="store_true", help="print the comparison as JSON instead of a table")
+
+
+def run(args: argparse.Namespace, _config: object = None) -> int:
+    try:
+        runs = read_runs(args.runs)
+        metrics = list(dict.fromkeys(args.metrics)) if args.metrics else default_metrics(runs)
+        check_metrics(runs, metrics)
+    except RunError as err:
+        print(f"impulse compare: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    summaries = [summarise(r, metrics, args.by, args.threshold) for r in runs]
+    diff = config_diff(runs)
+    labels = [r.label for r in runs]
+    if args.plot is not None:
+        plotted = plot_runs(runs, metrics, args.by, args.plot)
+        print(f"impulse compare: curves written to {plotted}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(as_json(summaries, metrics, args.by, args.threshold, diff, labels), indent=2))
+    else:
+        print(table(summaries, metrics, args.by, args.threshold))
+        print()
+        print(diff_table(diff, labels))
+    return 0
+
+
+def as_json(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, threshold: float | None,
+            diff: dict[str, list[Any]], labels: Sequence[str]) -> dict[str, Any]:
+    """The comparison as JSON-ready data: the options, one object per run, and {key: {label: value}} of the config
+    differences (null where a run's config lacks the key)."""
+    return {
+        "metrics": list(metrics), "by": by, "threshold": threshold,
+        "runs": [asdict(summary) for summary in summaries],
+        "config_diff": {key: {label: None if value is MISSING else value for label, value in zip(labels, values)}
+                        for key, values in diff.items()},
+    }
+
+
+def steps(value: float | None) -> str:
+    """Env steps or updates, compact: 81,920 -> 81.9k, 2,000,000 -> 2M."""
+    if value is None:
+        return "-"
+    if abs(value) >= 1e6:
+        return f"{value / 1e6:.3g}M"
+    if abs(value) >= 1e4:
+        return f"{value / 1e3:.3g}k"
+    return f"{value:,.0f}"
+
+
+def duration(seconds: float | None) -> str:
+    """Wall clock: 75 -> 1:15, 3725 -> 1:02:05."""
+    if seconds is None or not math.isfinite(seconds):
+        return "-"
+    whole = int(round(seconds))
+    hours, rest = divmod(whole, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
+
+
+def number(value: float | None) -> str:
+    """A metric value, four significant digits."""
+    return "-" if value is None else f"{value:.4g}"
+
+
+def position(value: float | None, by: Axis) -> str:
+    """Where along `by` a value was reached."""
+    if value is None:
+        return "-"
+    return duration(value) if by == "time_s" else steps(value)
+
+
+def table(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, threshold: float | None) -> str:
+    """The comparison as an aligned text table, one row per run (text left, numbers right)."""
+    header = ["run", "mode", "done", "updates", "env steps", "wall"]
+    for metric in metrics:
+        header += [f"{metric} final", f"best (at {by})"]
+        if threshold is not None:
+            header += [f">={threshold:g} steps", f">={threshold:g} time"]
+    rows = []
+    for s in summaries:
+        row = [s.label, s.mode, "-" if s.done is None else f"{s.done:.0%}", f"{s.updates:,}", steps(s.env_steps),
+               duration(s.wall_s)]
+        for metric in metrics:
+            m = s.metrics[metric]
+            row += [number(m.final), f"{number(m.best)} @{position(m.best_at, by)}" if m.best is not None else "-"]
+            if threshold is not None:
+                row += [steps(m.reached_env_steps), duration(m.reached_s)]
+        rows.append(row)
+    return aligned(header, rows, left=2)
+
+
+def diff_table(diff: dict[str, list[Any]], labels: Sequence[str]) -> str:
+    """The config keys whose values differ, one line each with every run's value."""
+    if not diff:
+        return "config: no differences (name and run_dir aside)" if len(labels) > 1 else "config: one run"
+    rows = [[key, *("(absent)" if v is MISSING else toml_value(v) for v in values)] for key, values in diff.items()]
+    return "config differences:\n" + aligned(["key", *labels], rows, left=len(labels) + 1)
+
+
+def toml_value(value: Any) -> str:
+    """A config value as it reads in config.toml (strings quoted, lists bracketed)."""
+    return json.dumps(value) if isinstance(value, str | list | bool) else str(value)
+
+
+def aligned(header: Sequence[str], rows: Sequence[Sequence[str]], left: int) -> str:
+    """Columns padded to their widest cell: the first `left` columns aligned left, the others right."""
+    widths = [max(len(str(cell)) for cell in column) for column in zip(header, *rows)]
+
+    def line(cells: Sequence[str]) -> str:
+        cells = (c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+        return "  ".join(cells).rstrip()
+
+    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in rows)])
