@@ -118,10 +118,10 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
     `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. `ingress` rules
     say what a role may send into the router, `egress` what the router may deliver to it: trajectories reach only
     the learner, level results only the curriculum, the learner's weights, credits and status reach actors (and
-    its weights and status the evaluator, whose evaluations reach the learner), and every process may hear status
-    lines. Keys cover every run; the advanced publisher's cache for late joiners
-    lives under `learner/weights/policy/@adv/**`, which `**` does not match (`@` chunks match only themselves),
-    hence its own keys.
+    its weights and status the evaluator, whose evaluations reach the learner, and the curriculum service, which
+    scores candidate levels with them in batch-scored SFL), and every process may hear status lines. Keys cover
+    every run; the advanced publisher's cache for late joiners lives under `learner/weights/policy/@adv/**`,
+    which `**` does not match (`@` chunks match only themselves), hence its own keys.
     """
     run = f"{PREFIX}/*/v{SCHEMA_MAJOR}"
     weights_cache = f"{run}/{LEARNER}/weights/policy/@adv/**"
@@ -145,14 +145,16 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("actor-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
         _allow("evaluator-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
         _allow("evaluator-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
+        _allow("curriculum-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
+        _allow("curriculum-hears-learner", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
         _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect"]),
         _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
         _allow("router-passes-out", "egress", ALL_MESSAGES, everything),
     ]
     own_rules = {
         LEARNER: ["learner-hears"],
-        CURRICULUM: ["curriculum-hears"],
+        CURRICULUM: ["curriculum-asks", "curriculum-hears", "curriculum-hears-learner"],
         ACTOR: ["actor-asks", "actor-hears"],
         EVALUATOR: ["evaluator-asks", "evaluator-hears"],
         OPERATOR: ["operator-asks"],

@@ -68,8 +68,8 @@ class CurriculumConfig:
     after `candidate_episodes` episodes, a buffered level whenever it is replayed), replaying once the buffer is
     `min_fill` full; "batch": Kinetix's form, in which every `sfl_refresh_updates` updates (and before the first)
     `sfl_candidates` fresh levels are each played `sfl_attempts` times by the current policy, the buffer becomes
-    the most learnable of them, and replay starts at the first update. "batch" needs the policy beside the
-    curriculum, so it runs in fused training (`impulse train`) only."""
+    the most learnable of them, and replay starts at the first update. In a distributed run the curriculum service
+    follows the learner's weights to score (policy versions stand for updates), on a thread of its own."""
     sfl_candidates: int = 1024
     """SFL batch scoring: fresh levels scored at each refresh (Kinetix: 3 x 4,096)."""
     sfl_attempts: int = 4
@@ -141,15 +141,6 @@ def candidate_episodes(config: CurriculumConfig) -> int:
     if config.candidate_episodes is not None:
         return config.candidate_episodes
     return 4 if config.method == "sfl" else 1
-
-
-def service_problem(config: CurriculumConfig) -> str | None:
-    """Why the curriculum service cannot run this configuration, or None: batch-scored SFL plays candidates with
-    the current policy, which only the fused trainer holds beside its curriculum."""
-    if config.method == "sfl" and config.sfl_scoring == "batch":
-        return ("curriculum.sfl_scoring=batch runs in fused training only (impulse train): the curriculum service "
-                "holds no policy to score candidate levels with; use curriculum.sfl_scoring=online")
-    return None
 
 
 def knob_problems(config: CurriculumConfig) -> list[str]:

@@ -11,10 +11,17 @@ It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of 
 - `curriculum/inspect` (queryable): buffer statistics, the top levels and, on request, their scenes;
 - `metrics/curriculum/0`: a status line with buffer statistics for `impulse launch`'s display.
 
+With batch-scored SFL (`curriculum.sfl_scoring=batch`) results do not score levels: every `sfl_refresh_updates`
+policy versions (and once the first weights arrive) the service draws `sfl_candidates` fresh levels, has the
+learner's newest policy play each `sfl_attempts` times (a `CandidateScorer` the caller passes in, which follows
+the learner's weights) and refills its buffer with the most learnable (`Curriculum.refill`). The scoring runs on a
+thread of its own, so level queries are answered from the current buffer meanwhile; the refill is applied in
+`cycle`, like everything else that changes the state.
+
 Its whole state, knobs included, is checkpointed with orbax as the `curriculum` item (through a checkpointer the
 caller passes in), so a restarted service resumes with every buffered and staged level. Work happens in the
-caller's thread in `cycle` (it is a `bus.service.Service`, driven by the run loop like every process); nothing is
-done in zenoh callbacks.
+caller's thread in `cycle` (it is a `bus.service.Service`, driven by the run loop like every process), except the
+candidate scoring above; nothing is done in zenoh callbacks.
 """
 
 from __future__ import annotations
@@ -23,11 +30,13 @@ import dataclasses
 import json
 import logging
 import secrets
+import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from impulse.bus.codec import Rejected
 from impulse.bus.control import control_reply, encode_refusal, encode_report
@@ -49,6 +58,7 @@ from impulse.curriculum.stats import (
     top_levels,
 )
 from impulse.curriculum.wire import ResultsError, level_batch_arrays, results_from_message
+from impulse.engine.levels.level import Level
 from impulse.engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
@@ -87,6 +97,28 @@ class CheckpointStore(Protocol):
     def latest_step(self) -> int | None: ...
 
 
+class CandidateScorer(Protocol):
+    """What batch-scored SFL needs in a distributed run (`learner.candidate_scorer.PolicyScorer` fits): the
+    learner's newest policy, and candidate levels played with it."""
+
+    def policy(self) -> tuple[int, Any] | None:
+        """(policy version, parameters) of the newest weights, or None before the first (called from `cycle`)."""
+        ...
+
+    def solve_rates(self, params: Any, levels: Level, key: jax.Array) -> jax.Array:
+        """The fraction of episodes solved on each of `levels` by `params` (called from the scoring thread)."""
+        ...
+
+
+class Refill(NamedTuple):
+    """A finished scoring of candidates, waiting for `cycle` to refill the buffer with it."""
+
+    candidates: Level
+    solve_rate: jax.Array
+    policy_version: int
+    seconds: float
+
+
 class CurriculumService:
     """One curriculum process (see the module docstring). `cycle` does whatever is waiting and reports what it did;
     `save` checkpoints. Its bus entities live as long as the bus session."""
@@ -104,7 +136,11 @@ class CurriculumService:
         resume: bool = False,
         status_every_s: float = 1.0,
         queue: int = 256,
+        scorer: CandidateScorer | None = None,
     ):
+        """`scorer`: the policy that scores candidates, required by batch-scored SFL and unused otherwise."""
+        if curriculum.batch_scored and scorer is None:
+            raise ValueError("batch-scored SFL needs a scorer: the policy that plays the candidate levels")
         self.curriculum = curriculum
         self.bus = bus
         self.checkpoints = checkpoints
@@ -120,6 +156,7 @@ class CurriculumService:
         self.samples = 0
         self.result_messages = 0
         self.knob_changes = 0
+        self.refills = 0
         self.policy_version = 0
         self.incarnation = secrets.randbits(31)
         """Drawn at start: tells this process's status counters from a predecessor's (`bus.status.DropTotals`)."""
@@ -132,6 +169,15 @@ class CurriculumService:
         self._knob_queries = bus.queryable(keys.curriculum_knobs, 16)
         self._inspect_queries = bus.queryable(keys.curriculum_inspect, 16)
         self._status = StatusPublisher(bus, status_every_s)
+        self.scorer = scorer if curriculum.batch_scored else None
+        self._scoring: threading.Thread | None = None
+        self._scored: Refill | BaseException | None = None  # what the scoring thread left for `cycle`
+        self._scoring_version = -1  # the policy version the newest scoring started from
+        self._last_refill: dict[str, float] = {}
+        if self.scorer is not None:
+            config = curriculum.config
+            self._candidates = jax.jit(lambda key: curriculum.new_levels(key, config.sfl_candidates))
+            self._refill = jax.jit(curriculum.refill)
 
     # -- lifecycle -------------------------------------------------------------------------------------------------
 
@@ -151,6 +197,9 @@ class CurriculumService:
         self.samples = int(counters.get("samples", 0))
         self.result_messages = int(counters.get("result_messages", 0))
         self.policy_version = int(counters.get("policy_version", 0))
+        # Restored too, so that the checkpoint step (their sum with the above) never goes back after a restart.
+        self.knob_changes = int(counters.get("knob_changes", 0))
+        self.refills = int(counters.get("refills", 0))
         self._saved_step = restored.step
         log.info("curriculum resumed from checkpoint %s: %d levels buffered, %d staged, %d samples served",
                  self._saved_step, int(np.asarray(self.state.buffer.filled).sum()),
@@ -159,7 +208,7 @@ class CurriculumService:
     @property
     def step(self) -> int:
         """Checkpoint step: everything the service has done (monotonic across restarts)."""
-        return self.samples + self.result_messages + self.knob_changes
+        return self.samples + self.result_messages + self.knob_changes + self.refills
 
     def save(self, summary: dict[str, float] | None = None) -> None:
         """Checkpoint the whole state, unless nothing happened since the last checkpoint (`summary`, the run loop's
@@ -167,7 +216,8 @@ class CurriculumService:
         if self.step == self._saved_step:
             return
         counters = {"samples": self.samples, "result_messages": self.result_messages,
-                    "policy_version": self.policy_version, "knob_changes": self.knob_changes}
+                    "policy_version": self.policy_version, "knob_changes": self.knob_changes,
+                    "refills": self.refills}
         self.checkpoints.save(self.step, {self.item: self.state}, counters, self.config_toml)
         self._saved_step = self.step
 
@@ -190,9 +240,10 @@ class CurriculumService:
         self.save()
 
     def cycle(self) -> CycleReport | None:
-        """Apply waiting results, answer waiting queries; what was done (`updates`: result messages applied, which
-        drive the checkpoint cadence), or None if nothing was."""
-        applied = self._apply_results()
+        """Apply waiting results (or a finished candidate scoring), answer waiting queries; what was done
+        (`updates`: result messages applied and refills, which drive the checkpoint cadence), or None if nothing
+        was."""
+        applied = self._apply_results() + (self._refresh() if self.scorer is not None else 0)
         served = 0
         for query in self._sample_queries.poll():
             served += self._answer_sample(query)
@@ -225,6 +276,55 @@ class CurriculumService:
             self.result_messages += 1
             applied += 1
         return applied
+
+    # -- batch-scored SFL ---------------------------------------------------------------------------------------------
+
+    def _refresh(self) -> int:
+        """Refill the buffer from a finished scoring (1), or start a scoring when the learner's policy has moved
+        `sfl_refresh_updates` versions past the last one scored, or is the first one seen (0)."""
+        if self._scoring is not None:
+            if self._scoring.is_alive():
+                return 0
+            self._scoring, scored = None, self._scored
+            if isinstance(scored, BaseException):
+                raise RuntimeError("scoring the candidate levels failed") from scored
+            assert scored is not None
+            self.state = self._refill(self.state, scored.candidates, scored.solve_rate,
+                                      jnp.asarray(scored.policy_version, jnp.int32))
+            self.refills += 1
+            rates = np.asarray(scored.solve_rate)
+            self._last_refill = {"version": scored.policy_version, "seconds": round(scored.seconds, 2),
+                                 "learnable": float(((rates > 0) & (rates < 1)).mean()),
+                                 "solved": float((rates > 0).mean())}
+            log.info("SFL refill %d from policy v%d: %d candidates scored in %.1f s, %.0f%% learnable, buffer %.0f%% "
+                     "full", self.refills, scored.policy_version, rates.size, scored.seconds,
+                     100 * self._last_refill["learnable"], 100 * float(np.asarray(self.state.buffer.filled).mean()))
+            return 1
+        held = self.scorer.policy()
+        if held is None:
+            return 0
+        version, params = held
+        self.policy_version = max(self.policy_version, version)
+        every = self.curriculum.config.sfl_refresh_updates
+        if self._scoring_version >= 0 and version // every <= self._scoring_version // every:
+            return 0
+        self._scoring_version = version
+        key = jax.random.fold_in(jax.random.fold_in(self._key, 1), version)
+        self._scoring = threading.Thread(target=self._score, args=(params, key, version), daemon=True,
+                                         name="sfl-scoring")
+        self._scoring.start()
+        return 0
+
+    def _score(self, params: Any, key: jax.Array, version: int) -> None:
+        """The scoring thread: fresh candidates, played by `params`; the outcome is left for `_refresh`."""
+        try:
+            started = time.perf_counter()
+            level_key, play_key = jax.random.split(key)
+            candidates = self._candidates(level_key)
+            rates = self.scorer.solve_rates(params, candidates, play_key)
+            self._scored = Refill(candidates, rates, version, time.perf_counter() - started)
+        except BaseException as err:  # noqa: BLE001 - handed to the service's own thread, which raises it
+            self._scored = err
 
     def _answer_sample(self, query: IncomingQuery) -> int:
         wanted = query.parameters.get("n")
@@ -295,6 +395,8 @@ class CurriculumService:
         return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "incarnation": self.incarnation,
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes,
+                **({"refills": self.refills, "scoring": self._scoring is not None,
+                    "last_refill": self._last_refill} if self.scorer is not None else {}),
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
                 **{k: json_scalar(v) for k, v in summary.items()}}
 

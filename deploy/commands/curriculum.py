@@ -19,7 +19,6 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from impulse.curriculum.config import service_problem
 from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
@@ -268,9 +267,6 @@ def serve(args: argparse.Namespace) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir = opened
-    if problem := service_problem(config.curriculum):
-        print(f"impulse curriculum serve: {problem}", file=sys.stderr)
-        return EXIT_USAGE
     from impulse.deploy.runtime.devices import restrict_gpus
 
     try:
@@ -305,10 +301,16 @@ def serve(args: argparse.Namespace) -> int:
             open_monitor(config) or nullcontext() as monitor:
         if args.resume and checkpoints.latest_step() is None and checkpoints.set_aside():
             log.warning("%s: the curriculum starts with an empty buffer", checkpoints.nothing_usable())
+        scorer = None
+        if curriculum.batch_scored:  # Kinetix's SFL: candidates are played by the learner's newest policy
+            from impulse.learner.agent import make_agent
+            from impulse.learner.candidate_scorer import PolicyScorer
+
+            scorer = PolicyScorer(bus, make_agent(config.network, spec), env_params, config.curriculum.sfl_attempts)
         try:
             service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
                                         item=CURRICULUM, seed=config.seed, resume=args.resume,
-                                        status_every_s=config.actors.status_every_s)
+                                        status_every_s=config.actors.status_every_s, scorer=scorer)
         except CheckpointError as err:
             print(f"impulse curriculum serve: cannot resume: {err}", file=sys.stderr)
             return EXIT_FAILED

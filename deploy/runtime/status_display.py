@@ -102,7 +102,17 @@ def curriculum_line(status: dict[str, Any] | None) -> str:
     return (f"{status.get('method', '?')} | buffer {_number(status.get('buffer_fill'), '{:.0%}')} full, score "
             f"{_number(status.get('score_mean'), '{:.3f}')}, learnable {_number(status.get('learnable'), '{:.0%}')} | "
             f"staged {status.get('staged', 0)} | served {status.get('samples', 0):,} | results "
-            f"{status.get('results', 0):,} | dropped {status.get('dropped_inbox_full', 0)} | rejected {rejected}")
+            f"{status.get('results', 0):,} | dropped {status.get('dropped_inbox_full', 0)} | rejected {rejected}"
+            f"{_refill_part(status)}")
+
+
+def _refill_part(status: dict[str, Any]) -> str:
+    """Batch-scored SFL's refills, for the curriculum's line ("" for the other curricula)."""
+    if "refills" not in status:
+        return ""
+    last = status.get("last_refill") or {}
+    newest = f" (v{last['version']}, {last.get('seconds', 0):.0f} s)" if "version" in last else ""
+    return f" | refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}"
 
 
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,

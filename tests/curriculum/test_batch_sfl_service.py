@@ -1,0 +1,92 @@
+"""Batch-scored SFL in the curriculum service, over a real bus (zenoh on loopback; the test plays the learner): the
+service follows the learner's weights, scores fresh candidates with the newest policy on a thread of its own, and
+refills its buffer with the learnable ones, at the first weights and then every `sfl_refresh_updates` versions."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+import pytest
+from impulse.actors.wire import weights_hash
+from impulse.bus.session import Bus
+from impulse.bus.stamp import Stamp
+from impulse.bus.weights import encode_weights
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.service import CurriculumService
+from impulse.curriculum.state import ORIGIN_REPLAY
+from impulse.deploy.config import resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.status_display import curriculum_line
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.pytree import tree_arrays
+from impulse.learner.agent import make_agent
+from impulse.learner.candidate_scorer import PolicyScorer
+from impulse.learner.checkpoint import CURRICULUM, Checkpointer
+
+from tests.support.launch_procs import QUICK_LAUNCH, free_port
+
+pytestmark = pytest.mark.heavy
+
+RUN = "batch-sfl-test"
+CANDIDATES, ATTEMPTS, BUFFER, EVERY = 32, 2, 8, 4
+
+
+def cycle_until(service: CurriculumService, condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}: {service.status()}"
+        service.cycle()
+        time.sleep(0.01)
+
+
+def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> None:
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [
+        f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
+        f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
+        f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
+        "ppo.num_envs=8"])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    params = agent.init(jax.random.PRNGKey(0))
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
+            Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
+        weights = learner.latest_publisher(learner.keys.weights_policy)
+
+        def publish(version: int) -> None:
+            frame = encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
+                                   weights_hash(params))
+            weights.put(frame)
+
+        scorer = PolicyScorer(bus, agent, env_params, ATTEMPTS)
+        service = CurriculumService(curriculum, bus, checkpoints, "", lambda current, assignments: current,
+                                    item=CURRICULUM, scorer=scorer)
+        service.start()
+        assert not np.asarray(service.state.buffer.filled).any()
+        publish(0)
+        cycle_until(service, lambda: service.refills == 1, 300, "the first refill, from version 0")
+        assert "| refills 1 (v0, " in curriculum_line(service.status())
+        filled = np.asarray(service.state.buffer.filled)
+        refill = service.status()["last_refill"]
+        learnable, solved = round(refill["learnable"] * CANDIDATES), round(refill["solved"] * CANDIDATES)
+        assert filled.sum() == min(solved, BUFFER), "the most learnable kept; never-solved candidates never"
+        # Two attempts: a learnable level was solved once (p = 0.5), scored p (1 - p) + 0.001 p, ahead of the
+        # always-solved ones (0.001).
+        expected = [0.2505] * min(learnable, BUFFER) + [0.001] * (min(solved, BUFFER) - min(learnable, BUFFER))
+        np.testing.assert_allclose(np.sort(np.asarray(service.state.buffer.score)[filled])[::-1], expected,
+                                   rtol=1e-5)
+        if filled.any():
+            _, batch = curriculum.sample(service.state, jax.random.PRNGKey(1))
+            assert (np.asarray(batch.origin) == ORIGIN_REPLAY).sum() == round(0.5 * curriculum.batch_size)
+
+        for version in range(1, EVERY):  # within the same refresh period: no new scoring
+            publish(version)
+            cycle_until(service, lambda v=version: scorer.follow.version == v, 30, f"weights version {version}")
+            assert service.refills == 1 and service.status()["scoring"] is False
+        publish(EVERY)
+        cycle_until(service, lambda: service.refills == 2, 120, "the second refill")
+        assert service.status()["last_refill"]["version"] == EVERY
+        service.save()
+        assert checkpoints.restore({CURRICULUM: service.state}).counters["refills"] == 2
