@@ -31,6 +31,14 @@ class ActorConfig:
     status_every_s: float = 1.0
     """How often each process publishes its status line for `impulse launch`'s display; 0: at every turn of its
     loop (hundreds a second in an idle curriculum service)."""
+    wire_compact: bool = False
+    """Send trajectories in the compact format (`actors.wire`): booleans as bits, only the entity rows a batch
+    uses, exactly (2 to 3 times fewer bytes on the bus), for runs across hosts; it costs the actors and the learner
+    several times the padded copy, so on one machine the padded arrays (False) are faster. The learner reads the
+    same setting."""
+    wire_float16: bool = False
+    """With `wire_compact`: observation features as float16 (half the bytes again; the learner widens them back
+    to float32, so it trains on inputs rounded to float16's 11 significant bits). False: exact float32."""
     devices: tuple[int, ...] = ()
     """GPUs the actors run on, as positions among the GPUs the process may see: actor i takes
     devices[i % len(devices)] and sees only it (CUDA_VISIBLE_DEVICES); empty: every actor sees them all and JAX
@@ -43,3 +51,5 @@ class ActorConfig:
         check_range("actors.credit_timeout_s", self.credit_timeout_s, above=0)
         check_range("actors.memory_fraction", self.memory_fraction, at_least=0, below=1)
         check_range("actors.status_every_s", self.status_every_s, at_least=0)
+        if self.wire_float16 and not self.wire_compact:
+            raise ValueError("actors.wire_float16 is part of the compact format: set actors.wire_compact=true too")

@@ -44,6 +44,7 @@ from impulse.actors.follow import LearnerFollower
 from impulse.actors.levels import LevelSource
 from impulse.actors.rollout import RolloutCarry, rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
+from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
 from impulse.bus.keys import ACTOR
@@ -130,6 +131,7 @@ class Actor:
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
         self._status = StatusPublisher(bus, actors.status_every_s)
 
+        self._wire: TrajectoryWire | None = None
         self.seq = 0  # batches sent by this incarnation
         self.acked = 0  # highest sequence number the learner has taken off its queue
         self._blocked_since: float | None = None  # when the actor last ran out of credit
@@ -219,8 +221,12 @@ class Actor:
     def _send(self, batch: TrajectoryBatch) -> None:
         self.seq += 1
         batch = batch._replace(seq=np.int32(self.seq))
-        self._traj.put(encode_trajectory(self.bus.stamp, tree_arrays(batch), seq=self.seq,
-                                         incarnation=self.incarnation, actor_index=self.index))
+        if self._wire is None:  # the layout of the batches this actor sends, from the first one
+            self._wire = TrajectoryWire(batch, self.agent.spec.sizes, compact=self.actors.wire_compact,
+                                        float16=self.actors.wire_float16)
+        self._traj.put(encode_trajectory(self.bus.stamp, self._wire.pack(tree_arrays(batch)), seq=self.seq,
+                                         incarnation=self.incarnation, actor_index=self.index,
+                                         layout=self._wire.format))
         self.counts["sent"] += 1
 
     def _publish_results(self, results: LevelResults) -> None:

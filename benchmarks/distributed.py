@@ -4,9 +4,11 @@ learner consumes with 1, 2 and 4 actors, where the gap to fused goes, how many b
 
 Parts (all by default; `--parts` picks some):
 
-- `bytes`: the encoded frame of one trajectory batch, from `learner.service.batch_template`, divided by T x E, for
-  sizes S, M, L with the entity observation and with the symbolic (flat) one, multi-discrete actions. Each has
-  two floors (see `bytes_floors`) and the ratio actual / floor. No processes, no device work.
+- `bytes`: the encoded frame of one trajectory batch of a real rollout (one jitted rollout on the size's levels),
+  divided by T x E, for sizes S, M, L with the entity observation and with the symbolic (flat) one, multi-discrete
+  actions, in the previous padded format, the compact one and the compact one with float16 features
+  (`actors.wire`), with the encode and decode cost of each. Each has two floors (see `bytes_floors`) and the ratio
+  actual / floor. No processes.
 - `runs`: real processes. The fused trainer (`impulse train`) and then `impulse launch` with N actors, on the same
   config (level, network, envs, steps, epochs, minibatches), then the fused trainer once more, so the drift of the
   machine over the runs shows. The rate is read from each run's metrics.jsonl (one line per update, wall-clock
@@ -14,9 +16,9 @@ Parts (all by default; `--parts` picks some):
   distributed run this process watches the status lines on the bus (actor `last_cycle_s`, `sent`, drops,
   `weights_latency_ms`; the learner's lag histogram and drop counts).
 - `costs`: in this process, at the run's shapes: one rollout and one `ppo_update` (jitted, as the actor and the
-  learner compile them), the serialisation of one batch (actor: `tree_arrays` + `encode`; learner: `decode` +
-  schema check + `tree_from_arrays`, then `device_put`), and the transport of that frame (put -> received as bytes
-  in another process, over zenoh with the run's bus settings). With `runs`, one `gap` line per actor
+  learner compile them), the serialisation of one batch (actor: `tree_arrays` + pack + `encode`; learner: `decode` +
+  unpack + schema check + `tree_from_arrays`, then `device_put`), and the transport of that frame (put -> received
+  as bytes in another process, over zenoh with the run's bus settings). With `runs`, one `gap` line per actor
   count then splits the learner's update interval and the actors' cycle into these parts; every derived number
   says how it was derived.
 
@@ -50,7 +52,7 @@ from typing import Any
 import jax
 import numpy as np
 from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
-from impulse.bus.codec import Kind, encode
+from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.stamp import Stamp
 from impulse.bus.trajectories import decode_trajectory, encode_trajectory
@@ -60,7 +62,7 @@ from impulse.engine.env.observations import BASE_SHAPE_FEATURES, symbolic_length
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, Level
 from impulse.engine.physics.sizes import SceneSizes, size_preset
-from impulse.engine.pytree import path_name
+from impulse.engine.pytree import tree_arrays
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
 PARTS = ("bytes", "runs", "costs")
@@ -118,22 +120,27 @@ def describe(config: RunConfig) -> dict[str, Any]:
 # -- bytes per env step ----------------------------------------------------------------------------------------
 
 
-def active_slots(size: str) -> dict[str, Any]:
-    """Mean active polygons, circles, joints and thrusters over the levels of a size (the shared Kinetix levels,
-    else our hand-made ones that fit), and the active polygons among those the symbolic vector keeps. The floors
-    need them: a batch pads every entity array to the size's slot counts, whatever a level uses."""
+def size_levels(size: str) -> tuple[list[Level], str]:
+    """The shared Kinetix levels of a size, else our hand-made ones that fit, and where they came from."""
     from impulse.engine.levels.kinetix_json import load_kinetix_level
     from impulse.engine.levels.sets import load_level_set
 
     sizes = size_preset(size)
     paths = sorted((LEVELS_DIR / size).glob("*.json")) if LEVELS_DIR.is_dir() else []
     if paths:
-        levels: list[Level] = [load_kinetix_level(path, sizes).level for path in paths]
-        source = f"shared Kinetix levels {size}/ ({len(paths)})"
-    else:
-        names, batch = load_level_set("handmade", sizes)
-        levels = [jax.tree.map(lambda x, i=i: x[i], batch) for i in range(len(names))]
-        source = f"hand-made levels fitting {size} ({len(names)})"
+        levels = [load_kinetix_level(path, sizes).level for path in paths]
+        return levels, f"shared Kinetix levels {size}/ ({len(paths)})"
+    names, batch = load_level_set("handmade", sizes)
+    return [jax.tree.map(lambda x, i=i: x[i], batch) for i in range(len(names))], \
+        f"hand-made levels fitting {size} ({len(names)})"
+
+
+def active_slots(size: str) -> dict[str, Any]:
+    """Mean active polygons, circles, joints and thrusters over the levels of a size (the shared Kinetix levels,
+    else our hand-made ones that fit), and the active polygons among those the symbolic vector keeps. The floors
+    need them: a batch pads every entity array to the size's slot counts, whatever a level uses."""
+    sizes = size_preset(size)
+    levels, source = size_levels(size)
     kept = [0, *range(sizes.num_static_polygons, sizes.num_polygons)]
     counts = []
     for level in levels:
@@ -222,27 +229,62 @@ def bytes_floors(arrays: dict[str, tuple[tuple[int, ...], np.dtype]], num_envs: 
     }
 
 
-def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int) -> dict[str, Any]:
-    """Bytes on the bus per env step of one trajectory batch, with its floors. The frame is encoded for real
-    (arrays of zeros in the template's shapes: size does not depend on values), so header, array table and the
-    64-byte alignment of every array are counted."""
+def _rollout_batch(size: str, observation: str, num_envs: int, num_steps: int) -> tuple[EnvSpec, Any]:
+    """A batch of a real rollout on the size's levels (random initial weights, multi-discrete actions), on the
+    host: what an actor would send."""
+    from impulse.actors.rollout import rollout, start_rollout
+    from impulse.actors.trajectory import make_batch
+    from impulse.engine.levels.level import stack_levels
     from impulse.learner.agent import make_agent
     from impulse.learner.config import NetworkConfig
-    from impulse.learner.service import batch_template
 
     spec = EnvSpec(sizes=size_preset(size), observation=observation, action="multi_discrete")
     agent = make_agent(NetworkConfig(kind="entity" if observation == "entity" else "flat", width=64, depth=2), spec)
-    template = batch_template(agent, EnvParams(), num_envs, num_steps)
-    leaves = jax.tree_util.tree_flatten_with_path(template)[0]
-    shapes = {path_name(path): (tuple(leaf.shape), np.dtype(leaf.dtype)) for path, leaf in leaves}
-    arrays = {name: np.zeros(shape, dtype) for name, (shape, dtype) in shapes.items()}
-    frame = encode_trajectory(Stamp("bench", epoch=1, policy_version=1), arrays, seq=1, incarnation=1,
-                              actor_index=0)
+    levels = stack_levels(size_levels(size)[0])
+    params = agent.init(jax.random.PRNGKey(0))
+    carry = start_rollout(spec, EnvParams(), levels, num_envs, jax.random.PRNGKey(1))
+    run = jax.jit(lambda p, c: rollout(agent.act, p, spec, EnvParams(), c, levels, num_steps))
+    carry, steps, train_mask, episodes, _ = run(params, carry)
+    return spec, jax.device_get(make_batch(steps, carry.obs, 1, train_mask=train_mask, episodes=episodes))
+
+
+def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int, repeats: int = 5) -> dict[str, Any]:
+    """Bytes on the bus per env step of one trajectory batch of a real rollout, with its floors, in three
+    formats: `padded` (format 1, the arrays as they are), `compact` (`actors.wire.TrajectoryWire`, exact) and
+    `compact_float16` (`actors.wire_float16`). Frames are encoded for real, so header, array table and the 64-byte
+    alignment of every array are counted; encode (pack + encode) and decode (decode + unpack + schema check +
+    tree_from_arrays) are timed here alone, median of `repeats`."""
+    from impulse.actors.wire import TrajectoryWire
+
+    spec, batch = _rollout_batch(size, observation, num_envs, num_steps)
+    arrays = tree_arrays(batch)
+    shapes = {name: (tuple(a.shape), np.dtype(a.dtype)) for name, a in arrays.items()}
+    stamp = Stamp("bench", epoch=1, policy_version=1)
     steps = num_envs * num_steps
     obs_bytes = sum(a.nbytes for n, a in arrays.items() if n.startswith("steps/obs"))
     active = active_slots(size)
     floors = bytes_floors(shapes, num_envs, num_steps, active, spec)
-    actual = len(frame) / steps
+    formats: dict[str, Any] = {}
+    for label, half in (("padded", None), ("compact", False), ("compact_float16", True)):
+        wire = TrajectoryWire(batch, spec.sizes, compact=half is not None, float16=bool(half))
+
+        def send(wire: TrajectoryWire = wire) -> bytearray:
+            return encode_trajectory(stamp, wire.pack(tree_arrays(batch)), seq=1, incarnation=1, actor_index=0,
+                                     layout=wire.format)
+
+        def receive(frame: bytes, wire: TrajectoryWire = wire) -> Any:
+            return wire.checked(decode_trajectory(frame, "bench", len(frame), wire.format).message)
+        frame = bytes(send())
+        for sent, got in zip(jax.tree.leaves(batch), jax.tree.leaves(receive(frame)), strict=True):
+            if not half and not np.array_equal(np.atleast_1d(sent).view(np.uint8), np.atleast_1d(got).view(np.uint8)):
+                raise AssertionError(f"{label}: the batch did not come back bit for bit")
+        formats[label] = {
+            "frame_bytes": len(frame),
+            "bytes_per_step": len(frame) / steps,
+            "ratio_to_compact": len(frame) / steps / floors["compact"],
+            "encode_ms": 1e3 * _median_s(send, repeats),
+            "decode_check_ms": 1e3 * _median_s(lambda frame=frame, receive=receive: receive(frame), repeats),
+        }
     return {
         "measure": "bytes_per_step",
         "size": size,
@@ -250,16 +292,21 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int) -
         "action": "multi_discrete",
         "num_envs": num_envs,
         "num_steps": num_steps,
-        "frame_bytes": len(frame),
-        "bytes_per_step": actual,
+        "frame_bytes": formats["compact"]["frame_bytes"],
+        "bytes_per_step": formats["compact"]["bytes_per_step"],
+        "formats": formats,
         "observation_bytes_per_step": obs_bytes / steps,
         "floor_compact": floors["compact"],
-        "ratio_to_compact": actual / floors["compact"],
+        "ratio_to_compact": formats["compact"]["bytes_per_step"] / floors["compact"],
         "floor_resimulate": floors["resimulate"],
-        "ratio_to_resimulate": actual / floors["resimulate"],
+        "ratio_to_resimulate": formats["compact"]["bytes_per_step"] / floors["resimulate"],
         "active_slots": {k: (round(v, 2) if isinstance(v, float) else v) for k, v in active.items()},
         "note": (
-            "bytes_per_step = encoded frame length / (T*E). floor_compact: the same fields with entity arrays cut "
+            "one batch of a real rollout (random initial weights) on the size's levels; bytes_per_step = encoded "
+            "frame length / (T*E) of the format actors send by default (compact, exact); formats: padded = the "
+            "previous format, compact_float16 = actors.wire_float16. encode_ms = pack + encode, decode_check_ms = "
+            "decode + unpack + schema check + tree_from_arrays, in this process alone (median). floor_compact: "
+            "the same fields with entity arrays cut "
             "to the mean active slots of the size's levels (attention mask over active bodies only), observation "
             "floats as float16, booleans as bits, int arrays unchanged, no header or alignment, bootstrap obs "
             "amortised over T. floor_resimulate: action as one number over all choices "
@@ -564,8 +611,7 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     from impulse.actors.levels import LocalLevels
     from impulse.actors.rollout import rollout, start_rollout
     from impulse.actors.trajectory import make_batch
-    from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash
-    from impulse.bus.codec import decode
+    from impulse.actors.wire import TrajectoryWire, weights_hash
     from impulse.bus.weights import encode_weights
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.pytree import tree_arrays
@@ -611,19 +657,21 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     update_s = _median_s(one_update, repeats)
 
     template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
-    schema = trajectory_schema(template)
+    wire = TrajectoryWire(template, spec.sizes, compact=config.actors.wire_compact,
+                          float16=config.actors.wire_float16)
     run = "bench"
 
     stamp = Stamp(run, epoch=1, policy_version=1)
 
     def actor_encode() -> bytearray:
-        return encode_trajectory(stamp, tree_arrays(batch), seq=1, incarnation=1, actor_index=0)
+        return encode_trajectory(stamp, wire.pack(tree_arrays(batch)), seq=1, incarnation=1, actor_index=0,
+                                 layout=wire.format)
 
     frame = bytes(actor_encode())
     message = decode(frame, run=run, kinds=Kind.TRAJECTORY)
 
     def learner_decode() -> Any:
-        return checked_tree(decode_trajectory(frame, run, len(frame)).message, schema, template)
+        return wire.checked(decode_trajectory(frame, run, len(frame), wire.format).message)
 
     received = learner_decode()
     return {
@@ -738,7 +786,8 @@ def measure_bytes(args: argparse.Namespace, env_info: dict[str, str]) -> None:
     for size in args.bytes_sizes:
         for observation in ("entity", "symbolic"):
             progress(f"bytes per env step: size {size}, {observation} observation ...")
-            emit({**bytes_per_step(size, observation, args.bytes_envs, args.bytes_steps), **env_info})
+            emit({**bytes_per_step(size, observation, args.bytes_envs, args.bytes_steps, args.repeats),
+                  **env_info})
 
 
 def measure_runs(args: argparse.Namespace, config_path: Path, overrides: list[str], config: RunConfig,
@@ -866,10 +915,11 @@ def main(argv: list[str] | None = None) -> int:
               **{k: v for k, v in costs.items() if k != "arrays"},
               "transport_ms": transport,
               "note": ("timed in this process alone at the run's shapes: rollout and ppo_update jitted as the actor "
-                       "and the learner jit them (median of repeats); encode = tree_arrays + encode; decode_check "
-                       "= decode + schema check + tree_from_arrays; transport = put -> received as bytes in "
-                       "another process over zenoh on loopback (benchmarks.bus_copies receiver), one message at a "
-                       "time once zenoh's shared memory is in use; first_messages_ms are the ones before that"),
+                       "and the learner jit them (median of repeats); encode = tree_arrays + pack + encode; "
+                       "decode_check = decode + unpack + schema check + tree_from_arrays; transport = put -> received "
+                       "as bytes in another process over zenoh on loopback (benchmarks.bus_copies receiver), one "
+                       "message at a time once zenoh's shared memory is in use; first_messages_ms are the ones before "
+                       "that"),
               **env_info})
         for result in distributed:
             if fused is not None:

@@ -50,7 +50,7 @@ import json
 import math
 import reprlib
 import struct
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, NamedTuple
@@ -163,6 +163,16 @@ class Rejected(Exception):
         self.detail = detail
 
 
+class Deferred(NamedTuple):
+    """An array `encode` does not copy but has written straight into its place in the frame: `write(out)` fills
+    `out`, a writable [shape] view of `dtype` into the frame. A sender that cuts or converts an array on the way
+    (`actors.wire`) does it in this one pass instead of building the result first and copying it again."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    write: Callable[[np.ndarray], None]
+
+
 @dataclass(frozen=True)
 class Message:
     """A decoded frame. `arrays` are read-only views into the received payload (keep it alive while used)."""
@@ -211,8 +221,8 @@ def encode(
     seq: int = 0,
     meta: Mapping[str, Any] | None = None,
 ) -> bytearray:
-    """One frame holding `arrays` (a flat mapping; see `flatten`), ready to `put`; kinds of DIGESTED_KINDS end
-    with the digest of the frame.
+    """One frame holding `arrays` (a flat mapping; see `flatten`; a value may be a `Deferred`), ready to `put`;
+    kinds of DIGESTED_KINDS end with the digest of the frame.
 
     Each array is copied exactly once, into the frame (non-contiguous or big-endian inputs are converted during
     that copy). Returns the bytearray itself: zenoh accepts it and copies it anyway, so `bytes()` would be waste.
@@ -222,16 +232,16 @@ def encode(
     learner_epoch = _check_range("learner_epoch", learner_epoch, _U32_MAX)
     seq = _check_range("seq", seq, _U64_MAX)
     entries: list[list[Any]] = []
-    copies: list[tuple[np.ndarray, np.dtype, int]] = []
+    copies: list[tuple[np.ndarray | Deferred, np.dtype, int]] = []
     body_len = 0
     for name, value in arrays.items():
         if not isinstance(name, str) or not name:
             raise ValueError(f"array names must be non-empty strings, got {name!r}")
-        array = np.asarray(value)
+        array = value if isinstance(value, Deferred) else np.asarray(value)
         dtype = wire_dtype(array.dtype)
         offset = _aligned(body_len)
-        nbytes = array.size * dtype.itemsize
-        entries.append([name, dtype.str, list(array.shape), offset, nbytes])
+        nbytes = math.prod(array.shape) * dtype.itemsize
+        entries.append([name, dtype.str, [int(d) for d in array.shape], offset, nbytes])
         copies.append((array, dtype, offset))
         body_len = offset + nbytes
     table = json.dumps({"arrays": entries, "meta": dict(meta or {})}, separators=(",", ":"))
@@ -256,8 +266,12 @@ def encode(
     HEADER.pack_into(frame, 0, *header)
     frame[HEADER_SIZE : HEADER_SIZE + len(table_bytes)] = table_bytes
     for array, dtype, offset in copies:
-        if array.size:
-            np.ndarray(array.shape, dtype, buffer=frame, offset=body_start + offset)[...] = array
+        if math.prod(array.shape):
+            out = np.ndarray(array.shape, dtype, buffer=frame, offset=body_start + offset)
+            if isinstance(array, Deferred):
+                array.write(out)
+            else:
+                out[...] = array
     if digested:
         end = body_start + body_len
         frame[end:] = _digest(memoryview(frame)[:end])

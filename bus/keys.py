@@ -31,7 +31,9 @@ from dataclasses import dataclass
 
 SCHEMA_MAJOR = 2
 """Major version of the wire format. Incompatible changes bump it, which changes every key (`v1` -> `v2`).
-2: keys under each role's own prefix, no sender name in frames, digests on control frames."""
+2: keys under each role's own prefix, no sender name in frames, digests on control frames. A change confined to
+one message family's arrays versions that family instead, inside its frames (the trajectories' formats:
+`bus.trajectories`), so that frames of another format still arrive and are refused and counted."""
 
 PREFIX = "impulse"
 """First chunk of every key the system uses."""

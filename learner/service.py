@@ -36,7 +36,7 @@ import jax
 import numpy as np
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
-from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash
+from impulse.actors.wire import TrajectoryWire, weights_hash
 from impulse.bus.codec import Message, Rejected
 from impulse.bus.credits import encode_credit
 from impulse.bus.evaluations import decode_evaluation
@@ -124,9 +124,10 @@ class LearnerService:
 
     def __init__(self, ppo: PPOConfig, learner: LearnerConfig, checkpoint: CheckpointConfig, *, seed: int,
                  num_updates: int, batches_in_flight: int, status_every_s: float, run_dir: Path, config_toml: str,
-                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False):
+                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, wire_compact: bool = False):
         """`num_updates`: the run's length; `batches_in_flight`: the most the actors may have sent unacknowledged
-        (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints."""
+        (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints;
+        `wire_compact`: the actors send the compact trajectory format (`actors.wire_compact`)."""
         self.ppo, self.learner = ppo, learner
         self.config_toml = config_toml
         self.bus = bus
@@ -168,7 +169,8 @@ class LearnerService:
                                                  minibatch_sharding=self.parallel.minibatches),
             self._template,
         )
-        self._schema = trajectory_schema(self._template)
+        self._wire = TrajectoryWire(self._template, agent.spec.sizes, compact=wire_compact)
+        self._schema = self._wire.schema
         self.key = jax.random.PRNGKey(seed + 7 + self.epoch)
 
         keys = bus.keys
@@ -270,8 +272,8 @@ class LearnerService:
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
             try:
                 message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
-                                                         self._max_frame_bytes)
-                batch = checked_tree(message, self._schema, self._template)
+                                                         self._max_frame_bytes, self._wire.format)
+                batch = self._wire.checked(message)
                 stream = (source, incarnation)
                 last = self._last_seq.get(stream)
                 if last is not None and message.seq <= last:

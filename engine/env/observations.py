@@ -73,15 +73,22 @@ def _layout(sizes: SceneSizes) -> _Layout:
     return _Layout(pair_at, pair_at_sym, kept)
 
 
-def symbolic_length(sizes: SceneSizes) -> int:
-    """Length of the flat symbolic vector: 140 / 247 / 679 for Kinetix's S / M / L."""
+def symbolic_rows(sizes: SceneSizes) -> tuple[tuple[int, int], ...]:
+    """The flat symbolic vector as consecutive (rows, features per row) blocks: kept polygons, circles, joints,
+    thrusters, gravity. A row of an inactive entity is all zeros (`actors.wire` sends only the others)."""
     n = sizes.num_bodies
     polygon = BASE_SHAPE_FEATURES + 2 + 2 * sizes.max_polygon_vertices
     circle = BASE_SHAPE_FEATURES + 2
     joint = 8 + 10 + NUM_MOTOR_BINDINGS + 2 * n
     thruster = 6 + NUM_THRUSTER_BINDINGS + n
     kept = len(_layout(sizes).kept_polygons)
-    return kept * polygon + sizes.num_circles * circle + sizes.num_joints * joint + sizes.num_thrusters * thruster + 1
+    return ((kept, polygon), (sizes.num_circles, circle), (sizes.num_joints, joint), (sizes.num_thrusters, thruster),
+            (1, 1))
+
+
+def symbolic_length(sizes: SceneSizes) -> int:
+    """Length of the flat symbolic vector: 140 / 247 / 679 for Kinetix's S / M / L."""
+    return sum(rows * width for rows, width in symbolic_rows(sizes))
 
 
 def _shape_rows(sim: SimState, level: Level, sizes: SceneSizes) -> tuple[Array, Array]:

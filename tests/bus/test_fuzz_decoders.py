@@ -42,7 +42,14 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
-from impulse.actors.wire import TRAJECTORY_FINITE, checked_tree, trajectory_schema, weights_hash, weights_schema
+from impulse.actors.wire import (
+    TRAJECTORY_FINITE,
+    TrajectoryWire,
+    checked_tree,
+    trajectory_schema,
+    weights_hash,
+    weights_schema,
+)
 from impulse.bus.codec import (
     ALIGN,
     DIGEST_SIZE,
@@ -308,11 +315,17 @@ def targets() -> dict[str, Target]:
     traj_max_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape) for spec in traj_schema.arrays.values())
     traj_max_bytes += 1 << 20  # as the learner bounds its frames
     stamp = Stamp(RUN, epoch=1, policy_version=4)  # as each process's bus holds one
-    traj_frames = [
-        encode_trajectory(stamp, tree_arrays(random_like(traj_template, rng)), seq=seq, incarnation=12345 + seq,
-                          actor_index=seq)
-        for seq in (1, 2)
-    ]
+    # Both trajectory formats, as actors send them: padded (the default) and compact (with float16 features too).
+    padded_wire = TrajectoryWire(traj_template, EnvSpec().sizes)
+    compact_wire = TrajectoryWire(traj_template, EnvSpec().sizes, compact=True)
+
+    def traj_frame(wire: TrajectoryWire, seq: int) -> bytearray:
+        return encode_trajectory(stamp, wire.pack(tree_arrays(random_like(traj_template, rng))), seq=seq,
+                                 incarnation=12345 + seq, actor_index=seq, layout=wire.format)
+
+    padded_frames = [traj_frame(padded_wire, seq) for seq in (1, 2)]
+    traj_frames = [traj_frame(compact_wire, 3),
+                   traj_frame(TrajectoryWire(traj_template, EnvSpec().sizes, compact=True, float16=True), 4)]
 
     params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
     weights_frames = []
@@ -378,11 +391,17 @@ def targets() -> dict[str, Target]:
 
     listed = [
         target("trajectory", Kind.TRAJECTORY,
-               lambda data: checked_tree(decode_trajectory(data, RUN, traj_max_bytes).message, traj_schema,
-                                         traj_template),
+               lambda data: compact_wire.checked(decode_trajectory(data, RUN, traj_max_bytes,
+                                                                   compact_wire.format).message),
                check_tree(traj_template, lambda name: any(name == f or name.startswith(f + "/")
                                                           for f in TRAJECTORY_FINITE)),
                content),
+        Target("trajectory_padded", tuple(bytes(frame) for frame in padded_frames),
+               lambda data: padded_wire.checked(decode_trajectory(data, RUN, traj_max_bytes,
+                                                                  padded_wire.format).message),
+               check_tree(traj_template, lambda name: any(name == f or name.startswith(f + "/")
+                                                          for f in TRAJECTORY_FINITE)),
+               (Rejected,), content, others(Kind.TRAJECTORY)),
         target("weights", Kind.WEIGHTS,
                lambda data: checked_tree(decode_weights(data, RUN).message, weights_schema(params_template),
                                          params_template),
