@@ -17,21 +17,10 @@ import sys
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from impulse.monitor.runs import (
-    AXES,
-    MISSING,
-    Axis,
-    RunError,
-    RunSummary,
-    check_metrics,
-    config_diff,
-    default_metrics,
-    plot_runs,
-    read_runs,
-    summarise,
-)
+if TYPE_CHECKING:
+    from impulse.monitor.runs import Axis, RunSummary
 
 EXIT_USAGE = 2
 
@@ -42,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                         help="a metrics.jsonl column to compare (repeatable; default: solve_rate, and eval/mean when "
                         "a run has it)")
-    parser.add_argument("--by", choices=AXES, default="env_steps",
+    parser.add_argument("--by", default="env_steps", metavar="env_steps|time_s|update",
                         help="the x axis of --plot and where the best value is placed (default: env_steps; time_s "
                         "counts seconds since each run's first update)")
     parser.add_argument("--threshold", type=float, metavar="VALUE",
@@ -52,6 +41,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, _config: object = None) -> int:
+    # Loaded here, not with the CLI: the services' entry points import no monitor code but its config section.
+    from impulse.monitor.runs import (
+        AXES,
+        RunError,
+        check_metrics,
+        config_diff,
+        default_metrics,
+        plot_runs,
+        read_runs,
+        summarise,
+    )
+
+    if args.by not in AXES:
+        print(f"impulse compare: --by must be one of {', '.join(AXES)}, got {args.by!r}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         runs = read_runs(args.runs)
         metrics = list(dict.fromkeys(args.metrics)) if args.metrics else default_metrics(runs)
@@ -78,6 +82,8 @@ def as_json(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, t
             diff: dict[str, list[Any]], labels: Sequence[str]) -> dict[str, Any]:
     """The comparison as JSON-ready data: the options, one object per run, and {key: {label: value}} of the config
     differences (null where a run's config lacks the key)."""
+    from impulse.monitor.runs import MISSING
+
     return {
         "metrics": list(metrics), "by": by, "threshold": threshold,
         "runs": [asdict(summary) for summary in summaries],
@@ -140,6 +146,8 @@ def table(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, thr
 
 def diff_table(diff: dict[str, list[Any]], labels: Sequence[str]) -> str:
     """The config keys whose values differ, one line each with every run's value."""
+    from impulse.monitor.runs import MISSING
+
     if not diff:
         return "config: no differences (name and run_dir aside)" if len(labels) > 1 else "config: one run"
     rows = [[key, *("(absent)" if v is MISSING else toml_value(v) for v in values)] for key, values in diff.items()]

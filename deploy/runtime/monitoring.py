@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Any
 
 from impulse.deploy.config import config_to_toml
 from impulse.deploy.run_config import RunConfig
-from impulse.monitor.scalars import ScalarSink, check_sinks, open_sinks
 
 if TYPE_CHECKING:
+    from impulse.monitor.scalars import ScalarSink
     from impulse.monitor.stream import Monitor
 
 STATUS_EVERY_S = 2.0
@@ -136,6 +136,8 @@ def scalar_sinks_for(config: RunConfig, run_dir: Path) -> Callable[[int], list[S
     """The run loop's `scalar_sinks` for a process writing `run_dir`'s metrics.jsonl: TensorBoard and W&B as
     `config.monitor` says, W&B with the resolved config. Checks first what they need (`ScalarSinkError`), so that a
     missing W&B client stops the process before its run starts."""
+    from impulse.monitor.scalars import check_sinks, open_sinks  # loaded with the run, not with the CLI
+
     check_sinks(config.monitor)
     resolved = tomllib.loads(config_to_toml(config))
 

@@ -30,11 +30,13 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from impulse.bus.service import Service
 from impulse.deploy.runtime.progress import MetricsFile, ProgressLine
-from impulse.monitor.scalars import ScalarSink
+
+if TYPE_CHECKING:
+    from impulse.monitor.scalars import ScalarSink
 
 log = logging.getLogger("impulse.run")
 

@@ -138,3 +138,5 @@ def test_clear_errors(runs, tmp_path, capsys):
     error = one_line_error(capsys, *runs, "--metric", "solve_rat")
     assert "no run has the column 'solve_rat' (did you mean solve_rate" in error
     assert "eval/mean" in error and "queue" in error and "reward_per_step" in error, error
+    assert "--by must be one of env_steps, time_s, update, got 'steps'" in one_line_error(capsys, *runs, "--by",
+                                                                                          "steps")
