@@ -31,7 +31,7 @@ def same_bits(sent, got, what: str = "") -> None:
 STAMP = Stamp(RUN, epoch=1, policy_version=3)
 
 
-def real_batch(observation: str, size: str = "m", num_envs: int = 6, num_steps: int = 5):
+def real_batch(observation: str, size: str = "s", num_envs: int = 6, num_steps: int = 5):
     """A batch from a real rollout of the hand-made levels of `size` (random initial weights)."""
     spec = EnvSpec(sizes=size_preset(size), observation=observation, action="multi_discrete")
     agent = make_agent(NetworkConfig(kind="entity" if observation == "entity" else "flat", width=16, depth=1,

@@ -30,7 +30,7 @@ from tests.support.launch_procs import QUICK_LAUNCH, free_port
 pytestmark = pytest.mark.heavy
 
 RUN = "batch-sfl-test"
-CANDIDATES, ATTEMPTS, BUFFER, EVERY = 32, 2, 8, 4
+CANDIDATES, ATTEMPTS, BUFFER, EVERY = 16, 2, 8, 4
 
 
 def cycle_until(service: CurriculumService, condition, timeout_s: float, what: str) -> None:
@@ -46,7 +46,7 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
         f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
         f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
         f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
-        "ppo.num_envs=8"])
+        "ppo.num_envs=8", "network.width=16", "network.depth=1"])  # a small network: the test is about the service
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
     params = agent.init(jax.random.PRNGKey(0))
