@@ -426,7 +426,33 @@ def _is_abandoned_read(unraisable: Any) -> bool:
     if isinstance(error, RuntimeError) and str(error) == "Event loop is closed":
         return True  # a tensorstore read completing after orbax closed its event loop
     return (getattr(unraisable.object, "__qualname__", "") == "_read_array_index_and_device_put"
-            or str(error).startswith("Encountered error while reading array index"))
+            or _is_failed_array_read(error))
+
+
+def _is_failed_array_read(error: BaseException | None) -> bool:
+    """Orbax's wrapper around one failed read of a device array's index (its message is all that tells it)."""
+    return error is not None and str(error).startswith("Encountered error while reading array index")
+
+
+class _AbandonedReadTaskFilter(logging.Filter):
+    """Drops asyncio's 'Task exception was never retrieved' report (an error with a traceback) for an abandoned
+    array read: the task of a read orbax gave up on is collected whenever the garbage collector gets to it, so this
+    can come after `_quiet_abandoned_reads` has closed, and the corrupt checkpoint has already been described by
+    one warning. Every other asyncio record passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        return not (_is_failed_array_read(error) and "never retrieved" in str(record.msg))
+
+
+def _install_asyncio_filter() -> None:
+    """Attach `_AbandonedReadTaskFilter` to the `asyncio` logger once per process."""
+    asyncio_log = logging.getLogger("asyncio")
+    if not any(isinstance(f, _AbandonedReadTaskFilter) for f in asyncio_log.filters):
+        asyncio_log.addFilter(_AbandonedReadTaskFilter())
+
+
+_install_asyncio_filter()
 
 
 def _read_error(err: BaseException) -> BaseException | None:
