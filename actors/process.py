@@ -13,6 +13,11 @@ One cycle (driven by the shared run loop):
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
 
+Starting. Before its first cycle the actor fetches its first level batch, resets its environments on it and compiles
+its rollout ahead of time, then checks the compiled program against the memory free (`engine.memory.check_fits`):
+one that does not fit is refused with the sizes and an override (`impulse actor` then exits with the status that
+makes `impulse launch` give up at once), instead of being killed by the kernel in its first rollout.
+
 Weights. The actor follows the learner (`actors.follow.LearnerFollower`): it adopts only intact, strictly newer
 weights of its network (a restarted learner's new epoch excepted), ignores repeats and refuses replays.
 
@@ -56,6 +61,7 @@ from impulse.bus.trajectories import encode_trajectory
 from impulse.curriculum.results import LevelResults
 from impulse.curriculum.wire import results_arrays
 from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.memory import check_fits
 from impulse.engine.pytree import tree_arrays
 from impulse.monitor.config import MonitorConfig
 
@@ -118,12 +124,15 @@ class Actor:
         spec, steps = agent.spec, self.num_steps
         monitor_config = monitor_config or MonitorConfig()
         self.watch = min(monitor_config.watch_envs, self.num_envs) if monitor is not None else 0
-        self._rollout = jax.jit(
-            lambda params, carry, batch: rollout(agent.act, params, spec, env_params, carry, batch.levels, steps,
-                                                 batch.train, self.watch),
-            donate_argnums=1,
-        )
-        self.follow = LearnerFollower(bus, jax.eval_shape(agent.init, jax.random.PRNGKey(0)))
+        watch = self.watch
+
+        def actor_rollout(params: Any, carry: RolloutCarry, batch: Any) -> Any:
+            return rollout(agent.act, params, spec, env_params, carry, batch.levels, steps, batch.train, watch)
+
+        # Compiled ahead of time by `start`, which checks that it fits in memory; `jit` then reuses that program.
+        self._rollout = jax.jit(actor_rollout, donate_argnums=1)
+        self._params_template = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
+        self.follow = LearnerFollower(bus, self._params_template)
 
         keys = bus.keys
         self._traj = bus.publisher(keys.traj(self.name))
@@ -271,8 +280,9 @@ class Actor:
         return not self._stop_requested
 
     def start(self) -> None:
-        """Fetch the first level batch (from the curriculum service, waiting for it as long as no stop is asked)
-        and reset the environments on it."""
+        """Fetch the first level batch (from the curriculum service, waiting for it as long as no stop is asked),
+        reset the environments on it, and compile the rollout and check that it fits in memory (`DoesNotFit`,
+        naming the sizes and an override that would fit), before the actor waits for weights and takes levels."""
         self.key, level_key, rollout_key = jax.random.split(self.key, 3)
         first = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
         if first is None:  # only a stop request ends a wait without levels
@@ -282,6 +292,16 @@ class Actor:
         rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
         level_results = self.level_results
         self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
+        self._compile_rollout(first)
+
+    def _compile_rollout(self, batch: Any) -> None:
+        """Compile the rollout for the weights' shapes, the carry and a level batch like `batch` (the program the
+        first cycle runs: `jit` reuses it), and refuse it when it needs more memory than this device has free."""
+        log.info("compiling the rollout (%s envs x %s steps) ...", self.num_envs, self.num_steps)
+        started = time.perf_counter()
+        compiled = self._rollout.lower(self._params_template, self.carry, batch).compile()
+        log.info("compiled the rollout in %.1f s", time.perf_counter() - started)
+        check_fits(compiled, f"{self.name}'s rollout", self.num_envs, self.num_steps)
 
     def cycle(self) -> CycleReport | None:
         self._publish_status_if_due()

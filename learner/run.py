@@ -25,13 +25,13 @@ from impulse.curriculum.stats import buffer_summary
 from impulse.engine.env.spec import EnvParams, env_from_config
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
+from impulse.engine.memory import DoesNotFit, check_fits, warn_if_gpu_sized
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.learner.agent import Agent, make_agent
 from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError, Restored
 from impulse.learner.config import TrainingSetup
 from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
-from impulse.learner.memory import DoesNotFit, check_fits, warn_if_gpu_sized
 from impulse.learner.networks import describe_parameters
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import LevelSets, evaluation_columns, format_scores, load_level_sets, score_policy

@@ -48,12 +48,12 @@ from impulse.bus.trajectories import decode_trajectory
 from impulse.bus.weights import encode_weights
 from impulse.engine.env.spec import EnvParams
 from impulse.engine.levels.level import level_from_scene, stack_levels
+from impulse.engine.memory import check_fits, warn_if_gpu_sized
 from impulse.engine.physics.building import empty_scene
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
-from impulse.learner.memory import check_fits, warn_if_gpu_sized
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices

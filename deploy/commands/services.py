@@ -78,8 +78,8 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.bus.session import Bus
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
+    from impulse.engine.memory import DoesNotFit
     from impulse.learner.agent import make_agent
-    from impulse.learner.memory import DoesNotFit
     from impulse.learner.run import final_evaluation
     from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
 
@@ -157,6 +157,7 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.levels.sets import LevelSetError
+    from impulse.engine.memory import DoesNotFit
     from impulse.learner.agent import make_agent
     from impulse.learner.curriculum_inputs import batch_level_results
 
@@ -182,5 +183,9 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
         log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
                  config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)
         on_cycle = MetricsLogger(monitor, actor.name, actor.status) if monitor is not None else None
-        run_loop(actor, LoopOptions(on_cycle=on_cycle))
+        try:
+            run_loop(actor, LoopOptions(on_cycle=on_cycle))
+        except DoesNotFit as err:  # the launcher gives up on this exit status at once: no restart can fit
+            print(f"impulse actor: {err}", file=sys.stderr)
+            return EXIT_CANNOT_RUN
     return 0

@@ -24,7 +24,7 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
-from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 
 log = logging.getLogger("impulse.train")
 
@@ -119,7 +119,7 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
     if opened is None:
         return EXIT_USAGE
     config, run_dir = opened
-    run_dir.mkdir(parents=True, exist_ok=True)
+    created = create_run_dir(run_dir) and args.resume is None
     write_resolved_config(config, run_dir)
     log.info("run directory %s", run_dir)
     try:
@@ -127,6 +127,8 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
                             stop_after_updates=args.updates, init_from=init_from)
     except RunError as err:
         print(f"impulse train: {err}", file=sys.stderr)
+        if created and remove_unstarted_run(run_dir, run_dir / config.checkpoint.directory):
+            print(f"impulse train: removed {run_dir}, created for this run: nothing was trained", file=sys.stderr)
         return EXIT_FAILED
     log.info(
         "done: %d updates, %s env steps, %.0f env steps/s (rollout and update, after compiling), compile %.1f s",

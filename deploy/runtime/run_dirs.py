@@ -4,11 +4,16 @@ A command is given either a run directory (`--run RUN_DIR` for the services and 
 RUN_DIR` for `impulse train` and `impulse launch`), whose `config.toml` is read with the command line's
 `key=value` overrides on top, or a configuration resolved from `--config FILE` and the overrides, whose `run_dir`
 is the run directory. `--connect ENDPOINT` replaces `bus.connect` either way.
+
+A new run that is refused before it trains (its update does not fit in memory, its levels do not load) takes back
+the run directory it created (`create_run_dir`, `remove_unstarted_run`), so a failed try leaves no directory that
+looks like a run but holds none; a directory that was there before, or that holds checkpoints, is never removed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,6 +21,7 @@ from typing import Any
 
 from impulse.deploy.config import ConfigError, load_run_config, resolve_config
 from impulse.deploy.run_config import RunConfig
+from impulse.learner.run_directory import holds_checkpoints
 
 
 class RunSetupError(Exception):
@@ -55,3 +61,21 @@ def open_run_for(command: str, config: RunConfig | None, **where: Any) -> tuple[
     except RunSetupError as err:
         print(f"impulse {command}: {err}", file=sys.stderr)
         return None
+
+
+def create_run_dir(run_dir: Path) -> bool:
+    """Make `run_dir` (and the folders above it) if it is not there; whether this call made it, which is what
+    allows `remove_unstarted_run` to take it back after a refusal."""
+    created = not run_dir.exists()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return created
+
+
+def remove_unstarted_run(run_dir: Path, checkpoints: Path) -> bool:
+    """Remove `run_dir`, made by this command (`create_run_dir`) for a new run that was refused before it trained,
+    with all it holds (config.toml, an empty metrics.jsonl); never when `checkpoints`, its checkpoint directory,
+    holds a step. Only `run_dir` goes, not the folders made above it. Returns whether it is gone."""
+    if holds_checkpoints(checkpoints):
+        return False
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return not run_dir.exists()

@@ -11,8 +11,8 @@ fails GIVE_UP_AFTER times in a row the same way (the same exit code and error li
 STABLE_AFTER_S of its start) is not restarted: the same start-up will fail again, and a crash loop only hides the
 error. Failures are non-zero exit statuses and crash signals (SIGSEGV, SIGABRT, ...); SIGKILL, SIGTERM, SIGINT
 and SIGHUP come from outside (a user, a test, the OOM killer) and never count towards giving up. A child that
-exits with EXIT_CANNOT_RUN has said its configuration cannot run on this machine (a training step that does not
-fit in memory): it is given up on at once, however long it took to find out.
+exits with EXIT_CANNOT_RUN has said its configuration cannot run on this machine (an update or a rollout that does
+not fit in memory): it is given up on at once, however long it took to find out.
 """
 
 from __future__ import annotations

@@ -1,19 +1,24 @@
-"""A training step that does not fit is refused after compiling, before it runs (learner/memory.py): XLA's own
-account of the compiled program against the memory free, with the overrides that would fit; in `impulse train`
-and in the learner service of `impulse launch`."""
+"""A program that does not fit is refused after compiling, before it runs (engine/memory.py): XLA's own account of
+the compiled program against the memory free, with the overrides that would fit; the training step of `impulse
+train`, and the learner service's update and an actor's rollout in `impulse launch`."""
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import pytest
+from impulse.actors.levels import LocalLevels
+from impulse.actors.process import ACTOR_ROLE, Actor, actor_name
 from impulse.bus.session import Bus
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
+from impulse.engine import memory
 from impulse.engine.env.spec import env_from_config
-from impulse.learner import memory
+from impulse.engine.memory import DoesNotFit, check_fits, free_bytes, program_bytes
 from impulse.learner.agent import make_agent
-from impulse.learner.memory import DoesNotFit, check_fits, free_bytes, program_bytes
+from impulse.learner.curriculum_inputs import batch_level_results
 from impulse.learner.service import LearnerService
 
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
@@ -57,3 +62,51 @@ def test_the_learner_refuses_an_update_that_does_not_fit(tmp_path, monkeypatch) 
                 service.start()
         finally:
             service.close()
+
+
+class CompileCounter:
+    """How often JAX lowered a function of a given name for compiling (each new program is lowered once, whether
+    XLA then compiles it or finds it in the persistent cache)."""
+
+    def __init__(self, name: str):
+        self.fun_name, self.count = f"jit({name})", 0
+
+    def __call__(self, event: str, duration: float, **kwargs) -> None:
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration" and kwargs.get("fun_name") == self.fun_name:
+            self.count += 1
+
+
+def test_an_actor_refuses_a_rollout_that_does_not_fit_and_compiles_it_only_once(monkeypatch) -> None:
+    """An actor compiles its rollout when it starts and checks it the same way (here against 4 KiB free), so
+    `impulse launch` at GPU sizes on a CPU stops its actors with the sizes (and gives up on them at once: exit
+    status 78). With room, the first rollout runs the program `start` compiled: no second compile."""
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", "ppo.num_envs=8",
+                                                      "ppo.num_steps=8", "network.width=16", "network.depth=1"])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    counter = CompileCounter("actor_rollout")
+    jax.monitoring.register_event_duration_secs_listener(counter)
+    try:
+        with Bus(config.bus, "memory-test", ACTOR_ROLE, actor_name(0), listen=True) as bus:
+
+            def new_actor() -> Actor:
+                return Actor(config.actors, num_envs=8, num_steps=8, seed=0, index=0, bus=bus, agent=agent,
+                             env_params=env_params, levels=LocalLevels(config.env, spec.sizes),
+                             level_results=partial(batch_level_results, agent, config.ppo))
+
+            with monkeypatch.context() as patched:
+                patched.setattr(memory, "free_bytes", lambda device=None: 2**12)
+                with pytest.raises(DoesNotFit, match=r"actor-0's rollout needs about .* \(8 envs x 8 steps per "
+                                                     r"update\), more than 80% of the 0\.0 GiB free.*ppo\.num_envs="):
+                    new_actor().start()
+            assert counter.count == 1
+
+            actor = new_actor()  # the same sizes, with room: the first rollout runs the program `start` compiled
+            actor.start()
+            assert counter.count == 2
+            actor.follow.params = agent.init(jax.random.PRNGKey(1))  # as if the learner's first weights had come
+            report = actor.cycle()
+            assert report is not None and report.env_steps == 64
+            assert counter.count == 2, "the first rollout compiled its program again"
+    finally:
+        jax.monitoring.unregister_event_duration_listener(counter)

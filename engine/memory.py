@@ -1,6 +1,9 @@
-"""Does a compiled training step fit in the memory it will run in? XLA knows what a compiled program holds at once
-(its arguments, outputs and temporaries, `Compiled.memory_analysis`), so a configuration sized for a GPU can be
-refused with a number and an override before it runs, instead of being killed by the kernel minutes later.
+"""Does a compiled program fit in the memory it will run in? XLA knows what a compiled program holds at once (its
+arguments, outputs and temporaries, `Compiled.memory_analysis`), so a configuration sized for a GPU can be refused
+with a number and an override before it runs, instead of being killed by the kernel minutes later. Every process
+that compiles a program sized by `ppo.num_envs` x `ppo.num_steps` checks it here: the fused trainer's training step
+(`impulse train`), the learner service's update and an actor's rollout (`impulse launch`). In the engine, the
+bottom room, so that each of them can use it (it needs only JAX).
 
 What is compared: the program's peak (arguments + outputs + temporaries, less the buffers its outputs reuse) against
 the memory free on the device it runs on: on a GPU the allocator's limit, on a CPU the host's available memory
@@ -19,11 +22,11 @@ import jax
 log = logging.getLogger(__name__)
 
 MARGIN = 0.8
-"""Share of the free memory a training step may take."""
+"""Share of the free memory one compiled program may take."""
 
 
 class DoesNotFit(ValueError):
-    """The compiled step needs more memory than the device has free (the message says how much, and what to set)."""
+    """A compiled program needs more memory than the device has free (the message says how much, and what to set)."""
 
 
 def program_bytes(compiled: Any) -> int | None:
@@ -61,8 +64,9 @@ def free_bytes(device: jax.Device | None = None) -> int | None:
 
 
 def check_fits(compiled: Any, what: str, num_envs: int, num_steps: int, free: int | None = None) -> None:
-    """Raise `DoesNotFit` when `compiled` (a step over `num_envs` x `num_steps` env steps) needs more than
-    `MARGIN` of the free memory (`free_bytes()` unless given), naming the sizes and the overrides that would fit."""
+    """Raise `DoesNotFit` when `compiled` (`what`, e.g. "the training step": a program over `num_envs` x
+    `num_steps` env steps) needs more than `MARGIN` of the free memory (`free_bytes()` unless given), naming the
+    sizes, the memory needed and free, and the override that would fit."""
     need = program_bytes(compiled)
     free = free_bytes() if free is None else free
     if need is None or free is None:
