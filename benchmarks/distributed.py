@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
 import os
 import shutil
@@ -229,9 +230,11 @@ def bytes_floors(arrays: dict[str, tuple[tuple[int, ...], np.dtype]], num_envs: 
     }
 
 
-def _rollout_batch(size: str, observation: str, num_envs: int, num_steps: int) -> tuple[EnvSpec, Any]:
+@functools.cache
+def rollout_batch(size: str, observation: str, num_envs: int, num_steps: int) -> tuple[EnvSpec, Any]:
     """A batch of a real rollout on the size's levels (random initial weights, multi-discrete actions), on the
-    host: what an actor would send."""
+    host: what an actor would send. Kept per arguments for the process (the wire format's tests use the same one:
+    a rollout is compiled once)."""
     from impulse.actors.rollout import rollout, start_rollout
     from impulse.actors.trajectory import make_batch
     from impulse.engine.levels.level import stack_levels
@@ -256,7 +259,7 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int, r
     tree_from_arrays) are timed here alone, median of `repeats`."""
     from impulse.actors.wire import TrajectoryWire
 
-    spec, batch = _rollout_batch(size, observation, num_envs, num_steps)
+    spec, batch = rollout_batch(size, observation, num_envs, num_steps)
     arrays = tree_arrays(batch)
     shapes = {name: (tuple(a.shape), np.dtype(a.dtype)) for name, a in arrays.items()}
     stamp = Stamp("bench", epoch=1, policy_version=1)

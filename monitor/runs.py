@@ -227,15 +227,19 @@ def check_metrics(runs: Sequence[Run], metrics: Sequence[str]) -> None:
             raise RunError(f"no run has the column {metric!r}{hint}; their columns: {', '.join(sorted(present))}")
 
 
-def _number(value: Any) -> float | None:
+def finite_number(value: Any) -> float | int | None:
+    """A finite int or float from a Python, numpy or JAX scalar; None for anything else (NaN, text, bools). What
+    counts as a metric value, for `impulse compare` and for the scalar sinks (`monitor.scalars`) alike."""
+    if hasattr(value, "item") and getattr(value, "size", 1) == 1:
+        value = value.item()
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
-    return float(value) if math.isfinite(value) else None
+    return value if math.isfinite(value) else None
 
 
 def elapsed_s(run: Run) -> list[float]:
     """Seconds since the first row, for each row (the rows' `time_s` are Unix seconds)."""
-    times = [_number(row.get("time_s")) for row in run.rows]
+    times = [finite_number(row.get("time_s")) for row in run.rows]
     start = next((t for t in times if t is not None), 0.0)
     return [t - start if t is not None else math.nan for t in times]
 
@@ -252,7 +256,7 @@ def curve(run: Run, metric: str, by: Axis) -> tuple[list[float], list[float]]:
     a value, such as a solve rate of a batch where no episode ended, are left out rather than broken into gaps)."""
     xs, ys = [], []
     for x, row in zip(axis_values(run, by), run.rows):
-        y = _number(row.get(metric))
+        y = finite_number(row.get(metric))
         if y is not None and math.isfinite(x):
             xs.append(x)
             ys.append(y)
@@ -269,7 +273,7 @@ def summarise_metric(run: Run, metric: str, by: Axis = "env_steps", threshold: f
     if threshold is None:
         return summary
     for row, seconds in zip(run.rows, elapsed_s(run)):
-        value = _number(row.get(metric))
+        value = finite_number(row.get(metric))
         if value is not None and value >= threshold:
             return MetricSummary(summary.final, summary.best, summary.best_at, int(row.get("env_steps") or 0),
                                  seconds, int(row["update"]))
@@ -282,7 +286,7 @@ def summarise(run: Run, metrics: Sequence[str], by: Axis = "env_steps",
     metric's summary."""
     last = run.rows[-1]
     env_steps = int(last.get("env_steps") or 0)
-    total = _number(run.config.get("total_env_steps"))
+    total = finite_number(run.config.get("total_env_steps"))
     times = [t for t in elapsed_s(run) if math.isfinite(t)]
     return RunSummary(
         label=run.label, path=str(run.path), mode=run.mode, updates=int(last["update"]), env_steps=env_steps,

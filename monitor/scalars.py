@@ -21,14 +21,13 @@ a sink opens and wandb (an optional extra) only when its project is set.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from impulse.monitor.config import MonitorConfig
-from impulse.monitor.runs import read_metrics
+from impulse.monitor.runs import finite_number, read_metrics
 
 if TYPE_CHECKING:
     from tensorboardX import SummaryWriter
@@ -55,20 +54,11 @@ class ScalarSink(Protocol):
     def close(self) -> None: ...
 
 
-def _number(value: Any) -> float | int | None:
-    """A finite int or float from a Python, numpy or JAX scalar; None for anything else (NaN, text, bools)."""
-    if hasattr(value, "item") and getattr(value, "size", 1) == 1:
-        value = value.item()
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return value if math.isfinite(value) else None
-
-
 def scalar_columns(record: Mapping[str, Any]) -> dict[str, float | int]:
     """The columns of a metrics row that become scalars: every finite number but the step and wall-time columns."""
     columns = {}
     for key, value in record.items():
-        number = _number(value)
+        number = finite_number(value)
         if number is not None and key not in (STEP_COLUMN, WALL_TIME_COLUMN):
             columns[key] = number
     return columns
@@ -78,10 +68,10 @@ def write_scalars(writer: SummaryWriter, record: Mapping[str, Any]) -> bool:
     """Write one metrics row to an event file: each of its `scalar_columns` at step `env_steps` and wall time
     `time_s`, then flush, so a killed process loses no more than `metrics.jsonl` does. False (nothing written) for
     a row without `env_steps`."""
-    step = _number(record.get(STEP_COLUMN))
+    step = finite_number(record.get(STEP_COLUMN))
     if step is None:
         return False
-    walltime = _number(record.get(WALL_TIME_COLUMN))
+    walltime = finite_number(record.get(WALL_TIME_COLUMN))
     for tag, value in scalar_columns(record).items():
         writer.add_scalar(tag, value, global_step=int(step), walltime=walltime)
     writer.flush()
@@ -144,7 +134,7 @@ class WandbSink:
                               dir=str(run_dir))
 
     def write(self, record: Mapping[str, Any]) -> None:
-        step = _number(record.get(STEP_COLUMN))
+        step = finite_number(record.get(STEP_COLUMN))
         if step is not None:
             self.run.log(scalar_columns(record), step=int(step))
 

@@ -1,11 +1,13 @@
 """metrics.jsonl rows as TensorBoard scalars (`monitor.scalars`), read back with TensorBoard's own reader: each
 numeric column one tag at step env_steps and wall time time_s; a resumed run's event file hides the points past
 its checkpoint that an earlier process wrote; `impulse tensorboard` writes from a metrics.jsonl exactly what the
-live run wrote; a W&B project without the W&B client stops `impulse train`, `impulse learner` and `impulse launch`
-before anything starts, naming the key and the install command."""
+live run wrote. W&B offline holds the run's name, config and rows; a W&B project without the W&B client stops
+`impulse train`, `impulse learner` and `impulse launch` before anything starts, naming the key and the install
+command."""
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -15,13 +17,14 @@ import pytest
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.monitoring import scalar_sinks_for
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.deploy.runtime.progress import MetricsFile
 from impulse.monitor.scalars import TENSORBOARD_DIR, TensorBoardSink, event_files
 from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
 
 from tests.support.launch_procs import free_port
-from tests.support.scalars import expected_points, metrics_rows, tensorboard_points
+from tests.support.scalars import expected_points, metrics_rows, tensorboard_points, wandb_run
 
 
 def _row(update: int, value: float) -> dict:
@@ -96,3 +99,23 @@ def test_wandb_without_its_client_stops_before_the_run(tmp_path: Path, capsys: p
                                                   f"bus.hub=tcp/127.0.0.1:{free_port()}"])
     with pytest.raises(PreflightError, match=r"monitor\.wandb_project.*impulse\[wandb\]"):
         run_preflight(config, tmp_path / "launch", resume=False, curriculum_service=False)
+
+
+def test_wandb_offline_holds_the_runs_name_config_and_every_row(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # The sinks a run opens (`scalar_sinks_for`), W&B offline: it writes its run file and contacts no server.
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path / "wandb-home"))
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    config = resolve_config(RunConfig, overrides=["name=quick-cpu", "ppo.num_envs=32", "monitor.tensorboard=false",
+                                                  "monitor.wandb_project=impulse-tests"])
+    [sink] = scalar_sinks_for(config, tmp_path)(0)
+    rows = [{**_row(update, 0.1 * update), "episode_return": 0.2 * update} for update in (1, 2, 3)]
+    for row in rows:
+        sink.write(row)
+    sink.close()
+    run, logged = wandb_run(tmp_path / "wandb")
+    assert run.display_name == run.run_group == "quick-cpu" and run.project == "impulse-tests"
+    logged_config = {item.key: json.loads(item.value_json) for item in run.config.update}
+    assert logged_config["ppo"]["num_envs"] == 32 and logged_config["name"] == "quick-cpu", logged_config
+    assert logged == expected_points(rows, precision=float)
