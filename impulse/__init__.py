@@ -2,10 +2,10 @@
 physics engine.
 
 The one import name of the project: its rooms are `impulse.engine`, `impulse.bus`, `impulse.curriculum`,
-`impulse.monitor`, `impulse.actors`, `impulse.learner`, `impulse.deploy` and `impulse.benchmarks`
-(docs/architecture.md). In the repository they are the top-level folders, mapped under this package by the
-installation (pyproject.toml's `package-dir`); run from a checkout without installing (a lent GPU machine), this
-package finds them beside itself.
+`impulse.monitor`, `impulse.actors`, `impulse.learner`, `impulse.studio`, `impulse.deploy` and
+`impulse.benchmarks` (docs/architecture.md). In the repository they are the top-level folders, mapped under this
+package by the installation (pyproject.toml's `package-dir`); run from a checkout without installing (a lent GPU
+machine), this package finds them beside itself.
 
 The public face, imported on first use so that `import impulse` stays light: `make_env` and `Env` (the environment
 as a library, `impulse.engine.env.api`), `RunConfig` (the run configuration, `impulse.deploy.run_config`),

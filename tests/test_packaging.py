@@ -17,7 +17,7 @@ from tests.support.paths import REPO
 
 pytestmark = pytest.mark.heavy
 
-ROOMS = ("engine", "bus", "curriculum", "monitor", "actors", "learner", "deploy", "benchmarks")
+ROOMS = ("engine", "bus", "curriculum", "monitor", "actors", "learner", "studio", "deploy", "benchmarks")
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +44,7 @@ def test_the_wheel_holds_impulse_alone_with_every_package(wheel: Path) -> None:
                 for room in ROOMS for path in (REPO / room).rglob("__init__.py")}
     assert expected - set(names) == set(), "packages missing from pyproject.toml's [tool.setuptools] packages"
     assert "impulse/engine/levels/handmade/s_easy_car_right.json" in names
+    assert {f"impulse/studio/static/{name}" for name in ("index.html", "app.js", "style.css")} <= set(names)
     entry = next(name for name in names if name.endswith("entry_points.txt"))
     assert "impulse = impulse.deploy.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-OURS = {"engine", "actors", "learner", "curriculum", "bus", "monitor", "deploy", "benchmarks"}
+OURS = {"engine", "actors", "learner", "curriculum", "bus", "monitor", "studio", "deploy", "benchmarks"}
 PACKAGE = "impulse"
 
 
@@ -68,7 +68,7 @@ def _violations(files: list[Path], allowed) -> dict[str, list[str]]:
     return bad
 
 
-LEVELS = {"engine": 0, "bus": 1, "curriculum": 2, "monitor": 2, "actors": 3, "learner": 4, "deploy": 5}
+LEVELS = {"engine": 0, "bus": 1, "curriculum": 2, "monitor": 2, "actors": 3, "learner": 4, "studio": 5, "deploy": 6}
 """How high each room stands: a room imports only rooms of a lower level (and itself). The benchmarks stand beside
 `deploy` (they may import everything but its commands)."""
 
@@ -124,6 +124,14 @@ RULES = {
     "monitor imports only engine, bus and monitor": (
         ("monitor/**/*.py",),
         lambda n: _within(n, "engine", "bus", "monitor"),
+    ),
+    "studio imports only engine, bus, curriculum, monitor, learner and studio": (
+        ("studio/**/*.py",),
+        lambda n: _within(n, "engine", "bus", "curriculum", "monitor", "learner", "studio"),
+    ),
+    "nothing but deploy and tests imports studio": (
+        tuple(f"{room}/**/*.py" for room in sorted(OURS - {"deploy", "studio"})),
+        lambda n: not _within(n, "studio"),
     ),
     "nothing but deploy, benchmarks and tests imports deploy": (
         tuple(f"{room}/**/*.py" for room in sorted(OURS - {"deploy", "benchmarks"})),

@@ -18,7 +18,7 @@ from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-ROOMS = ("deploy", "benchmarks", "learner", "actors", "curriculum", "monitor", "bus", "engine")
+ROOMS = ("deploy", "benchmarks", "studio", "learner", "actors", "curriculum", "monitor", "bus", "engine")
 """Top to bottom, as the picture draws them."""
 
 

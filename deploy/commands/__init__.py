@@ -21,6 +21,7 @@ from impulse.deploy.commands import (
     launch,
     levels,
     services,
+    studio,
     tensorboard,
     view,
 )
@@ -179,6 +180,16 @@ COMMANDS: tuple[Command, ...] = (
         "the config keys whose values differ. --plot FILE.png draws the curves against --by, --json prints JSON.",
         run=compare.run,
         arguments=compare.add_arguments,
+    ),
+    Command(
+        "studio",
+        "open Impulse Studio in the browser: browse, edit and play levels, watch an agent",
+        "A local web app (docs/studio.md): a gallery of level sets (hand-made, Kinetix's, saved, --levels) drawn as "
+        "thumbnails; an editor that adds, moves, deletes and re-roles shapes and saves Kinetix JSON files that "
+        "`impulse levels validate` accepts; play on the server's engine with the keyboard, and watch an agent "
+        "(--run, or pretrained/*) play. Listens on 127.0.0.1; any other --host needs --token.",
+        run=studio.run,
+        arguments=studio.add_arguments,
     ),
     Command(
         "tensorboard",

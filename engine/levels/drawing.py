@@ -82,6 +82,10 @@ class SceneDrawing:
     thruster_directions: np.ndarray  # [t, 2] unit push direction
     thruster_colours: np.ndarray  # [t, 3] uint8, by thruster binding
     thruster_drive: np.ndarray  # [t] the thrust command this step in [0, 1] (0: off or no action given)
+    polygon_bodies: np.ndarray
+    """[p] the global body index of each polygon drawn (an editor picks shapes by it)."""
+    circle_bodies: np.ndarray
+    """[c] the global body index of each circle drawn (polygons first: num_polygons + circle slot)."""
 
 
 def scene_drawing(level: Level, state: SimState | None = None, actuation: np.ndarray | None = None) -> SceneDrawing:
@@ -168,4 +172,6 @@ def scene_drawing(level: Level, state: SimState | None = None, actuation: np.nda
         thruster_directions=ahead,
         thruster_colours=thruster_colours,
         thruster_drive=thruster_drive,
+        polygon_bodies=np.asarray(shown, int),
+        circle_bodies=circles,
     )

@@ -1,0 +1,134 @@
+"""`impulse studio`: serve Impulse Studio (`studio.app`), the browser app to browse, edit and play levels and watch
+an agent play them.
+
+Bound to 127.0.0.1 by default. Any other address makes the studio reachable from the network, so it then needs
+`--token T`, which every request must carry (the printed address has it; `studio.security`). Starlette and uvicorn
+are imported when the command runs, never with the CLI. The studio cannot import `deploy`, so watching an agent
+gets its checkpoint loader from here: the run's config.toml resolved as `impulse eval` resolves it, and the policy
+restored by `learner.run.restore_policy`. Exit status 2 for usage errors (a token missing or malformed, a port in
+use), with one line saying what to do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+EXIT_USAGE = 2
+DEFAULT_PORT = 8765
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_LEVELS_DIR = Path("studio-levels")
+TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,200}")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default=DEFAULT_HOST,
+                        help=f"address to listen on (default {DEFAULT_HOST}: this machine only; any other address "
+                        "needs --token)")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT})")
+    parser.add_argument("--levels-dir", type=Path, default=DEFAULT_LEVELS_DIR, metavar="DIR",
+                        help=f"folder the editor saves levels into, shown as the 'saved' set (default "
+                        f"./{DEFAULT_LEVELS_DIR})")
+    parser.add_argument("--levels", action="append", default=[], metavar="SOURCE",
+                        help="more levels for the gallery: a level file, a folder of them or a glob pattern "
+                        "(repeatable)")
+    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
+                        help="a run directory (or a checkpoint folder) whose agent the Play page offers to watch")
+    parser.add_argument("--token", metavar="T",
+                        help="access token every request must carry (required when --host is not loopback); 8 or "
+                        "more letters, digits or ._~-")
+
+
+def _problem(args: argparse.Namespace) -> str | None:
+    from impulse.studio.security import is_loopback
+
+    if not 0 < args.port < 65536:
+        return f"--port must be 1 to 65535, got {args.port}"
+    if args.token is not None and not TOKEN_PATTERN.fullmatch(args.token):
+        return "--token must be 8 to 200 letters, digits or the characters . _ ~ -"
+    if not is_loopback(args.host) and args.token is None:
+        return (f"--host {args.host} makes the studio reachable from other machines: give --token T as well (every "
+                "request must then carry it), or leave --host at 127.0.0.1")
+    if args.run is not None and not args.run.exists():
+        return f"--run {args.run}: no such directory"
+    return None
+
+
+def _port_free(host: str, port: int) -> str | None:
+    """None if `host:port` can be listened on, else why not."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as err:
+            return f"cannot listen on {host}:{port}: {err.strerror or err}"
+    return None
+
+
+def _run_dir_of(path: Path) -> Path:
+    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder."""
+    for candidate in (path, path.parent, path.parent.parent):
+        if (candidate / "config.toml").is_file():
+            return candidate
+    raise FileNotFoundError(f"no config.toml in {path} or above it: choose a run directory")
+
+
+def load_pilot(checkpoint: str) -> Any:
+    """A `studio.play.Pilot` from a run directory or one checkpoint's folder, as `impulse eval --checkpoint`
+    restores it; `LevelInputError` with the reason when it cannot be loaded."""
+    from impulse.deploy.config import ConfigError, resolve_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.learner.checkpoint import TRAIN
+    from impulse.learner.run import RunError, build, restore_policy
+    from impulse.studio.level_io import LevelInputError
+    from impulse.studio.play import Pilot
+
+    path = Path(checkpoint)
+    try:
+        run_dir = _run_dir_of(path)
+        config = resolve_config(RunConfig, run_dir / "config.toml", [])
+        trainer, agent, _, levels = build(config)
+        step = int(path.name) if path.name.isdigit() else None
+        restored = restore_policy(config, run_dir, step, trainer, levels)
+    except (FileNotFoundError, ConfigError, RunError, ValueError) as err:
+        raise LevelInputError(f"cannot load an agent from {checkpoint}: {err}") from None
+    name = f"{run_dir.name} (update {restored.step})"
+    return Pilot(agent, restored.items[TRAIN].params, trainer.env_params, name)
+
+
+def _offered(args: argparse.Namespace) -> list[str]:
+    """Checkpoints the Play page lists: --run, then ./pretrained/* run directories."""
+    offered = [str(args.run)] if args.run is not None else []
+    pretrained = Path("pretrained")
+    if pretrained.is_dir():
+        offered += [str(folder) for folder in sorted(pretrained.iterdir()) if (folder / "config.toml").is_file()]
+    return offered
+
+
+def run(args: argparse.Namespace, _config: object = None) -> int:
+    problem = _problem(args) or _port_free(args.host, args.port)
+    if problem:
+        print(f"impulse studio: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        import uvicorn
+        from impulse.studio.app import make_app
+    except ImportError as err:
+        print(f"impulse studio: {err.name or err} is not installed: pip install -e . (or starlette and "
+              "'uvicorn[standard]')", file=sys.stderr)
+        return EXIT_USAGE
+    from impulse.deploy.runtime.compile_cache import enable_compile_cache
+
+    enable_compile_cache()
+    app = make_app(args.levels_dir, tuple(args.levels), token=args.token, load_pilot=load_pilot,
+                   agents=_offered(args))
+    shown = f"[{args.host}]" if ":" in args.host else args.host
+    address = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
+    print(f"Impulse Studio: open {address}  (levels are saved in {args.levels_dir}; Ctrl-C stops)", flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_config=None, log_level="warning")
+    return 0

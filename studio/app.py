@@ -1,0 +1,233 @@
+"""The studio's web app: `make_app` builds the Starlette application that `impulse studio` serves with uvicorn.
+
+Routes (all JSON unless said otherwise; errors are {"error": message, "problems": [...]} with a 4xx status, and
+the server keeps running):
+
+- `GET /`: the page (`static/index.html`; its scripts and styles under `/static/`);
+- `GET /api/sets`: the level sets (`library.Library.sets`); `GET /api/levels?set=S`: a set's levels with size,
+  counts and thumbnail address; `GET /api/thumbnail?set=S&name=N`: the level drawn as a PNG;
+- `GET /api/level?set=S&name=N`: the level as a Kinetix level file (JSON);
+- `POST /api/edit` {"level", "ops"}: the level after the editor's operations (`editing`), with its scene, counts
+  and the problems `validate_scene` finds (ops [] just draws a level);
+- `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
+  with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
+- `GET /api/agents`: the checkpoints offered for watching;
+- `WebSocket /ws/play`: play and watch (`protocol`).
+
+Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
+compilation) never stalls the others.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+from impulse.engine.levels.drawing import scene_drawing
+from impulse.engine.levels.summary import size_class
+from impulse.engine.physics.validate import validate_scene
+from impulse.studio.editing import apply_edits
+from impulse.studio.level_io import (
+    LevelInputError,
+    level_document,
+    level_problems,
+    load_document,
+    load_file,
+    parse_size,
+    save_document,
+)
+from impulse.studio.library import SAVED, Library, UnknownLevel, level_counts
+from impulse.studio.protocol import PilotLoader, PlayConnection
+from impulse.studio.scene import scene_json
+from impulse.studio.security import Guard
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).resolve().parent / "static"
+MAX_BODY_BYTES = 8 * 2**20
+"""The largest request the studio reads (Kinetix's largest level files are about 50 KB)."""
+
+
+class RequestError(ValueError):
+    """A request the studio cannot read (not JSON, too large, a missing field): HTTP 400."""
+
+
+def _error(status: int, message: str, problems: list[str] | None = None) -> JSONResponse:
+    return JSONResponse({"error": message, "problems": problems or []}, status_code=status)
+
+
+def _json(text: str | bytes) -> Any:
+    """The JSON value in a request body or a socket message; `RequestError` saying why it is not JSON."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise RequestError("not valid JSON: nested too deeply to read") from None
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, an integer of too many digits
+        raise RequestError(f"not valid JSON: {err}") from None
+
+
+async def _body(request: Request) -> dict[str, Any]:
+    raw = await request.body()
+    if len(raw) > MAX_BODY_BYTES:
+        raise RequestError(f"the request is {len(raw):,} bytes; the studio reads at most {MAX_BODY_BYTES:,}")
+    body = _json(raw)
+    if not isinstance(body, dict):
+        raise RequestError(f"the request body must be a JSON object, got {type(body).__name__}")
+    return body
+
+
+def _query(request: Request, *names: str) -> list[str]:
+    missing = [name for name in names if not request.query_params.get(name)]
+    if missing:
+        raise RequestError(f"missing query parameter(s): {', '.join(missing)}")
+    return [request.query_params[name] for name in names]
+
+
+def _edited(body: dict[str, Any]) -> dict[str, Any]:
+    """The reply of POST /api/edit: the edited level, its scene, counts, size and problems."""
+    if "level" not in body:
+        raise RequestError("edit needs \"level\" (a Kinetix level JSON object) and \"ops\" (a list)")
+    loaded = load_document(body["level"], validate=False)
+    level = apply_edits(loaded.level, loaded.sizes, body.get("ops", []))
+    return {"level": level_document(loaded, level), "scene": scene_json(scene_drawing(level)),
+            "size": size_class(loaded.sizes), "counts": level_counts(level.state, loaded.sizes),
+            "problems": validate_scene(level.state)}
+
+
+def make_app(
+    levels_dir: Path,
+    sources: Sequence[str] = (),
+    *,
+    token: str | None = None,
+    load_pilot: PilotLoader | None = None,
+    agents: Sequence[str] = (),
+) -> Starlette:
+    """The studio app: levels from the hand-made and Kinetix sets, `levels_dir` (where it saves) and `sources`
+    (folders, files or glob patterns); `token` required on every request when given; `load_pilot` loads a
+    checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers."""
+    library = Library(Path(levels_dir), tuple(sources))
+
+    async def index(request: Request) -> Response:
+        return FileResponse(STATIC / "index.html")
+
+    async def sets(request: Request) -> Response:
+        found = await run_in_threadpool(library.sets)
+        return JSONResponse({"sets": [{"id": s.id, "title": s.title, "unavailable": s.unavailable} for s in found]})
+
+    async def levels(request: Request) -> Response:
+        [set_id] = _query(request, "set")
+        entries = await run_in_threadpool(library.summaries, set_id)
+        for entry in entries:
+            entry["thumbnail"] = "/api/thumbnail?" + urlencode({"set": set_id, "name": entry["name"]})
+        return JSONResponse({"set": set_id, "levels": entries})
+
+    async def thumbnail(request: Request) -> Response:
+        set_id, name = _query(request, "set", "name")
+        png = await run_in_threadpool(library.thumbnail, set_id, name)
+        return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
+
+    async def level(request: Request) -> Response:
+        set_id, name = _query(request, "set", "name")
+
+        def read() -> dict[str, Any]:
+            return level_document(load_file(library.path(set_id, name)))
+
+        return JSONResponse(await run_in_threadpool(read))
+
+    async def edit(request: Request) -> Response:
+        return JSONResponse(await run_in_threadpool(_edited, await _body(request)))
+
+    async def validate(request: Request) -> Response:
+        body = await _body(request)
+
+        def check() -> dict[str, Any]:
+            sizes = parse_size(body.get("size"))
+            problems = level_problems(body.get("level"), sizes)
+            if problems:
+                raise LevelInputError("the level is not valid", problems)
+            loaded = load_document(body["level"], sizes)
+            return {"valid": True, "size": size_class(loaded.file_sizes or loaded.sizes),
+                    "counts": level_counts(loaded.state, loaded.sizes)}
+
+        return JSONResponse(await run_in_threadpool(check))
+
+    async def save(request: Request) -> Response:
+        body = await _body(request)
+        path, loaded = await run_in_threadpool(save_document, body.get("level"), body.get("name"), library.levels_dir,
+                                               body.get("size"))
+        log.info("studio: saved %s", path)
+        return JSONResponse({"saved": {"set": SAVED, "name": path.stem}, "path": str(path),
+                             "size": size_class(loaded.sizes)})
+
+    async def agent_list(request: Request) -> Response:
+        return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents)})
+
+    async def play(websocket: WebSocket) -> None:
+        await websocket.accept()
+        connection = PlayConnection(library, load_pilot)
+        while True:
+            received = await websocket.receive()
+            if received["type"] == "websocket.disconnect":
+                return
+            seq = None
+            try:
+                if received.get("text") is None:
+                    raise RequestError("messages are JSON text, not binary")
+                message = _json(received["text"])
+                seq = message.get("seq") if isinstance(message, dict) else None
+                reply = await run_in_threadpool(connection.handle, message)
+            except (RequestError, LevelInputError, UnknownLevel, ValueError) as err:
+                reply = {"type": "error", "message": str(err)}
+            except Exception as err:  # the connection and the server go on; the log has the traceback
+                log.exception("studio: play message failed")
+                reply = {"type": "error", "message": f"internal error: {type(err).__name__}: {err}"}
+            reply["seq"] = seq
+            try:
+                await websocket.send_text(json.dumps(reply))
+            except (WebSocketDisconnect, RuntimeError):  # the page went away mid-reply
+                return
+
+    async def bad_input(request: Request, err: Exception) -> Response:
+        problems = err.problems if isinstance(err, LevelInputError) else []
+        message = err.message if isinstance(err, LevelInputError) else str(err)
+        return _error(422, message, problems)
+
+    async def bad_request(request: Request, err: Exception) -> Response:
+        return _error(400, str(err))
+
+    async def not_found(request: Request, err: Exception) -> Response:
+        return _error(404, str(err.args[0]) if err.args else "not found")
+
+    async def failed(request: Request, err: Exception) -> Response:
+        log.exception("studio: %s %s failed", request.method, request.url.path, exc_info=err)
+        return _error(500, f"internal error: {type(err).__name__}: {err}")
+
+    routes = [
+        Route("/", index),
+        Route("/api/sets", sets),
+        Route("/api/levels", levels),
+        Route("/api/thumbnail", thumbnail, name="thumbnail"),
+        Route("/api/level", level),
+        Route("/api/edit", edit, methods=["POST"]),
+        Route("/api/validate", validate, methods=["POST"]),
+        Route("/api/save", save, methods=["POST"]),
+        Route("/api/agents", agent_list),
+        WebSocketRoute("/ws/play", play),
+        Mount("/static", StaticFiles(directory=STATIC), name="static"),
+    ]
+    app = Starlette(routes=routes, exception_handlers={
+        LevelInputError: bad_input, RequestError: bad_request, UnknownLevel: not_found, Exception: failed,
+    })
+    app.add_middleware(Guard, token=token)
+    return app

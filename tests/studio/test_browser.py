@@ -1,0 +1,153 @@
+"""Impulse Studio in a real headless browser (Debian's chromium, driven by Playwright), against the studio served by
+uvicorn on a free port: the gallery shows the hand-made levels; the editor opens one, adds a red circle with a
+click, drags it, undoes and redoes, saves, and the saved file read back through the API is the level the page
+holds; the play page, with the right arrow held, drives the car's motor and the green wheel moves right, the page
+reporting the server's step time and the round trip. One browser and one server serve every test here.
+
+Screenshots of the three pages go to `$STUDIO_SCREENSHOTS` when it is set (docs/studio/ holds the README's), else to
+a temporary folder. Skipped, saying why, where chromium or Playwright is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.heavy
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+TIMEOUT_MS = 60_000  # a first compilation of the S environment on a busy 2-core machine
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory):
+    """(base address, levels folder) of a studio served by uvicorn in a thread of this process."""
+    uvicorn = pytest.importorskip("uvicorn")
+    from impulse.studio.app import make_app
+
+    levels_dir = tmp_path_factory.mktemp("studio-levels")
+    port = free_port()
+    config = uvicorn.Config(make_app(levels_dir), host="127.0.0.1", port=port, log_config=None, log_level="warning")
+    served = uvicorn.Server(config)
+    thread = threading.Thread(target=served.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not served.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}", levels_dir
+    served.should_exit = True
+    thread.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def page(server):
+    if not Path(CHROMIUM).exists() or shutil.which(CHROMIUM) is None:
+        pytest.skip(f"no {CHROMIUM}: install Debian's chromium (apt-get install chromium) to run the browser tests")
+    sync_api = pytest.importorskip("playwright.sync_api",
+                                   reason="playwright is not installed (pip install -e '.[dev]')")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1180, "height": 760})
+        page.set_default_timeout(TIMEOUT_MS)
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(server[0])
+        yield page
+        browser.close()
+        assert errors == [], f"the page raised: {errors}"
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = Path(os.environ.get("STUDIO_SCREENSHOTS") or tmp_path_factory.mktemp("screenshots"))
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def get_json(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=30) as response:
+        return json.loads(response.read())
+
+
+def test_gallery_editor_save_and_reload(server, page, shots: Path) -> None:
+    base, levels_dir = server
+    card = page.locator('.card[data-name="s_easy_thrust_right"]')
+    card.wait_for()
+    assert page.locator(".card").count() == len(get_json(f"{base}/api/levels?set=handmade")["levels"])
+    page.fill("#gallery-filter", "car")
+    assert page.locator(".card:visible").count() >= 2 and not card.is_visible()
+    page.fill("#gallery-filter", "s_")
+    page.wait_for_function("[...document.querySelectorAll('.card img')].every(i => i.complete && i.naturalWidth > 0)")
+    assert page.locator(".card").count() == 5  # the S levels, drawn by the PNG renderer
+    page.screenshot(path=str(shots / "gallery.png"))
+    page.fill("#gallery-filter", "")
+
+    card.locator("button.edit").click()
+    page.wait_for_function("studio.editor.doc !== null && studio.page === 'editor'")
+    assert page.evaluate("studio.editor.counts.circles") == 1
+    page.click("#role-red")
+    page.click("#tool-circle")
+    page.locator("#editor-canvas").click(position={"x": 250, "y": 200})  # world (2.5, 3.0): the arena is 5 m
+    page.wait_for_function("studio.editor.counts.circles === 2")
+    added = page.evaluate("studio.editor.scene.circles.find(c => c.role === 'red')")
+    assert added["centre"] == pytest.approx([2.5, 3.0], abs=0.02)
+
+    page.click("#tool-select")  # drag the new circle 0.5 m right: press on it, move, release
+    box = page.locator("#editor-canvas").bounding_box()
+    page.mouse.move(box["x"] + 250, box["y"] + 200)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 275, box["y"] + 200, steps=4)
+    page.mouse.move(box["x"] + 300, box["y"] + 200, steps=4)
+    page.mouse.up()
+    page.wait_for_function("studio.editor.scene.circles.some(c => c.role === 'red' && c.centre[0] > 2.9)")
+    page.click("#editor-undo")
+    page.wait_for_function("studio.editor.scene.circles.some(c => c.role === 'red' && c.centre[0] < 2.6)")
+    page.click("#editor-redo")
+    page.wait_for_function("studio.editor.scene.circles.some(c => c.role === 'red' && c.centre[0] > 2.9)")
+
+    page.fill("#editor-name", "browser_circle")
+    page.click("#editor-save")
+    page.wait_for_function("document.getElementById('message').textContent.startsWith('saved as')")
+    page.screenshot(path=str(shots / "editor.png"))
+    assert (levels_dir / "browser_circle.json").is_file()
+    reloaded = get_json(f"{base}/api/level?set=saved&name=browser_circle")
+    assert reloaded == page.evaluate("studio.editor.doc")
+    roles = sorted(c["role"] for c in reloaded["env_state"]["circle"] if c["active"])
+    assert roles == [2, 3]  # the level's blue ball and the new red circle
+
+
+def test_play_drives_the_motor_with_the_arrow_key(server, page, shots: Path) -> None:
+    page.click("#tab-gallery")
+    page.locator('.card[data-name="s_easy_car_right"] button.play').click()
+    page.wait_for_function("studio.play.frame !== null && studio.play.frame.t >= 3")
+    green = "studio.play.frame.scene.circles.find(c => c.role === 'green').centre[0]"
+    start = page.evaluate(green)
+    page.keyboard.down("ArrowRight")
+    try:
+        page.wait_for_function("studio.play.frame.t >= 20")
+        moved = page.evaluate(green)
+        drive = page.evaluate("studio.play.frame.scene.joints[0].drive")
+    finally:
+        page.keyboard.up("ArrowRight")
+    assert moved > start + 0.1, (start, moved)
+    assert drive == 1.0
+    assert page.locator("#stat-step-ms").inner_text().endswith(")")  # "x ms (median y)": the server's step time
+    assert "ms" in page.locator("#stat-rtt-ms").inner_text()
+    page.screenshot(path=str(shots / "play.png"))

@@ -1,0 +1,293 @@
+"""Impulse Studio's server (`studio.app`) through Starlette's TestClient, no browser: the gallery's sets, counts and
+thumbnails; a level's JSON round trip (GET, save, GET again gives the same level, for our hand-made files and
+Kinetix's); the editor's operations and the size limit; bad input answered with a 4xx and a message naming the
+problem while the server goes on; the play socket (a motor moves the car, a bad message is an error and the
+socket stays usable); the access token and the same-origin check; and `impulse studio`'s refusal to listen on the
+network without a token."""
+
+from __future__ import annotations
+
+import ast
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+from impulse.deploy.cli import main
+from impulse.engine.levels import handmade
+from impulse.engine.levels.handmade.files import level_differences
+from impulse.engine.levels.kinetix_json import level_file_problems, load_kinetix_level
+from impulse.engine.levels.sets import LevelSetError, kinetix_levels_root
+from impulse.studio.app import make_app
+from PIL import Image
+from starlette.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from tests.support.paths import REPO
+
+CAR = "s_easy_car_right"  # a motorised green wheel (motor binding 0) that drives right into a blue ball
+THRUST = "s_easy_thrust_right"  # one polygon and one circle: an S level with a free circle slot
+MOTOR_RIGHT = [1, 0, 0, 0, 0, 0]
+NOOP = [0, 0, 0, 0, 0, 0]
+
+
+@pytest.fixture(scope="module")
+def levels_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("studio-levels")
+
+
+@pytest.fixture(scope="module")
+def client(levels_dir: Path) -> TestClient:
+    with TestClient(make_app(levels_dir)) as client:
+        yield client
+
+
+def level_json(client: TestClient, set_id: str, name: str) -> dict:
+    response = client.get("/api/level", params={"set": set_id, "name": name})
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def edit(client: TestClient, level: dict, ops: list[dict]):
+    return client.post("/api/edit", json={"level": level, "ops": ops})
+
+
+def green_circle_x(frame: dict) -> float:
+    [green] = [c for c in frame["scene"]["circles"] if c["role"] == "green"]
+    return green["centre"][0]
+
+
+def test_gallery_lists_the_handmade_levels_with_their_counts_and_thumbnails(client: TestClient) -> None:
+    sets = {s["id"]: s for s in client.get("/api/sets").json()["sets"]}
+    assert {"handmade", "kinetix:s", "kinetix:m", "kinetix:l", "saved"} <= set(sets)
+    levels = {entry["name"]: entry for entry in client.get("/api/levels", params={"set": "handmade"}).json()["levels"]}
+    assert set(levels) == set(handmade.names())
+    car = levels[CAR]
+    assert (car["size"], car["polygons"], car["circles"], car["joints"], car["thrusters"]) == ("S", 1, 2, 1, 0)
+    assert levels[THRUST]["thrusters"] == 1 and levels["l_claw"]["size"] == "L"
+    png = client.get(car["thumbnail"])
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    image = np.asarray(Image.open(io.BytesIO(png.content)).convert("RGB"))
+    assert image.shape == (160, 160, 3)
+    assert ((image[..., 1] > 150) & (image[..., 0] < 60)).any(), "the green wheel is drawn"
+    assert client.get("/api/levels", params={"set": "nope"}).status_code == 404
+
+
+def kinetix_level() -> tuple[str, str]:
+    try:
+        kinetix_levels_root()
+    except LevelSetError as err:
+        pytest.skip(f"Kinetix's level files are not here ({err})")
+    return "kinetix:s", "h0_weak_thrust"
+
+
+@pytest.mark.parametrize("which", ["handmade", "kinetix"])
+def test_a_level_survives_get_save_get_unchanged(client: TestClient, levels_dir: Path, which: str) -> None:
+    set_id, name = ("handmade", CAR) if which == "handmade" else kinetix_level()
+    original = level_json(client, set_id, name)
+    saved = client.post("/api/save", json={"name": f"copy_{which}", "level": original})
+    assert saved.status_code == 200, saved.text
+    assert saved.json()["saved"] == {"set": "saved", "name": f"copy_{which}"}
+    again = level_json(client, "saved", f"copy_{which}")
+    assert again == original
+    path = levels_dir / f"copy_{which}.json"
+    origin = handmade.level_file(name) if which == "handmade" else kinetix_levels_root() / "s" / f"{name}.json"
+    assert level_differences(load_kinetix_level(path).level, load_kinetix_level(origin).level) == []
+    assert level_file_problems(path) == []
+
+
+def test_bad_input_is_a_4xx_naming_the_problem_and_the_server_goes_on(client: TestClient) -> None:
+    not_json = client.post("/api/save", content=b"{\"name\": ", headers={"content-type": "application/json"})
+    assert not_json.status_code == 400 and "not valid JSON" in not_json.json()["error"]
+
+    level = level_json(client, "handmade", CAR)
+    del level["env_state"]["circle"][0]["position"]
+    missing = client.post("/api/validate", json={"level": level})
+    assert missing.status_code == 422 and "circle[0].position missing" in missing.json()["problems"]
+
+    big = level_json(client, "handmade", "m_car_bump")
+    too_big = client.post("/api/save", json={"name": "big", "level": big, "size": "s"})
+    assert too_big.status_code == 422
+    assert any("too large for the size" in p for p in too_big.json()["problems"]), too_big.json()
+    assert client.post("/api/validate", json={"level": big, "size": "m"}).json()["valid"] is True
+
+    assert client.post("/api/save", json={"name": "../escape", "level": big}).status_code == 422
+    assert client.post("/api/save", json={"name": "x", "level": [1, 2]}).status_code == 422
+    assert client.post("/api/save", content=b"{}", headers={"content-type": "text/plain"}).status_code == 415
+    assert client.get("/api/level", params={"set": "handmade", "name": "../../etc/passwd"}).status_code == 404
+    assert client.get("/api/sets").status_code == 200
+
+
+def test_editing_adds_moves_re_roles_fixes_and_deletes_within_the_size(client: TestClient) -> None:
+    level = level_json(client, "handmade", THRUST)
+    added = edit(client, level, [{"op": "add_circle", "x": 2.5, "y": 3.0, "radius": 0.2, "role": "red"}])
+    assert added.status_code == 200, added.text
+    state = added.json()
+    assert state["counts"]["circles"] == 2 and state["problems"] == []
+    [new] = [c for c in state["scene"]["circles"] if c["centre"] == [2.5, 3.0]]
+    assert new["role"] == "red" and not new["fixed"] and new["radius"] == 0.2
+
+    full = edit(client, state["level"], [{"op": "add_circle", "x": 1.0, "y": 3.0}])
+    assert full.status_code == 422 and "no free circle slot" in full.json()["error"]
+
+    changed = edit(client, state["level"], [
+        {"op": "set_fixed", "body": new["body"], "fixed": True},
+        {"op": "set_role", "body": new["body"], "role": "blue"},
+        {"op": "move", "body": new["body"], "dx": 0.5, "dy": -0.5},
+    ]).json()
+    [moved] = [c for c in changed["scene"]["circles"] if c["body"] == new["body"]]
+    assert moved["centre"] == [3.0, 2.5] and moved["role"] == "blue" and moved["fixed"]
+    freed = edit(client, changed["level"], [{"op": "set_fixed", "body": new["body"], "fixed": False}]).json()
+    assert not [c for c in freed["scene"]["circles"] if c["body"] == new["body"]][0]["fixed"]
+
+    gone = edit(client, freed["level"], [{"op": "delete", "body": new["body"]}]).json()
+    assert gone["counts"]["circles"] == 1
+    assert edit(client, gone["level"], [{"op": "delete", "body": 0}]).status_code == 422  # the floor stays
+    assert edit(client, gone["level"], [{"op": "explode"}]).status_code == 422
+    saved = client.post("/api/save", json={"name": "edited", "level": freed["level"]})
+    assert saved.status_code == 200, saved.text
+
+
+def test_moving_a_car_moves_its_wheels_along(client: TestClient) -> None:
+    state = edit(client, level_json(client, "handmade", CAR), []).json()
+    [chassis] = [p for p in state["scene"]["polygons"] if p["body"] >= 4]
+    before = {c["body"]: c["centre"] for c in state["scene"]["circles"]}
+    moved = edit(client, state["level"], [{"op": "move", "body": chassis["body"], "dx": 0.5, "dy": 0.0}]).json()
+    linked = [c for c in moved["scene"]["circles"] if c["centre"] != before[c["body"]]]
+    assert linked, "a wheel joined to the chassis moves with it"
+    for circle in linked:
+        assert circle["centre"] == pytest.approx([before[circle["body"]][0] + 0.5, before[circle["body"]][1]])
+    assert moved["problems"] == []
+
+
+def test_play_socket_steps_the_level_and_a_motor_moves_the_car(client: TestClient) -> None:
+    with client.websocket_connect("/ws/play") as socket:
+        socket.send_json({"type": "step", "action": NOOP, "seq": 1})
+        early = socket.receive_json()
+        assert early["type"] == "error" and "no level loaded" in early["message"] and early["seq"] == 1
+
+        socket.send_json({"type": "load", "set": "handmade", "name": CAR})
+        loaded = socket.receive_json()
+        assert loaded["type"] == "state" and loaded["t"] == 0 and loaded["controls"] == {"motors": [0], "thrusters": []}
+        start = green_circle_x(loaded)
+
+        def play(action: list[int], steps: int) -> dict:
+            socket.send_json({"type": "reset"})
+            assert socket.receive_json()["t"] == 0
+            for _ in range(steps):
+                socket.send_json({"type": "step", "action": action})
+                frame = socket.receive_json()
+            return frame
+
+        driven, idle = play(MOTOR_RIGHT, 12), play(NOOP, 12)
+        assert driven["t"] == idle["t"] == 12 and driven["step_ms"] > 0
+        assert green_circle_x(driven) > start + 0.05 and green_circle_x(driven) > green_circle_x(idle) + 0.05
+        assert driven["scene"]["joints"][0]["drive"] == 1.0
+
+        socket.send_json({"type": "step", "action": [3, 0, 0, 0, 0, 0]})
+        assert "an action is a list of 6 integers" in socket.receive_json()["message"]
+        socket.send_text("{not json")
+        assert "not valid JSON" in socket.receive_json()["message"]
+        socket.send_bytes(b"\x00\x01")
+        assert "not binary" in socket.receive_json()["message"]
+        socket.send_json({"type": "step", "agent": True})
+        assert "no agent loaded" in socket.receive_json()["message"]
+        socket.send_json({"type": "step", "action": NOOP})
+        assert socket.receive_json()["t"] == 13  # still usable after the errors
+
+
+def test_play_socket_plays_an_edited_level_until_it_is_solved(client: TestClient) -> None:
+    """The editor's unsaved level plays as sent; the car solves its level and the reply says so."""
+    level = level_json(client, "handmade", CAR)
+    with client.websocket_connect("/ws/play") as socket:
+        socket.send_json({"type": "load", "level": level})
+        assert socket.receive_json()["level"]["size"] == "S"
+        for _ in range(200):
+            socket.send_json({"type": "step", "action": MOTOR_RIGHT})
+            frame = socket.receive_json()
+            if frame["done"]:
+                break
+        assert frame["done"] and frame["outcome"] == "solved" and frame["return"] > 0.5 and frame["t"] == 0
+
+
+def test_the_token_is_required_on_every_request_and_socket(levels_dir: Path) -> None:
+    token = "s3cret-token"
+    with TestClient(make_app(levels_dir, token=token)) as guarded:
+        refused = guarded.get("/api/sets")
+        assert refused.status_code == 401 and "token" in refused.json()["error"]
+        assert guarded.get("/").status_code == 401
+        assert guarded.get("/api/sets", headers={"X-Impulse-Token": "wrong-token"}).status_code == 401
+        assert guarded.get("/api/sets", headers={"X-Impulse-Token": token}).status_code == 200
+        page = guarded.get("/", params={"token": token})  # the printed address: sets the cookie for the page
+        assert page.status_code == 200 and "impulse_studio_token" in page.headers["set-cookie"]
+        assert guarded.get("/static/app.js").status_code == 200  # the cookie carries the token now
+        guarded.cookies.clear()
+        with pytest.raises(WebSocketDisconnect), guarded.websocket_connect("/ws/play") as socket:
+            socket.receive_json()
+        with guarded.websocket_connect(f"/ws/play?token={token}") as socket:
+            socket.send_json({"type": "reset"})
+            assert "no level loaded" in socket.receive_json()["message"]
+        with pytest.raises(WebSocketDisconnect), guarded.websocket_connect(
+                f"/ws/play?token={token}", headers={"origin": "http://evil.example"}) as socket:
+            socket.receive_json()
+
+
+def test_studio_refuses_the_network_without_a_token_and_imports_no_web_stack_with_the_cli(capsys) -> None:
+    assert main(["studio", "--host", "0.0.0.0"]) == 2
+    assert "--token" in capsys.readouterr().err
+    assert main(["studio", "--host", "0.0.0.0", "--token", "short"]) == 2
+    assert "8 to 200" in capsys.readouterr().err
+    source = (REPO / "deploy" / "commands" / "studio.py").read_text()
+    top_level = {alias.name.split(".")[0] for node in ast.parse(source).body if isinstance(node, ast.Import)
+                 for alias in node.names}
+    top_level |= {node.module.split(".")[0] for node in ast.parse(source).body
+                  if isinstance(node, ast.ImportFrom) and node.module}
+    assert not top_level & {"starlette", "uvicorn", "impulse", "jax"}, top_level
+
+
+@pytest.fixture(scope="module")
+def tiny_pilot():
+    """A small untrained entity-network agent for S levels, standing in for a checkpoint (loading one is
+    `impulse eval`'s code, tested there)."""
+    import jax
+    from impulse.engine.env.spec import EnvParams, EnvSpec
+    from impulse.learner.agent import make_agent
+    from impulse.learner.config import NetworkConfig
+    from impulse.studio.play import Pilot
+
+    network = NetworkConfig(kind="entity", width=16, depth=1, entity_encoder_size=16, entity_heads=2,
+                            entity_head_size=8)
+    agent = make_agent(network, EnvSpec())
+    return Pilot(agent, jax.jit(agent.init)(jax.random.PRNGKey(0)), EnvParams(), "tiny")
+
+
+def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_play(levels_dir: Path,
+                                                                                      tiny_pilot) -> None:
+    from impulse.studio.level_io import LevelInputError
+
+    def load(path: str):
+        if path != "tiny":
+            raise LevelInputError(f"cannot load an agent from {path}: no config.toml")
+        return tiny_pilot
+
+    with TestClient(make_app(levels_dir, load_pilot=load, agents=["tiny"])) as client:
+        assert client.get("/api/agents").json() == {"enabled": True, "checkpoints": ["tiny"]}
+        with client.websocket_connect("/ws/play") as socket:
+            socket.send_json({"type": "load", "set": "handmade", "name": CAR})
+            assert socket.receive_json()["agent"] is None
+            socket.send_json({"type": "agent", "checkpoint": "elsewhere"})
+            assert "no config.toml" in socket.receive_json()["message"]
+            socket.send_json({"type": "agent", "checkpoint": "tiny"})
+            watched = socket.receive_json()
+            assert watched["agent"] == "tiny" and watched["t"] == 0  # the level restarts with the agent
+            for t in range(1, 4):
+                socket.send_json({"type": "step", "agent": True})
+                frame = socket.receive_json()
+                assert frame["t"] == t and len(frame["action"]) == 6
+            socket.send_json({"type": "load", "set": "handmade", "name": "m_car_bump"})
+            refused = socket.receive_json()
+            assert refused["type"] == "error" and "does not fit" in refused["message"]
+            socket.send_json({"type": "agent", "checkpoint": None})
+            assert socket.receive_json()["agent"] is None
+            socket.send_json({"type": "step", "agent": True})
+            assert "no agent loaded" in socket.receive_json()["message"]
