@@ -104,9 +104,12 @@ def play_episodes(policy: Policy | None, params: Any, spec: EnvSpec, env_params:
     step for drawing. `policy` None: the no-op action at every step (`engine.env.actions.noop_action`)."""
     policy = policy if policy is not None else noop_policy(spec)
     num_levels = levels.roles.shape[0]
-    carry = start_rollout(spec, env_params, levels, num_levels, key)
-    played = jax.jit(lambda c: rollout(policy, params, spec, env_params, c, levels, spec.max_timesteps,
-                                       watch=num_levels))(carry)
+
+    def play(levels: Level, key: Array) -> Any:  # one program: the reset too, not an eager op at a time
+        carry = start_rollout(spec, env_params, levels, num_levels, key)
+        return rollout(policy, params, spec, env_params, carry, levels, spec.max_timesteps, watch=num_levels)
+
+    played = jax.jit(play)(levels, key)
     done = np.asarray(played.steps.done)
     ended_before = np.cumsum(done, axis=0) - done
     return RecordedEpisodes(played.watched, jax.device_get(played.steps), ended_before == 0)

@@ -113,7 +113,11 @@ class FusedRun:
             self._start_from_policy(init_from)
         log.info("compiling the training step (%s envs x %s steps) ...", config.ppo.num_envs, config.ppo.num_steps)
         start = time.perf_counter()
-        self._iterate = iterate.lower(self.carry, self.levels).compile()
+        # Lowered from shapes alone: a carry restored from a checkpoint holds arrays committed to a device, which
+        # would otherwise put sharding annotations in the program, so that a resumed or fine-tuned run missed the
+        # compilation cache that a fresh run of the same config filled. The compiled program runs on either.
+        abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.carry)
+        self._iterate = iterate.lower(abstract, self.levels).compile()
         self.compile_s = time.perf_counter() - start
         log.info("compiled the training step in %.1f s (%s envs x %s steps)", self.compile_s,
                  config.ppo.num_envs, config.ppo.num_steps)
