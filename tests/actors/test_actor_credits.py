@@ -25,7 +25,7 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.curriculum_inputs import batch_level_results
 
-from tests.support.launch_procs import QUICK_LAUNCH, free_port
+from tests.support.launch_procs import QUICK_LAUNCH, TINY_BATCH, free_port
 
 pytestmark = pytest.mark.heavy
 
@@ -44,8 +44,7 @@ def cycle_until(actor: Actor, condition, timeout_s: float, what: str) -> float:
 def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off():
     port = free_port()
     config = resolve_config(RunConfig, QUICK_LAUNCH, [
-        f"bus.hub=tcp/127.0.0.1:{port}", f"actors.credit_timeout_s={TIMEOUT_S}", "ppo.num_envs=8",
-        "ppo.num_steps=8", "ppo.num_minibatches=1"])
+        f"bus.hub=tcp/127.0.0.1:{port}", f"actors.credit_timeout_s={TIMEOUT_S}", *TINY_BATCH])
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
     params = agent.init(jax.random.PRNGKey(0))

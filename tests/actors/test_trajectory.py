@@ -18,6 +18,8 @@ from impulse.engine.levels.level import level_id_values
 from impulse.engine.levels.sets import load_level_set
 from impulse.engine.physics.sizes import SIZE_S
 
+from tests.support.quick_compile import quick_jit
+
 SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=12)
 PARAMS = EnvParams()
 NUM_ENVS = 4
@@ -30,7 +32,7 @@ def noop_policy(params, obs, key):
     return action, jnp.zeros(num), jnp.zeros(num)
 
 
-@functools.partial(jax.jit, static_argnums=3)
+@functools.partial(quick_jit, static_argnums=3)
 def play(carry, levels, train, num_steps):
     """One compiled rollout per (K, num_steps), shared by the tests: `train` is always an array."""
     return rollout(noop_policy, None, SPEC, PARAMS, carry, levels, num_steps, train)[:4]
@@ -40,13 +42,17 @@ CHUNK = 5  # every rollout in these tests is CHUNK steps of K = 2 levels: one co
 
 
 def play_for(carry, levels, train, num_steps):
-    """`num_steps` (a multiple of CHUNK) steps as consecutive compiled rollouts, concatenated along time."""
+    """`num_steps` (a multiple of CHUNK) steps as consecutive compiled rollouts, concatenated along time (on the
+    host: numpy compiles nothing)."""
     parts = []
     for _ in range(num_steps // CHUNK):
         carry, steps, mask, stats = play(carry, levels, train, CHUNK)
-        parts.append((steps, mask, stats))
-    steps, mask, stats = jax.tree.map(lambda *xs: jnp.concatenate([jnp.atleast_1d(x) for x in xs]), *parts)
-    return carry, steps, mask, jax.tree.map(jnp.sum, stats)
+        parts.append(jax.device_get((steps, mask, stats)))
+    steps, mask, stats = jax.tree.map(lambda *xs: np.concatenate([np.atleast_1d(x) for x in xs]), *parts)
+    return carry, steps, mask, jax.tree.map(np.sum, stats)
+
+
+tally = quick_jit(level_results, static_argnames="rows")
 
 
 def all_train(levels):
@@ -63,13 +69,13 @@ def test_swapping_the_level_batch_mid_episode_credits_the_level_played():
     assert not ids(first) & ids(second)
     carry = start_rollout(SPEC, PARAMS, first, NUM_ENVS, jax.random.key(0))
     carry, before, _, _ = play(carry, first, all_train(first), CHUNK)  # 5 of 12 steps: no episode has ended yet
-    assert not bool(before.done.any())
+    assert not np.asarray(before.done).any()
     # Swap: the running episodes belong to the first batch; the next ones come from the second (25 steps: each
     # environment ends the carried-over episode and one more).
     carry, after, _, stats = play_for(carry, second, all_train(second), 5 * CHUNK)
-    zeros = jnp.zeros(after.reward.shape)
-    results = results_to_host(level_results(after.level_id, after.done, after.solved, after.episode_return, zeros,
-                                            zeros, 0, rows=2 * NUM_ENVS + 4))
+    zeros = np.zeros(after.reward.shape, np.float32)
+    results = results_to_host(tally(after.level_id, after.done, after.solved, after.episode_return, zeros, zeros, 0,
+                                    rows=2 * NUM_ENVS + 4))
     credited = dict(zip(level_id_values(results["level_id"]).tolist(), results["episodes"].tolist(), strict=True))
     assert sum(credited.values()) == int(stats.episodes) == 2 * NUM_ENVS
     # The episodes that ended first (7 steps after the swap) were played on the first batch's levels.

@@ -1,5 +1,10 @@
 """The curricula on levels whose true solve rate is known: a synthetic player reports binomial outcomes, so what
-each buffer keeps can be checked against the truth. Real random levels (no no-op filter, to keep it cheap)."""
+each buffer keeps can be checked against the truth. Real random levels (no no-op filter, to keep it cheap).
+
+Compiling `sample` is most of the cost (about 20 CPU seconds per method, 65 for ACCEL's mutation, at XLA's usual
+optimisation; `quick_jit` takes about 40% off), so the tests share programs: one per static configuration (method,
+scoring form, buffer and batch sizes), each test setting its live knobs in the state, which is what a live change
+does; PLR's replay test runs on ACCEL's program."""
 
 from __future__ import annotations
 
@@ -12,13 +17,17 @@ from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import CurriculumConfig
 from impulse.curriculum.priority import score_weights
 from impulse.curriculum.results import results_from_host
-from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_REPLAY
+from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, knobs_from_config
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import level_id_values, level_id_words
 from impulse.engine.physics.validate import validate_scene
 
+from tests.support.quick_compile import quick_jit
+
 SPEC = EnvSpec()
 BATCH = 16
+BUFFER = 32
+MAX_EDITS = 2  # ACCEL's static bound on the live num_edits, and num_edits itself
 TRUE_RATES = np.array([0.0, 0.25, 0.5, 0.75, 1.0])  # by id modulo 5: 40% of levels are not learnable
 
 
@@ -26,11 +35,32 @@ def true_rate(ids: np.ndarray) -> np.ndarray:
     return TRUE_RATES[(ids % np.uint64(len(TRUE_RATES))).astype(int)]
 
 
+def config(**settings) -> CurriculumConfig:
+    return CurriculumConfig(buffer_size=BUFFER, noop_filter=False, max_edits=MAX_EDITS, **{"num_edits": MAX_EDITS,
+                                                                                          **settings})
+
+
+def compiled(method: str, sfl_scoring: str = "online"):
+    """The curriculum of one static configuration with its jitted sample and update; the live knobs a test sets
+    come with the state (`start`)."""
+    return _compiled(method, sfl_scoring)
+
+
 @functools.cache
-def compiled(**settings):
-    config = CurriculumConfig(buffer_size=32, noop_filter=False, **settings)
-    curriculum = Curriculum(config, SPEC, EnvParams(), BATCH)
-    return curriculum, jax.jit(curriculum.init), jax.jit(curriculum.sample), jax.jit(curriculum.update)
+def _compiled(method: str, sfl_scoring: str):
+    curriculum = Curriculum(config(method=method, sfl_scoring=sfl_scoring), SPEC, EnvParams(), BATCH)
+    return curriculum, quick_jit(curriculum.sample), quick_jit(curriculum.update)
+
+
+@functools.cache
+def _init():
+    """`init`, the same for every method (an empty buffer and staging area of these sizes), compiled once."""
+    return quick_jit(compiled("sfl")[0].init)
+
+
+def start(seed: int, **settings):
+    """The empty state `init` gives a curriculum configured by `settings` (its live knobs)."""
+    return _init()(jax.random.PRNGKey(seed))._replace(knobs=knobs_from_config(config(**settings)))
 
 
 def play(batch, rng: np.random.Generator, episodes: int, version: int):
@@ -45,10 +75,12 @@ def play(batch, rng: np.random.Generator, episodes: int, version: int):
     return results_from_host(arrays, 2 * BATCH)
 
 
-def run(settings: dict, rounds: int, seed: int = 0, episodes: int = 2):
-    curriculum, init, sample, update = compiled(**settings)
+def run(settings: dict, rounds: int, seed: int = 0, episodes: int = 2, program: str | None = None):
+    """`rounds` of sample and update from an empty state; `program`: the method whose compiled functions run them
+    (default: the one `settings` names)."""
+    _, sample, update = compiled(program or settings["method"], settings.get("sfl_scoring", "online"))
     rng = np.random.default_rng(seed)
-    state = init(jax.random.PRNGKey(seed))
+    state = start(seed, **settings)
     batches = []
     for i in range(rounds):
         state, batch = sample(state, jax.random.PRNGKey(1000 * seed + i))
@@ -67,7 +99,7 @@ def test_sfl_buffer_holds_mostly_learnable_levels():
     ids = buffered_ids(state)
     rates = true_rate(ids)
     learnable = ((rates > 0) & (rates < 1)).mean()
-    assert ids.size == 32 and np.unique(ids).size == ids.size
+    assert ids.size == BUFFER and np.unique(ids).size == ids.size
     assert learnable >= 0.8, f"only {learnable:.0%} of SFL's buffer is learnable (generator: 60%)"
     late = batches[-1]
     from_buffer = np.asarray(late.origin) == ORIGIN_REPLAY
@@ -75,18 +107,21 @@ def test_sfl_buffer_holds_mostly_learnable_levels():
 
 
 def test_plr_replays_by_rank():
-    """Once full, replay picks follow 1/rank: the empirical pick frequency of each level matches P_S."""
+    """Once full, replay picks follow 1/rank: the empirical pick frequency of each level matches P_S. Run on
+    ACCEL's compiled functions (ACCEL's replay batches are PLR's; its children only add candidates): the last of
+    the 31 rounds is a batch of children, so the next sample is a replay."""
     settings = dict(method="plr", score="learnability", staleness_coef=0.0, replay_prob=1.0, min_fill=0.0,
                     temperature=0.5)
-    state, _ = run(settings, rounds=30, seed=1, episodes=4)
-    curriculum, _, sample, _ = compiled(**settings)
+    state, batches = run(settings, rounds=31, seed=1, episodes=4, program="accel")
+    _, sample, _ = compiled("accel")
+    assert (np.asarray(batches[-1].origin) == ORIGIN_MUTATED).all() and not bool(state.mutate_next)
     expected = np.asarray(score_weights(state.buffer, state.knobs))
     counts = np.zeros_like(expected)
+    slots = {int(v): s for s, v in enumerate(level_id_values(np.asarray(state.buffer.levels.level_id)))}
     for i in range(40):  # without updates the scores stay put
         _, batch = sample(state, jax.random.PRNGKey(5000 + i))
-        picked = level_id_values(np.asarray(batch.levels.level_id))
-        slots = {int(v): s for s, v in enumerate(level_id_values(np.asarray(state.buffer.levels.level_id)))}
-        for value in picked:
+        assert (np.asarray(batch.origin) == ORIGIN_REPLAY).all()
+        for value in level_id_values(np.asarray(batch.levels.level_id)):
             counts[slots[int(value)]] += 1
     frequency = counts / counts.sum()
     top = np.argsort(-expected)[:3]
@@ -95,10 +130,9 @@ def test_plr_replays_by_rank():
 
 
 def test_accel_children_are_valid_levels_with_their_parents_recorded():
-    settings = dict(method="accel", replay_prob=1.0, min_fill=0.25, num_edits=2, max_edits=2)
-    curriculum, init, sample, update = compiled(**settings)
+    _, sample, update = compiled("accel")
     rng = np.random.default_rng(2)
-    state = init(jax.random.PRNGKey(2))
+    state = start(2, method="accel", replay_prob=1.0, min_fill=0.25)
     for i in range(8):
         state, batch = sample(state, jax.random.PRNGKey(i))
         if np.asarray(batch.origin)[0] == ORIGIN_REPLAY:
@@ -116,29 +150,32 @@ def test_accel_children_are_valid_levels_with_their_parents_recorded():
     lineage = dict(zip(staged_ids[staged], level_id_values(np.asarray(state.staging.parent_id))[staged],
                        strict=True))
     assert [lineage[c] for c in child_ids] == list(parents)
+    on_host = jax.tree.map(np.asarray, children.levels)
     for i in range(BATCH):
-        child = jax.tree.map(lambda x, i=i: np.asarray(x[i]), children.levels)
-        assert not validate_scene(child.state), i
+        assert not validate_scene(jax.tree.map(lambda x, i=i: x[i], on_host).state), i
 
 
 def test_batch_scored_sfl_keeps_the_most_learnable_candidates_and_replays_at_once():
-    curriculum, init, sample, update = compiled(method="sfl", sfl_scoring="batch", sfl_ratio=0.5)
-    state = init(jax.random.PRNGKey(0))
-    candidates = jax.jit(curriculum.new_levels, static_argnums=1)(jax.random.PRNGKey(1), 64)
+    curriculum, sample, update = compiled("sfl", "batch")
+    state = start(0, method="sfl", sfl_scoring="batch", sfl_ratio=0.5)
+    # 64 candidates: the fresh levels of four batches sampled while the buffer is empty (no program of their own)
+    fresh = [sample(state, jax.random.PRNGKey(1000 + i))[1] for i in range(4)]
+    assert all((np.asarray(batch.origin) == ORIGIN_NEW).all() for batch in fresh)
+    candidates = jax.tree.map(lambda *xs: jax.numpy.concatenate(xs), *(batch.levels for batch in fresh))
     ids = level_id_values(np.asarray(candidates.level_id))
     rates = true_rate(ids)  # learnability 0, 0.19, 0.25, 0.19 and 0.001 (always solved) by id modulo 5
-    state = jax.jit(curriculum.refill)(state, candidates, jax.numpy.asarray(rates, jax.numpy.float32), 7)
+    state = quick_jit(curriculum.refill)(state, candidates, jax.numpy.asarray(rates, jax.numpy.float32), 7)
     kept = buffered_ids(state)
     learnable = ids[(rates > 0) & (rates < 1)]
     assert not set(kept) & set(ids[rates == 0]), "a never-solved level entered the buffer"
-    assert kept.size == min(32, (rates > 0).sum())
-    if learnable.size >= 32:  # the learnable levels come before the always-solved ones
+    assert kept.size == min(BUFFER, (rates > 0).sum())
+    if learnable.size >= BUFFER:  # the learnable levels come before the always-solved ones
         assert set(kept) <= set(learnable)
     else:
         assert set(kept) >= set(learnable)
     # the most learnable first: every level at p = 0.5 is kept before any at p = 0.25 or 0.75
     half = ids[rates == 0.5]
-    assert set(half[:32]) <= set(kept)
+    assert set(half[:BUFFER]) <= set(kept)
     assert (np.asarray(state.buffer.score_version)[np.asarray(state.buffer.filled)] == 7).all()
 
     state, batch = sample(state, jax.random.PRNGKey(2))

@@ -9,9 +9,11 @@ test_fault_injection.py's."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -30,6 +32,7 @@ from rerun.chunk import RrdReader
 
 from tests.support.launch_procs import (
     QUICK_LAUNCH,
+    REPO,
     StatusWatcher,
     free_port,
     last_update,
@@ -42,7 +45,9 @@ from tests.support.launch_procs import (
 
 pytestmark = pytest.mark.heavy
 
-UPDATES = 32
+UPDATES = 24
+"""The run's length: the easy car is solved after about 16 updates, and the attacks, which begin after update 3,
+are over by about update 12."""
 EVERY = 4
 STEPS_PER_UPDATE = 64 * 64
 
@@ -86,9 +91,9 @@ class MalformedTrajectories:
     """Sends every bad trajectory frame until the learner's status counts its reason: the learner's inbox holds only
     a few frames between two updates and drops (and counts) the rest, so a frame it never read is sent again."""
 
-    def __init__(self, watcher: StatusWatcher) -> None:
+    def __init__(self, watcher: StatusWatcher, frames: dict[str, bytes]) -> None:
         self.watcher = watcher
-        self.frames = malformed_trajectories(watcher)
+        self.frames = frames
         self.publisher = watcher.bus.publisher(watcher.bus.keys.traj("actor-9"))
         assert watcher.bus.wait_matching(self.publisher, 10), "the learner's trajectory subscription is not visible"
         self.publisher.put(np.random.default_rng(0).bytes(5000))
@@ -124,18 +129,33 @@ def inject_foreign_weights_and_credit(watcher: StatusWatcher) -> None:
     credit.put(np.random.default_rng(1).bytes(64))
 
 
-def inject_replays_and_forgeries(watcher: StatusWatcher, old_weights: bytes) -> None:
+def refused_by_both(versions: VersionWatch, reason: str) -> bool:
+    return all(refusals(versions.poll().get(f"actor-{i}", {})).get(reason, 0) >= 1 for i in (0, 1))
+
+
+def inject_replays_and_forgeries(watcher: StatusWatcher, versions: VersionWatch, old_weights: bytes,
+                                 launch: subprocess.Popen, log: Path) -> None:
     """An old weights frame replayed, the current one with a flipped bit, and a forged "finished" learner status:
-    anyone on the open bus can publish on any key."""
+    anyone on the open bus can publish on any key. Each weights frame is sent again, once a second, until both
+    actors have refused it: an actor keeps only the newest weights waiting, so the learner's next weights may
+    replace a frame before an actor between two rollouts has read it."""
     bus = watcher.bus
     [current] = bus.get(bus.keys.weights_latest, timeout_s=10)
     flipped = bytearray(current)
     flipped[len(flipped) - 100] ^= 0x01  # inside the last array's bytes
     weights = bus.publisher(bus.keys.weights_policy)
     assert bus.wait_matching(weights, 10)
-    for frame in (old_weights, bytes(flipped)):
-        weights.put(frame)
-        time.sleep(0.5)  # actors keep only the newest weights waiting: let each be read
+    for frame, reason, what in ((old_weights, "stale", "the replayed weights"),
+                                (bytes(flipped), "digest", "the weights with a flipped bit")):
+        sent_at = [0.0]
+
+        def refused(frame: bytes = frame, reason: str = reason, sent_at: list[float] = sent_at) -> bool:
+            if time.monotonic() - sent_at[0] >= 1.0:
+                weights.put(frame)
+                sent_at[0] = time.monotonic()
+            return refused_by_both(versions, reason)
+
+        wait_for(refused, 60, f"both actors to refuse {what}", launch, log)
     status = bus.publisher(bus.keys.status(LEARNER, "learner"))
     assert bus.wait_matching(status, 10)
     status.put(bytes(encode(Kind.METRICS, {}, run=watcher.run, meta={"name": "learner", "finished": True})))
@@ -172,12 +192,14 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     watcher = StatusWatcher(run_dir.name, port)
     versions = VersionWatch(watcher)
     try:
+        # Made while the processes start (it traces the rollout's batch template), so the attacks begin at once.
+        frames = malformed_trajectories(watcher)
         wait_for(lambda: last_update(run_dir) >= 3, 400, "the first updates", launch, log)
         [old_weights] = watcher.bus.get(watcher.bus.keys.weights_latest, timeout_s=10)
         old_version = decode(old_weights, run=watcher.run, kinds=Kind.WEIGHTS).policy_version
 
         # Malformed and foreign messages: dropped and counted, training goes on.
-        malformed = MalformedTrajectories(watcher)
+        malformed = MalformedTrajectories(watcher, frames)
         inject_foreign_weights_and_credit(watcher)
         wait_for(malformed.all_counted, 60, "the learner to count every bad trajectory by its reason", launch, log)
 
@@ -198,10 +220,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         # forged "finished" stops nobody while the learner is there.
         wait_for(lambda: all(versions.poll().get(f"actor-{i}", {}).get("policy_version", -1) > old_version
                              for i in (0, 1)), 60, "both actors past the captured weights", launch, log)
-        inject_replays_and_forgeries(watcher, old_weights)
-        wait_for(lambda: all({"stale", "digest"} <= set(refusals(versions.poll().get(f"actor-{i}", {})))
-                             for i in (0, 1)), 30, "both actors to refuse the replay and the flipped bit", launch,
-                 log)
+        inject_replays_and_forgeries(watcher, versions, old_weights, launch, log)
         after_injection = last_update(run_dir)
         wait_for(lambda: (versions.poll(), last_update(run_dir) >= after_injection + 2)[1], 60,
                  "training to go on", launch, log)
@@ -235,7 +254,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     recorded = tmp_path / "eval.rrd"
     evaluated = subprocess.run([sys.executable, "-m", "impulse.deploy.cli", "eval", "--checkpoint", str(run_dir),
                                 "--attempts", "4", "--record", str(recorded)], capture_output=True, text=True,
-                               timeout=300)
+                               timeout=300, env={**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache")})
     assert evaluated.returncode == 0 and "s_easy_car_right" in evaluated.stdout, evaluated.stderr
     check_eval_recording(recorded, scores)
 

@@ -29,7 +29,7 @@ from impulse.bus.keys import Keys
 from impulse.bus.session import zenoh_config
 from impulse.bus.stamp import Stamp
 
-from tests.support.launch_procs import QUICK_LAUNCH, REPO, SMALL_BATCH, StatusWatcher, free_port, tail, wait_for
+from tests.support.launch_procs import QUICK_LAUNCH, REPO, TINY_BATCH, StatusWatcher, free_port, tail, wait_for
 from tests.support.namespaces import Hosts, why_not
 
 pytestmark = pytest.mark.heavy
@@ -72,7 +72,7 @@ class Cluster:
         command = [*self.prefixes.get(name, []), sys.executable, "-m", "impulse.deploy.cli", role, "--config",
                    str(QUICK_LAUNCH), f"run_dir={self.run_dir}", f"name={RUN}", f"bus.credentials={self.credentials}",
                    f"router.credentials={self.credentials}", "total_env_steps=100000000",
-                   "checkpoint.every_updates=1000", *SMALL_BATCH, *extra]
+                   "checkpoint.every_updates=1000", *TINY_BATCH, *extra]
         with log_path.open("ab") as out:
             self.processes[name] = subprocess.Popen(command, cwd=REPO, env=env, stdout=out,
                                                     stderr=subprocess.STDOUT)
@@ -207,14 +207,16 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
                     if role != "evaluator":
                         rogue.put(keys.evaluation("evaluator"), forged_evaluation)
                 time.sleep(0.2)
-            answers = sorted(r.ok.payload.to_bytes() for r in probe.get(
-                keys.levels_sample, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=3) if r.ok is not None)
-            knob_answers = {}
-            for role in roles:  # not from the session serving the knobs: it would answer itself, unrouted
-                session = rogues["curriculum"] if role == "curriculum" else sessions[role]
-                replies = session.get(keys.curriculum_knobs, payload=f"set by {role}".encode(), timeout=3)
-                knob_answers[role] = [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+            # Every query is sent before any answer is read: those nobody may answer wait out their timeouts
+            # together.
+            level_replies = probe.get(keys.levels_sample, target=zenoh.QueryTarget.ALL,
+                                      consolidation=zenoh.ConsolidationMode.NONE, timeout=3)
+            knob_replies = {  # not from the session serving the knobs: it would answer itself, unrouted
+                role: (rogues["curriculum"] if role == "curriculum" else sessions[role]).get(
+                    keys.curriculum_knobs, payload=f"set by {role}".encode(), timeout=3) for role in roles}
+            answers = sorted(r.ok.payload.to_bytes() for r in level_replies if r.ok is not None)
+            knob_answers = {role: [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+                            for role, replies in knob_replies.items()}
             time.sleep(3)
             heard_weights = collect(weights, Kind.WEIGHTS)
             heard_credits = collect(credits, Kind.CREDIT)

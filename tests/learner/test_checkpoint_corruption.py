@@ -22,8 +22,18 @@ from impulse.learner.checkpoint import Checkpointer, CheckpointError, CorruptChe
 from tests.support.checkpoint_damage import largest_file, truncate
 
 
+@pytest.fixture(scope="module", autouse=True)
+def frozen_heap():
+    """What earlier tests left on the heap is frozen (`gc.freeze`) while these tests run, so the collections below
+    walk only the objects these tests make: late in a full run the heap holds millions of objects, and a full
+    collection after every test took seconds each."""
+    gc.freeze()
+    yield
+    gc.unfreeze()
+
+
 @pytest.fixture(autouse=True)
-def collect_abandoned_reads():
+def collect_abandoned_reads(frozen_heap):
     """Orbax abandons an item's other reads when one fails, and they report 'Exception ignored' when collected:
     collected here, inside each test, any report that `restore` let through shows as a warning of that test."""
     yield

@@ -52,7 +52,8 @@ def test_evaluation_is_reproducible_with_a_fixed_seed():
     config = resolve_config(RunConfig, QUICK)
     trainer, agent, _, levels = build(config)
     carry = jax.jit(trainer.init)(jax.random.PRNGKey(1), levels)
-    runs = [evaluate(agent, carry.train.params, trainer.env_params, levels, jax.random.PRNGKey(7), attempts=8)
-            for _ in range(2)]
+    # As many attempts as the evaluations above: the same program, through the compilation cache.
+    runs = [evaluate(agent, carry.train.params, trainer.env_params, levels, jax.random.PRNGKey(7),
+                     attempts=config.eval.attempts) for _ in range(2)]
     for a, b in zip(runs[0], runs[1], strict=True):
         assert (a == b).all()

@@ -23,6 +23,11 @@ from impulse.learner.service import LearnerService
 
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
+SMALL = ("ppo.num_envs=8", "ppo.num_steps=8", "ppo.num_minibatches=1", "env.observation=symbolic", "network.kind=flat",
+         "network.width=16", "network.depth=1")
+"""Quick-launch at a size whose programs compile fastest: a small flat network on the symbolic observation (the
+refusals do not depend on the network)."""
+
 
 @pytest.fixture(scope="module")
 def compiled():
@@ -46,13 +51,12 @@ def test_a_step_that_does_not_fit_is_refused_with_sizes_and_an_override(compiled
 
 
 def test_the_learner_refuses_an_update_that_does_not_fit(tmp_path, monkeypatch) -> None:
-    """The learner service compiles its update when it starts and checks it the same way (here against 1 MiB
+    """The learner service compiles its update when it starts and checks it the same way (here against 4 KiB
     free), so an `impulse launch` at GPU sizes on a CPU stops with the sizes instead of being killed later."""
-    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", "ppo.num_envs=8",
-                                                      "ppo.num_steps=8", "ppo.num_minibatches=1"])
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", *SMALL])
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    monkeypatch.setattr(memory, "free_bytes", lambda device=None: 2**20)
+    monkeypatch.setattr(memory, "free_bytes", lambda device=None: 2**12)
     with Bus(config.bus, "memory-test", "learner", "learner", listen=True) as bus:
         service = LearnerService(config.ppo, config.learner, config.checkpoint, seed=0, num_updates=1,
                                  batches_in_flight=1, status_every_s=1.0, run_dir=tmp_path, config_toml="", bus=bus,
@@ -80,8 +84,7 @@ def test_an_actor_refuses_a_rollout_that_does_not_fit_and_compiles_it_only_once(
     """An actor compiles its rollout when it starts and checks it the same way (here against 4 KiB free), so
     `impulse launch` at GPU sizes on a CPU stops its actors with the sizes (and gives up on them at once: exit
     status 78). With room, the first rollout runs the program `start` compiled: no second compile."""
-    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", "ppo.num_envs=8",
-                                                      "ppo.num_steps=8", "network.width=16", "network.depth=1"])
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", *SMALL])
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
     counter = CompileCounter("actor_rollout")

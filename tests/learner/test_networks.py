@@ -21,6 +21,7 @@ from impulse.learner.distributions import Categorical, DiagGaussian, MultiCatego
 from impulse.learner.networks import count_parameters, describe_parameters, make_network, parameter_counts
 
 from tests.support.learner_dummies import SIZES, dummy_observation, permute_shapes, scramble_inactive
+from tests.support.quick_compile import quick_jit
 
 MULTI = MultiCategorical((3, 3, 3, 3, 2, 2))
 SMALL_TRANSFORMER = NetworkConfig(
@@ -104,7 +105,7 @@ def test_parameter_counts_at_default_sizes(capsys) -> None:
 @functools.cache
 def jitted_apply(config: NetworkConfig, distribution):
     """One compiled apply per network, shared by the tests (which reuse a few observation shapes)."""
-    return jax.jit(make_network(config, distribution).apply)
+    return quick_jit(make_network(config, distribution).apply)
 
 
 def _init(network, obs, seed: int = 0):
@@ -186,10 +187,11 @@ def test_leading_dimensions_give_the_same_numbers() -> None:
     params = _init(network, obs)
     apply = jitted_apply(network.config, MULTI)
     p, v = apply(params, obs)
-    p_2d, v_2d = apply(params, jax.tree.map(lambda x: x.reshape((3, 1) + x.shape[1:]), obs))
+    host = jax.tree.map(np.asarray, obs)  # reshaped and indexed by numpy, which compiles nothing
+    p_2d, v_2d = apply(params, jax.tree.map(lambda x: x.reshape((3, 1) + x.shape[1:]), host))
     np.testing.assert_allclose(p_2d[:, 0], p, atol=1e-5)
     np.testing.assert_allclose(v_2d[:, 0], v, atol=1e-5)
-    one, _ = apply(params, jax.tree.map(lambda x: x[1], obs))
+    one, _ = apply(params, jax.tree.map(lambda x: x[1], host))
     np.testing.assert_allclose(one, p[1], atol=1e-5)
 
 
@@ -197,12 +199,16 @@ def test_gaussian_head_has_state_independent_log_std() -> None:
     config = NetworkConfig(kind="flat", width=8, depth=1, flat_embedding_size=8)
     network = make_network(config, distribution_for(action_space(EnvSpec(action="continuous"))))
     obs = jnp.asarray(np.random.default_rng(0).normal(size=(4, FLAT_LENGTH["s"])), jnp.float32)
-    params = jax.jit(network.init)(jax.random.key(0), obs)
+
+    def init_and_apply(key, obs):
+        params = network.init(key, obs)
+        return params, network.apply(params, obs)
+
+    params, (dist_params, value) = quick_jit(init_and_apply)(jax.random.key(0), obs)
     assert params["params"]["heads"]["log_std"].shape == (6,)
-    dist_params, value = network.apply(params, obs)
     assert dist_params.shape == (4, 12) and value.shape == (4,)
     np.testing.assert_array_equal(dist_params[:, 6:], 0.0)  # log-std starts at 0, the same for every state
-    assert float(jnp.abs(dist_params[:, :6]).max()) < 0.5  # means start small (actor output scale 0.01)
+    assert float(np.abs(np.asarray(dist_params)[:, :6]).max()) < 0.5  # means start small (actor output scale 0.01)
 
 
 def test_wrong_observation_for_kind_is_an_error() -> None:
@@ -235,10 +241,10 @@ def test_ppo_loss_gradients_flow_through_the_network() -> None:
         target=jnp.ones((2, 3)),
         weight=jnp.ones((2, 3)),
     )
-    grad_fn = jax.jit(jax.value_and_grad(ppo_loss, has_aux=True), static_argnums=(1, 2, 4))
+    grad_fn = quick_jit(jax.value_and_grad(ppo_loss, has_aux=True), static_argnums=(1, 2, 4))
     (loss, metrics), grads = grad_fn(params, network.apply, MULTI, batch, PPOConfig())
     assert np.isfinite(float(loss)) and set(metrics) >= {"approx_kl", "clip_fraction", "entropy"}
-    leaves = jax.tree_util.tree_leaves_with_path(grads)
+    leaves = jax.tree_util.tree_leaves_with_path(jax.device_get(grads))
     assert all(np.all(np.isfinite(g)) for _, g in leaves)
     # every parameter gets a gradient (the summary token, gates and message layers included)
     unused = [jax.tree_util.keystr(path) for path, g in leaves if not np.any(g != 0)]

@@ -56,10 +56,15 @@ def _train(run_dir: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def _final_params(run_dir: Path):
+def _carry_template(run_dir: Path):
+    """The run's fused carry as shapes (the straight and the resumed run have the same)."""
     config = resolve_config(RunConfig, run_dir / "config.toml")
     trainer, _, _, levels = build(config)
-    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), levels)
+    return jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), levels)
+
+
+def _final_params(run_dir: Path, template):
+    config = resolve_config(RunConfig, run_dir / "config.toml")
     with Checkpointer(run_dir / "checkpoints", config.checkpoint) as checkpoints:
         assert checkpoints.latest_step() == UPDATES
         items, counters, _, _ = checkpoints.restore(fused_checkpoint_items(template))
@@ -93,7 +98,8 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path, capsys):
     assert f"resumed from checkpoint {damaged - 2} " in resumed_out, resumed_out
     assert (killed_dir / "checkpoints-corrupt" / str(damaged)).is_dir()
 
-    a, b = _final_params(tmp_path / "straight"), _final_params(killed_dir)
+    template = _carry_template(tmp_path / "straight")
+    a, b = _final_params(tmp_path / "straight", template), _final_params(killed_dir, template)
     assert set(a) == {"train", "envs", "curriculum"}
     for left, right in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(left), np.asarray(right))

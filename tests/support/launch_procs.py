@@ -26,7 +26,11 @@ QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"
 SMALL_BATCH = ("ppo.num_envs=32", "ppo.num_steps=32", "ppo.num_minibatches=2")
 """Overrides for tests of the runtime rather than of learning: a quarter of quick-launch's batch, so that the
 steady state of a run (actors rolling out, the learner updating) costs a quarter of the CPU. Those tests share
-the programs compiled for it through the compilation cache."""
+the programs compiled for it through the compilation cache (test_fault_injection.py's processes run
+test_launch_backpressure.py's programs)."""
+TINY_BATCH = ("ppo.num_envs=8", "ppo.num_steps=8", "ppo.num_minibatches=1")
+"""Overrides for tests of the bus and the processes around the learning: 8 envs x 8 steps. The actor of
+tests/actors/test_actor_credits.py and those test_multi_host.py starts run one program (the compilation cache's)."""
 
 
 def free_port() -> int:

@@ -44,7 +44,7 @@ def test_registry_spans_sizes_and_has_easy_levels():
 @pytest.mark.parametrize("name", NAMES)
 def test_level_is_valid_and_has_a_task(name):
     entry = handmade.LEVELS[name]
-    level = handmade.build(name)
+    level = jax.tree.map(np.asarray, handmade.build(name))  # the checks below run in numpy
     assert validate_scene(level.state) == []
     active = np.asarray(level.state.bodies.active)
     roles = np.asarray(level.roles) * active

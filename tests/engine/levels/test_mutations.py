@@ -1,5 +1,8 @@
-"""ACCEL mutations: every operator keeps levels valid and does what it says; whole mutations keep 1,000 levels
-valid and keep the task invariants."""
+"""ACCEL mutations: every operator keeps levels valid and does what it says; whole mutations of 1,000 levels keep
+the task invariants, and the first 250 of them pass validate_scene.
+
+The levels edited come from the random batches the generator's tests sample (`tests.support.level_samples`, one
+compiled sampler per size for both files)."""
 
 from __future__ import annotations
 
@@ -18,15 +21,21 @@ from impulse.engine.levels.mutations import (
     mutate_levels,
 )
 
-from tests.support.level_samples import SIZES, problems, random_levels, summary, to_host
+from tests.support.level_samples import SIZES, host_levels, problems, summary, to_host
 
 # Per-operator tests run on L levels (room left for additions, fixed joints present), one compiled program for all
-# operators (the operator index is traced).
+# operators (the operator index is traced): the first OP_COUNT levels of the shared L batch.
 OP_SIZE = "l"
 OP_COUNT = 256
 OP_VALIDATED = 48
 P = SIZES[OP_SIZE].num_polygons
 S = SIZES[OP_SIZE].num_static_polygons
+
+
+def first(levels, count: int):
+    """The first `count` levels of a host batch (numpy slicing: no small compiled program per leaf)."""
+    return jax.tree.map(lambda x: x[:count], levels)
+
 
 _apply_batch = jax.jit(
     jax.vmap(lambda key, level, edit: apply_edit(key, level, SIZES[OP_SIZE], edit), in_axes=(0, 0, None))
@@ -36,10 +45,10 @@ _apply_batch = jax.jit(
 @functools.cache
 def edited(name: str):
     """(before, after) host batches of OP_COUNT L levels edited once by operator `name`."""
-    before = random_levels(OP_SIZE, OP_COUNT, 7)
+    before = first(host_levels(OP_SIZE), OP_COUNT)
     keys = jax.random.split(jax.random.key(EDIT_NAMES.index(name)), OP_COUNT)
     after = _apply_batch(keys, before, EDIT_NAMES.index(name))
-    return to_host(before), to_host(after)
+    return before, to_host(after)
 
 
 def _shapes(levels):
@@ -282,17 +291,24 @@ def test_change_rotation_turns_one_shape_and_keeps_welds():
 # Whole mutations
 
 MUTATED_COUNT = 1000
+MUTATED_VALIDATED = 250  # validate_scene is a host-side check at ~20 ms a level
+
+
+@functools.cache
+def parents_s():
+    """MUTATED_COUNT S levels: the first of the shared S batch."""
+    return first(host_levels("s"), MUTATED_COUNT)
 
 
 @functools.cache
 def mutated_s():
-    before = random_levels("s", MUTATED_COUNT, 11)
-    return to_host(before), to_host(mutate_levels(jax.random.key(5), before, SIZES["s"]))
+    before = parents_s()
+    return before, to_host(mutate_levels(jax.random.key(5), before, SIZES["s"]))
 
 
 def test_mutated_levels_are_valid():
     _, after = mutated_s()
-    found = problems(after, MUTATED_COUNT)
+    found = problems(after, MUTATED_VALIDATED)
     assert not found, found[:10]
 
 
@@ -312,14 +328,14 @@ def test_mutated_levels_keep_the_task_invariants():
 
 def test_mutation_is_deterministic_and_zero_edits_copies_the_level_under_a_new_id():
     before, after = mutated_s()
-    again = to_host(mutate_levels(jax.random.key(5), random_levels("s", MUTATED_COUNT, 11), SIZES["s"]))
+    again = to_host(mutate_levels(jax.random.key(5), parents_s(), SIZES["s"]))
     for x, y in zip(jax.tree.leaves(again), jax.tree.leaves(after), strict=True):
         np.testing.assert_array_equal(x, y)
-    level = jax.tree.map(lambda x: x[0], random_levels("s", MUTATED_COUNT, 11))
-    same = mutate_level(jax.random.key(0), level, SIZES["s"], MutationConfig(num_edits=0))
-    assert bool((same.level_id != level.level_id).any()), "a child is a new level"
+    level = jax.tree.map(lambda x: x[0], before)  # host arrays: the comparisons below run in numpy
+    same = to_host(mutate_level(jax.random.key(0), level, SIZES["s"], MutationConfig(num_edits=0)))
+    assert (same.level_id != level.level_id).any(), "a child is a new level"
     same = same.replace(level_id=level.level_id)
-    assert all(bool((x == y).all()) for x, y in zip(jax.tree.leaves(same), jax.tree.leaves(level), strict=True))
+    assert all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(same), jax.tree.leaves(level), strict=True))
     ids = level_id_values(after.level_id)
     assert len(set(ids.tolist())) == len(ids) and not set(ids.tolist()) & set(level_id_values(before.level_id).tolist())
 
@@ -327,7 +343,7 @@ def test_mutation_is_deterministic_and_zero_edits_copies_the_level_under_a_new_i
 def test_operator_weights_follow_the_config_and_the_level():
     """Kinetix's gating: no shape additions without a free shape slot, no thruster addition without a free
     thruster slot, no removal without a thruster; configured weights otherwise."""
-    levels = random_levels("s", MUTATED_COUNT, 11)
+    levels = parents_s()
     weights = np.asarray(jax.jit(jax.vmap(lambda lv: edit_weights(lv, SIZES["s"], MutationConfig())))(levels))
     index = {n: i for i, n in enumerate(EDIT_NAMES)}
     has_thruster = np.asarray(levels.state.thrusters.active).any(1)  # S has one thruster slot

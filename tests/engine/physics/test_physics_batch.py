@@ -27,7 +27,6 @@ from tests.support.physics_sim import (
     run,
     run_batch,
     stack,
-    step_batch,
     take,
     zero_gravity,
 )
@@ -55,44 +54,48 @@ def _four_scenes():
     return [s1, s2, s3, s4], actions
 
 
+NUM_SCENES = 300
+NUM_STEPS = 500
+LIMIT = PARAMS.clip_position
+
+
 def test_vmapped_step_equals_single_step():
+    """The four scenes, each repeated to fill a batch of NUM_SCENES (so the vmapped run is the compiled `run_batch`
+    the random scenes below use), against each scene run alone: every copy equals its single run."""
     scenes, actions = _four_scenes()
-    batch = stack(scenes)
-    batched_records = []
-    for t in range(CHUNK):
-        batch, contacts = step_batch(batch, PARAMS, jnp.asarray(actions[:, t]), SIZES)
-        batched_records.append((batch, contacts))
+    copies = NUM_SCENES // len(scenes)
+    assert copies * len(scenes) == NUM_SCENES
+    batch = jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * copies), stack(scenes))
+    final, batched = run_batch(batch, PARAMS, jnp.asarray(np.concatenate([actions] * copies)), SIZES)
+    batched = [np.asarray(r) for r in batched]  # [NUM_SCENES, CHUNK, ...]; scene i at rows i, i + 4, i + 8, ...
     for i, scene in enumerate(scenes):
         alone, records = run(scene, PARAMS, jnp.asarray(actions[i]), SIZES)
         # Same arithmetic in a different compiled layout: results may differ by float32 rounding, amplified a
         # little by 20 steps of contact solving; 1e-5 is far below any physical difference.
         for t in range(CHUNK):
-            got = batched_records[t][0].bodies
-            for name, want in zip(("position", "rotation", "velocity", "angular_velocity"), records[:4]):
+            for k, name in enumerate(("position", "rotation", "velocity", "angular_velocity")):
+                want = np.asarray(records[k])[t]
                 np.testing.assert_allclose(
-                    np.asarray(getattr(got, name))[i],
-                    np.asarray(want)[t],
+                    batched[k][i :: len(scenes), t],
+                    np.broadcast_to(want, (copies, *want.shape)),
                     atol=1e-5,
                     rtol=1e-5,
                     err_msg=f"scene {i}, step {t}, bodies.{name}",
                 )
+            touching = np.asarray(records[4])[t]
             np.testing.assert_array_equal(
-                np.asarray(batched_records[t][1].touching)[i], np.asarray(records[4])[t]
+                batched[4][i :: len(scenes), t], np.broadcast_to(touching, (copies, *touching.shape))
             )
         # Every leaf of the final state, joints, thrusters and contact cache included.
-        for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(take(batch, i)), jax.tree.leaves(alone)):
+        for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(final), jax.tree.leaves(alone)):
+            b = np.asarray(b)
             np.testing.assert_allclose(
-                np.asarray(a),
-                np.asarray(b),
+                np.asarray(a)[i :: len(scenes)],
+                np.broadcast_to(b, (copies, *b.shape)),
                 atol=1e-5,
                 rtol=1e-5,
                 err_msg=f"scene {i}: {jax.tree_util.keystr(path)}",
             )
-
-
-NUM_SCENES = 300
-NUM_STEPS = 500
-LIMIT = PARAMS.clip_position
 
 
 class RandomRun(dict):
@@ -156,8 +159,9 @@ def test_random_scenes_are_valid(random_run):
     assert np.asarray(scenes.joints.active).sum() > NUM_SCENES
     assert np.asarray(scenes.thrusters.active).sum() > NUM_SCENES
     problems = {}
+    host = jax.tree.map(np.asarray, scenes)  # validate_scene on numpy arrays: a host check, no device round trips
     for i in range(NUM_SCENES):
-        found = validate_scene(take(scenes, i))
+        found = validate_scene(take(host, i))
         if found:
             problems[i] = found
     assert not problems, f"{len(problems)} invalid scenes, e.g. {dict(list(problems.items())[:3])}"

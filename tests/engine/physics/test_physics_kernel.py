@@ -12,34 +12,44 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from impulse.benchmarks._harness import LEVELS_DIR
 from impulse.benchmarks.kernel_check import compare, shared_levels
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.spec import env_from_config
-from impulse.engine.levels.generator import sample_random_levels
 from impulse.engine.physics import SolverOptions, step
-from impulse.engine.physics.sizes import SIZE_S
+
+from tests.support.level_samples import host_levels
 
 # Measured: 1.3e-5 m on the shared S levels after 120 steps, 3e-6 m on random S levels after 60 (float rounding,
 # the same arithmetic evaluated in another order); a wrong term in a visit parts them by millimetres at once.
 TOLERANCE_M = 1e-4
 
 
+# Scenes compared: the shared S levels topped up with random ones. test_generator's NaN check steps batches of this
+# many random S levels for as many steps through the same `trajectories`, so the XLA side compiles once for both.
+NUM_SCENES = 16
+NUM_STEPS = 120
+
+
 @functools.cache
 def _levels_of_size_s():
-    """The shared S levels and 6 random ones, from the same 4,000-level batch the level tests draw (one compile
-    of the generator for both)."""
+    """The shared S levels and random ones up to NUM_SCENES, from the 4,000-level batch the level tests draw (one
+    compile of the generator, and one sample, for all of them)."""
     if not (LEVELS_DIR / "s").is_dir():
         pytest.skip(f"Kinetix level files not found at {LEVELS_DIR.resolve()} (the shared folder beside the checkout)")
     shared, params, sizes = shared_levels("s")
-    randoms = jax.tree.map(lambda x: x[:6], sample_random_levels(jax.random.key(0), 4000, SIZE_S).state)
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), shared, randoms), params, sizes
+    count = NUM_SCENES - shared.bodies.position.shape[0]
+    assert count > 0, "more shared S levels than NUM_SCENES"
+    randoms = jax.tree.map(lambda x: x[:count], host_levels("s").state)
+    # Host arrays, so the slicing below is numpy's rather than one small compiled program per leaf.
+    return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), b]), shared, randoms), params, sizes
 
 
 def test_kernel_follows_the_xla_step_for_120_steps_on_shared_and_random_levels() -> None:
     states, params, sizes = _levels_of_size_s()
-    result = compare(states, params, sizes, num_steps=120)
+    result = compare(states, params, sizes, num_steps=NUM_STEPS)
     assert result["kernel_backend"] == "pallas_interpret"
     assert result["finite"]
     assert result["max_apart_any_step_m"] <= TOLERANCE_M, result
