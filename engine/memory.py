@@ -15,14 +15,20 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import jax
+if TYPE_CHECKING:
+    import jax
 
 log = logging.getLogger(__name__)
 
 MARGIN = 0.8
 """Share of the free memory one compiled program may take."""
+HOST_PROCESSES_ENV = "IMPULSE_HOST_PROCESSES"
+"""Set by `impulse launch` for its children: how many processes of the run share this host's memory. On a CPU each
+plans for that share of what is free (`host_share`), so that the learner and several actors cannot each pass the
+check while together needing more than the machine has. On a GPU each process's allocator limit is its share
+already (`actors.memory_fraction`)."""
 
 
 class DoesNotFit(ValueError):
@@ -44,6 +50,8 @@ def program_bytes(compiled: Any) -> int | None:
 def free_bytes(device: jax.Device | None = None) -> int | None:
     """Memory the device can give a program: a GPU's allocator limit less what is in use, or a CPU host's
     available memory; None when unknown."""
+    import jax  # here, not at the top: the launcher reads HOST_PROCESSES_ENV without loading JAX
+
     device = device or jax.devices()[0]
     if device.platform != "cpu":
         stats = device.memory_stats() or {}
@@ -63,15 +71,34 @@ def free_bytes(device: jax.Device | None = None) -> int | None:
         return None
 
 
+def host_share() -> int:
+    """How many processes share this host's memory, as `impulse launch` told its children (`HOST_PROCESSES_ENV`);
+    1 for a process started alone, or on a GPU."""
+    import jax
+
+    if jax.devices()[0].platform != "cpu":
+        return 1
+    try:
+        return max(1, int(os.environ.get(HOST_PROCESSES_ENV, "1")))
+    except ValueError:
+        return 1
+
+
 def check_fits(compiled: Any, what: str, num_envs: int, num_steps: int, free: int | None = None) -> None:
     """Raise `DoesNotFit` when `compiled` (`what`, e.g. "the training step": a program over `num_envs` x
-    `num_steps` env steps) needs more than `MARGIN` of the free memory (`free_bytes()` unless given), naming the
-    sizes, the memory needed and free, and the override that would fit."""
+    `num_steps` env steps) needs more than `MARGIN` of the free memory (`free_bytes()` unless given; on a CPU shared
+    by the processes of a launch, this process's share of it), naming the sizes, the memory needed and free, and the
+    override that would fit."""
+    import jax
+
     need = program_bytes(compiled)
     free = free_bytes() if free is None else free
     if need is None or free is None:
         return
-    log.info("%s needs %.2f GiB of the %.1f GiB free", what, need / 2**30, free / 2**30)
+    sharing = host_share()
+    free //= sharing
+    shared = f" (its 1/{sharing} share: {sharing} processes of this run share the host)" if sharing > 1 else ""
+    log.info("%s needs %.2f GiB of the %.1f GiB free%s", what, need / 2**30, free / 2**30, shared)
     if need <= MARGIN * free:
         return
     envs = num_envs  # memory grows about linearly with the batch: halve it until it would fit
@@ -79,7 +106,7 @@ def check_fits(compiled: Any, what: str, num_envs: int, num_steps: int, free: in
         envs //= 2
     raise DoesNotFit(
         f"{what} needs about {need / 2**30:.1f} GiB ({num_envs:,} envs x {num_steps:,} steps per update), more "
-        f"than {MARGIN:.0%} of the {free / 2**30:.1f} GiB free on {jax.devices()[0].platform}; use fewer, for "
+        f"than {MARGIN:.0%} of the {free / 2**30:.1f} GiB free on {jax.devices()[0].platform}{shared}; use fewer, for "
         f"example ppo.num_envs={envs} (configs/quick-cpu.toml is sized for a CPU)")
 
 
@@ -89,6 +116,8 @@ GPU_SIZED_STEPS = 2**17
 
 def warn_if_gpu_sized(num_envs: int, num_steps: int) -> None:
     """On a CPU, say before a long compile that GPU-sized updates will be slow (and may not fit)."""
+    import jax
+
     if jax.default_backend() == "cpu" and num_envs * num_steps >= GPU_SIZED_STEPS:
         log.warning("ppo.num_envs x ppo.num_steps = %s x %s env steps per update are GPU sizes: on this CPU one "
                     "update takes minutes; configs/quick-cpu.toml is sized for a CPU", f"{num_envs:,}",

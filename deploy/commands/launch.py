@@ -39,10 +39,11 @@ from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
-from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
+from impulse.engine.memory import HOST_PROCESSES_ENV
 from impulse.learner.run_directory import existing_run, holds_checkpoints
 
 log = logging.getLogger("impulse.launch")
@@ -103,7 +104,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     except PreflightError as err:
         print(f"impulse launch: {err}", file=sys.stderr)
         return EXIT_FAILED
-    run_dir.mkdir(parents=True, exist_ok=True)
+    created = create_run_dir(run_dir) and args.resume is None
     write_resolved_config(config, run_dir)
 
     resume_first = args.resume is not None
@@ -128,7 +129,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
                                                                                         str(i)),
                               run_dir / "logs" / f"actor-{index}.log"))
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # Every process but the viewer runs JAX programs sized by the batch; on a CPU they share the host's memory.
+    sharing = sum(child.name != VIEWER for child in children)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", HOST_PROCESSES_ENV: str(sharing)}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
     log.info("run %s in %s: learner, %s%s%d actors; logs in %s", config.name, run_dir,
@@ -205,7 +208,13 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
             display.forget()
             display.show(render(statuses, children, LEARNER))
     if failed:
-        print(_failure_message(failed), file=sys.stderr)
+        # A new run refused by what it needs (every process given up on said it cannot run with this
+        # configuration) before it trained is taken back; the refusal, with the sizes to use, is on stderr.
+        refused = created and all(child.last_exit == EXIT_CANNOT_RUN for child in failed)
+        removed = refused and remove_unstarted_run(run_dir, run_dir / config.checkpoint.directory)
+        print(_failure_message(failed, logs_kept=not removed), file=sys.stderr)
+        if removed:
+            print(f"impulse launch: removed {run_dir}, created for this run: nothing was trained", file=sys.stderr)
         return EXIT_FAILED
     scores = run_dir / "eval.json"
     if finished and scores.is_file():
@@ -235,9 +244,9 @@ def _gave_up(child: Child, actors: list[Child]) -> list[Child]:
     return []
 
 
-def _failure_message(failed: list[Child]) -> str:
+def _failure_message(failed: list[Child], logs_kept: bool = True) -> str:
     """The launcher's last words when it stopped a run because of `failed`: one line per distinct failure, naming
-    the processes, the exit status, the error line and the logs."""
+    the processes, the exit status, the error line and (`logs_kept`) the logs."""
     by_failure: dict[str, list[Child]] = {}
     for child in failed:
         by_failure.setdefault(describe_failure(child), []).append(child)
@@ -247,8 +256,9 @@ def _failure_message(failed: list[Child]) -> str:
         each = " each" if len(children) > 1 else ""
         logs = f"its log: {children[0].log_path}" if len(children) == 1 else \
             f"their logs are in {children[0].log_path.parent}"
-        lines.append(f"impulse launch: stopped the run: {names}{each} failed {children[0].streak} times in a row the "
-                     f"same way: {failure} ({logs})")
+        how = (" cannot run with this configuration" if children[0].last_exit == EXIT_CANNOT_RUN
+               else f"{each} failed {children[0].streak} times in a row the same way")
+        lines.append(f"impulse launch: stopped the run: {names}{how}: {failure}" + f" ({logs})" * logs_kept)
     return "\n".join(lines)
 
 

@@ -22,7 +22,7 @@ from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
-from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 
 log = logging.getLogger("impulse.service")
@@ -83,7 +83,8 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.run import final_evaluation
     from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
 
-    run_dir.mkdir(parents=True, exist_ok=True)
+    # A new run made here (not a launcher's, not resumed) is taken back if it is refused before it trains.
+    created = create_run_dir(run_dir) and args.run is None and not args.resume
     if args.run is None:
         write_resolved_config(config, run_dir)
     spec, env_params = env_from_config(config.env)
@@ -99,6 +100,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
                 wire_compact=config.actors.wire_compact)
         except LearnerError as err:
             print(f"impulse learner: {err}", file=sys.stderr)
+            _remove_refused_run(created, run_dir, config)
             return EXIT_FAILED
         log.info("learner up: run %s, epoch %d, policy version %d, %d of %d updates done", config.name,
                  service.epoch, service.version, service.update, service.num_updates)
@@ -109,6 +111,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
                                           on_cycle=_learner_on_cycle(service, monitor), scalar_sinks=sinks))
         except DoesNotFit as err:
             print(f"impulse learner: {err}", file=sys.stderr)
+            _remove_refused_run(created, run_dir, config)
             return EXIT_CANNOT_RUN
         finished = service.finished()
         params = service.train.params
@@ -122,6 +125,12 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         log.info("learner stopped at update %d of %d before an update of its own: nothing new to checkpoint",
                  service.update, service.num_updates)
     return 0
+
+
+def _remove_refused_run(created: bool, run_dir: Path, config: RunConfig) -> None:
+    """After a refusal: remove the run directory this command made for a new run, unless it holds checkpoints."""
+    if created and remove_unstarted_run(run_dir, run_dir / config.checkpoint.directory):
+        print(f"impulse learner: removed {run_dir}, created for this run: nothing was trained", file=sys.stderr)
 
 
 def _learner_on_cycle(service: Any, monitor: Any) -> Callable[[dict[str, Any], dict[str, float]], None]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -234,6 +235,10 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     for index in (0, 1):  # told by the learner's last status, as actors on other hosts are
         assert f"the learner finished the run: actor-{index} stops" in (run_dir / "logs" / f"actor-{index}.log"
                                                                          ).read_text()
+    # Each process checked its program against its share of the host's memory: the learner and two actors.
+    for name, what in (("learner", "the learner's update"), ("actor-0", "actor-0's rollout")):
+        text = (run_dir / "logs" / f"{name}.log").read_text()
+        assert re.search(rf"{what} needs [\d.]+ GiB of the [\d.]+ GiB free \(its 1/3 share: 3 processes", text), name
     # Every refusal reached metrics.jsonl (the learner's own and, from their status lines, the actors'), and every
     # update has one row.
     rows = metrics(run_dir)

@@ -4,6 +4,7 @@ train`, and the learner service's update and an actor's rollout in `impulse laun
 
 from __future__ import annotations
 
+import re
 from functools import partial
 
 import jax
@@ -12,14 +13,15 @@ import pytest
 from impulse.actors.levels import LocalLevels
 from impulse.actors.process import ACTOR_ROLE, Actor, actor_name
 from impulse.bus.session import Bus
+from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 from impulse.engine import memory
 from impulse.engine.env.spec import env_from_config
 from impulse.engine.memory import DoesNotFit, check_fits, free_bytes, program_bytes
 from impulse.learner.agent import make_agent
 from impulse.learner.curriculum_inputs import batch_level_results
-from impulse.learner.service import LearnerService
 
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
@@ -50,22 +52,29 @@ def test_a_step_that_does_not_fit_is_refused_with_sizes_and_an_override(compiled
     check_fits(compiled, "the training step", 2048, 256, free=2**30)  # fits: no complaint
 
 
-def test_the_learner_refuses_an_update_that_does_not_fit(tmp_path, monkeypatch) -> None:
-    """The learner service compiles its update when it starts and checks it the same way (here against 4 KiB
-    free), so an `impulse launch` at GPU sizes on a CPU stops with the sizes instead of being killed later."""
-    config = resolve_config(RunConfig, QUICK_LAUNCH, [f"bus.hub=tcp/127.0.0.1:{free_port()}", *SMALL])
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+def test_processes_of_a_launch_plan_for_their_share_of_a_cpu_host(compiled, monkeypatch) -> None:
+    """`impulse launch` tells its children how many of them share the host (IMPULSE_HOST_PROCESSES): on a CPU each
+    checks against its share of the free memory, so that together they cannot plan for more than there is."""
+    check_fits(compiled, "the rollout", 256, 64, free=2**30)  # alone: 16 to 64 MiB of 1 GiB
+    monkeypatch.setenv(memory.HOST_PROCESSES_ENV, "64")
+    assert memory.host_share() == 64
+    with pytest.raises(DoesNotFit, match=r"of the 0\.0 GiB free on cpu \(its 1/64 share: 64 processes of this run"):
+        check_fits(compiled, "the rollout", 256, 64, free=2**30)  # 16 MiB each
+
+
+def test_the_learner_refuses_an_update_that_does_not_fit_and_takes_back_its_new_run(tmp_path, monkeypatch,
+                                                                                       capsys) -> None:
+    """`impulse learner` compiles its update when it starts and checks it the same way (here against 4 KiB free),
+    so an `impulse launch` at GPU sizes on a CPU stops with the sizes instead of being killed later (exit status
+    78: the launcher gives up at once). The run directory it made for this new run goes again: nothing trained."""
+    run_dir = tmp_path / "new-run"
     monkeypatch.setattr(memory, "free_bytes", lambda device=None: 2**12)
-    with Bus(config.bus, "memory-test", "learner", "learner", listen=True) as bus:
-        service = LearnerService(config.ppo, config.learner, config.checkpoint, seed=0, num_updates=1,
-                                 batches_in_flight=1, status_every_s=1.0, run_dir=tmp_path, config_toml="", bus=bus,
-                                 agent=agent, env_params=env_params)
-        try:
-            with pytest.raises(DoesNotFit, match=r"the learner's update needs about .* \(8 envs x 8 steps per update"):
-                service.start()
-        finally:
-            service.close()
+    code = main(["learner", "--hub", "--config", str(QUICK_LAUNCH), f"run_dir={run_dir}",
+                 f"bus.hub=tcp/127.0.0.1:{free_port()}", *SMALL])
+    err = capsys.readouterr().err
+    assert code == EXIT_CANNOT_RUN, err
+    assert re.search(r"impulse learner: the learner's update needs about .* \(8 envs x 8 steps per update", err), err
+    assert f"removed {run_dir}, created for this run: nothing was trained" in err and not run_dir.exists()
 
 
 class CompileCounter:
