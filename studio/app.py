@@ -42,7 +42,7 @@ from impulse.studio.level_io import (
 )
 from impulse.studio.library import SAVED, Library, UnknownLevel, level_counts
 from impulse.studio.protocol import PilotLoader, PlayConnection
-from impulse.studio.scene import scene_json
+from impulse.studio.scene import actuator_settings, scene_json
 from impulse.studio.security import Guard
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -95,13 +95,15 @@ def _query(request: Request, *names: str) -> list[str]:
 
 
 def _edited(body: dict[str, Any]) -> dict[str, Any]:
-    """The reply of POST /api/edit: the edited level, its scene, counts, size and problems."""
+    """The reply of POST /api/edit: the edited level, its scene, its joints' and thrusters' settings, counts, size
+    and problems."""
     if "level" not in body:
         raise RequestError("edit needs \"level\" (a Kinetix level JSON object) and \"ops\" (a list)")
     loaded = load_document(body["level"], validate=False)
     level = apply_edits(loaded.level, loaded.sizes, body.get("ops", []))
     return {"level": level_document(loaded, level), "scene": scene_json(scene_drawing(level)),
-            "size": size_class(loaded.sizes), "counts": level_counts(level.state, loaded.sizes),
+            "actuators": actuator_settings(level), "size": size_class(loaded.sizes),
+            "counts": level_counts(level.state, loaded.sizes),
             "problems": validate_scene(level.state)}
 
 

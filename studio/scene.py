@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing
-from impulse.engine.levels.level import ROLE_NAMES
+from impulse.engine.levels.level import ROLE_NAMES, Level
 
 DIGITS = 4
 
@@ -34,7 +34,8 @@ def _role(role: int) -> str:
 def scene_json(drawing: SceneDrawing) -> dict[str, Any]:
     """The drawing as a JSON-ready dict: `polygons` (body, points, colour, role, fixed), `circles` (body, centre,
     radius, mark: the rim point that shows the rotation, colour, role, fixed), `joints` (position, welded, colour,
-    drive in [-1, 1]), `thrusters` (triangle, colour, drive in [0, 1]) and `arena` (its side in metres)."""
+    drive in [-1, 1]), `thrusters` (triangle, colour, drive in [0, 1]), each joint and thruster with its slot, and
+    `arena` (its side in metres)."""
     polygons = [
         {"body": int(body), "points": _points(outline), "colour": _hex(colour), "role": _role(int(role)),
          "fixed": bool(fixed)}
@@ -50,15 +51,39 @@ def scene_json(drawing: SceneDrawing) -> dict[str, Any]:
             drawing.circle_colours, drawing.circle_roles, drawing.circle_fixed, strict=True)
     ]
     joints = [
-        {"position": _points(position)[0], "welded": bool(welded), "colour": _hex(colour),
+        {"joint": int(slot), "position": _points(position)[0], "welded": bool(welded), "colour": _hex(colour),
          "drive": round(float(drive), 3)}
-        for position, welded, colour, drive in zip(drawing.joint_positions, drawing.joint_welded,
-                                                   drawing.joint_colours, drawing.joint_drive, strict=True)
+        for slot, position, welded, colour, drive in zip(drawing.joint_slots, drawing.joint_positions,
+                                                         drawing.joint_welded, drawing.joint_colours,
+                                                         drawing.joint_drive, strict=True)
     ]
     thrusters = [
-        {"triangle": _points(triangle), "colour": _hex(colour), "drive": round(float(drive), 3)}
-        for triangle, colour, drive in zip(drawing.thruster_triangles, drawing.thruster_colours,
-                                           drawing.thruster_drive, strict=True)
+        {"thruster": int(slot), "triangle": _points(triangle), "colour": _hex(colour),
+         "drive": round(float(drive), 3)}
+        for slot, triangle, colour, drive in zip(drawing.thruster_slots, drawing.thruster_triangles,
+                                                 drawing.thruster_colours, drawing.thruster_drive, strict=True)
     ]
     return {"arena": ARENA_METRES, "polygons": polygons, "circles": circles, "joints": joints,
             "thrusters": thrusters}
+
+
+def actuator_settings(level: Level) -> dict[str, list[dict[str, Any]]]:
+    """What the editor's panel shows of each joint and thruster in `level` (host arrays): the joint's shapes, weld
+    or motor (on, speed, power, limits in radians or None) and action binding; the thruster's shape, power and
+    binding."""
+    j, t = level.state.joints, level.state.thrusters
+    joints = [
+        {"joint": int(k), "a": int(j.a_index[k]), "b": int(j.b_index[k]), "weld": bool(j.is_fixed_joint[k]),
+         "motor": bool(j.motor_on[k]), "speed": round(float(j.motor_speed[k]), DIGITS),
+         "power": round(float(j.motor_power[k]), DIGITS),
+         "limits": ([round(float(j.min_rotation[k]), DIGITS), round(float(j.max_rotation[k]), DIGITS)]
+                    if j.motor_has_joint_limits[k] else None),
+         "binding": int(level.motor_bindings[k])}
+        for k in np.flatnonzero(np.asarray(j.active))
+    ]
+    thrusters = [
+        {"thruster": int(k), "body": int(t.body_index[k]), "power": round(float(t.power[k]), DIGITS),
+         "binding": int(level.thruster_bindings[k])}
+        for k in np.flatnonzero(np.asarray(t.active))
+    ]
+    return {"joints": joints, "thrusters": thrusters}

@@ -86,6 +86,10 @@ class SceneDrawing:
     """[p] the global body index of each polygon drawn (an editor picks shapes by it)."""
     circle_bodies: np.ndarray
     """[c] the global body index of each circle drawn (polygons first: num_polygons + circle slot)."""
+    joint_slots: np.ndarray
+    """[j] the joint slot of each joint drawn (an editor picks joints by it)."""
+    thruster_slots: np.ndarray
+    """[t] the thruster slot of each thruster drawn."""
 
 
 def scene_drawing(level: Level, state: SimState | None = None, actuation: np.ndarray | None = None) -> SceneDrawing:
@@ -174,4 +178,6 @@ def scene_drawing(level: Level, state: SimState | None = None, actuation: np.nda
         thruster_drive=thruster_drive,
         polygon_bodies=np.asarray(shown, int),
         circle_bodies=circles,
+        joint_slots=joint_ids,
+        thruster_slots=thruster_ids,
     )

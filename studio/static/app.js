@@ -234,7 +234,7 @@ function renderGallery() {
 
 const editor = {
   doc: null, scene: null, title: "", tool: "select", role: "neutral", selected: null,
-  undo: [], redo: [], drag: null, busy: false,
+  undo: [], redo: [], drag: null, busy: false, actuators: { joints: [], thrusters: [] }, jointFrom: null,
 };
 studio.editor = editor;
 
@@ -261,8 +261,69 @@ function setEditorState(state) {
   editor.size = state.size;
   editor.counts = state.counts;
   editor.problems = state.problems;
+  editor.actuators = state.actuators || { joints: [], thrusters: [] };
   if (editor.selected !== null && !findShape(editor.scene, editor.selected)) editor.selected = null;
   renderEditor();
+}
+
+// The joints' and thrusters' table: every change is one edit operation.
+function renderActuators() {
+  const table = document.getElementById("editor-actuators");
+  table.innerHTML = "";
+  const { joints, thrusters } = editor.actuators;
+  if (!joints.length && !thrusters.length) return;
+  const row = (cells) => {
+    const tr = document.createElement("tr");
+    for (const cell of cells) {
+      const td = document.createElement("td");
+      if (typeof cell === "string") td.textContent = cell; else td.appendChild(cell);
+      tr.appendChild(td);
+    }
+    table.appendChild(tr);
+  };
+  const input = (value, onChange, attrs = {}) => {
+    const element = document.createElement("input");
+    Object.assign(element, { type: "number", step: "0.1", size: 3, value, ...attrs });
+    element.addEventListener("change", () => onChange(element));
+    return element;
+  };
+  const check = (checked, onChange) => {
+    const element = document.createElement("input");
+    Object.assign(element, { type: "checkbox", checked });
+    element.addEventListener("change", () => onChange(element.checked));
+    return element;
+  };
+  const remove = (op) => {
+    const button = document.createElement("button");
+    button.textContent = "\u2715";
+    button.title = "delete";
+    button.addEventListener("click", () => edit([op]));
+    return button;
+  };
+  row(["joint", "shapes", "motor", "speed", "power", "limits", "key", ""]);
+  for (const j of joints) {
+    const set = (fields) => edit([{ op: "set_joint", joint: j.joint, ...fields }]);
+    const limits = document.createElement("input");
+    Object.assign(limits, { size: 8, value: j.limits ? j.limits.join(", ") : "", placeholder: "min, max" });
+    limits.addEventListener("change", () => {
+      const parts = limits.value.split(",").map((x) => Number(x.trim()));
+      set({ limits: limits.value.trim() ? parts : null });
+    });
+    row([`${j.joint}${j.weld ? " (weld)" : ""}`, `${j.a}\u2013${j.b}`,
+      j.weld ? "" : check(j.motor, (motor) => set({ motor })),
+      j.weld ? "" : input(j.speed, (e) => set({ speed: Number(e.value) })),
+      j.weld ? "" : input(j.power, (e) => set({ power: Number(e.value) }), { min: 0 }),
+      j.weld ? "" : limits,
+      j.weld ? "" : input(j.binding, (e) => set({ binding: Number(e.value) }), { step: 1, min: 0, max: 3 }),
+      remove({ op: "delete_joint", joint: j.joint })]);
+  }
+  row(["thruster", "shape", "", "", "power", "", "key", ""]);
+  for (const t of thrusters) {
+    const set = (fields) => edit([{ op: "set_thruster", thruster: t.thruster, ...fields }]);
+    row([`${t.thruster}`, `${t.body}`, "", "", input(t.power, (e) => set({ power: Number(e.value) }), { min: 0 }),
+      "", input(t.binding, (e) => set({ binding: Number(e.value) }), { step: 1, min: 0, max: 1 }),
+      remove({ op: "delete_thruster", thruster: t.thruster })]);
+  }
 }
 
 function renderEditor() {
@@ -292,6 +353,9 @@ function renderEditor() {
   }
   document.getElementById("editor-undo").disabled = editor.undo.length === 0;
   document.getElementById("editor-redo").disabled = editor.redo.length === 0;
+  document.getElementById("editor-material").hidden = !shape;
+  if (editor.jointFrom !== null) info.textContent += ` \u00b7 joint from body ${editor.jointFrom}: click the second shape`;
+  renderActuators();
 }
 
 async function edit(ops) {
@@ -346,6 +410,18 @@ function setupEditor() {
   const rotate = (angle) => { if (editor.selected !== null) edit([{ op: "rotate", body: editor.selected, angle }]); };
   document.getElementById("editor-rotate-left").addEventListener("click", () => rotate(Math.PI / 12));
   document.getElementById("editor-rotate-right").addEventListener("click", () => rotate(-Math.PI / 12));
+  const resize = (scale) => { if (editor.selected !== null) edit([{ op: "resize", body: editor.selected, scale }]); };
+  document.getElementById("editor-shrink").addEventListener("click", () => resize(0.8));
+  document.getElementById("editor-grow").addEventListener("click", () => resize(1.25));
+  document.getElementById("material-apply").addEventListener("click", () => {
+    if (editor.selected === null) return;
+    const op = { op: "set_material", body: editor.selected };
+    for (const name of ["density", "friction", "restitution"]) {
+      const value = document.getElementById(`material-${name}`).value;
+      if (value !== "") op[name] = Number(value);
+    }
+    edit([op]);
+  });
   document.getElementById("editor-delete").addEventListener("click", () => {
     if (editor.selected !== null) edit([{ op: "delete", body: editor.selected }]);
   });
@@ -364,8 +440,24 @@ function setupEditor() {
       edit([{ op: "add_circle", x: point[0], y: point[1], radius: 0.25, role: editor.role, fixed }]);
       return;
     }
-    if (editor.tool === "box") {
-      edit([{ op: "add_polygon", x: point[0], y: point[1], width: 0.5, height: 0.5, role: editor.role, fixed }]);
+    if (editor.tool === "box" || editor.tool === "triangle") {
+      edit([{ op: "add_polygon", x: point[0], y: point[1], width: 0.5, height: 0.5, role: editor.role, fixed,
+        sides: editor.tool === "box" ? 4 : 3 }]);
+      return;
+    }
+    if (editor.tool === "joint" || editor.tool === "thruster") {
+      const target = shapeAt(editor.scene, point);
+      if (!target) { say("click on a shape", "error"); return; }
+      if (editor.tool === "thruster") {
+        edit([{ op: "add_thruster", body: target.body, x: point[0], y: point[1], angle: Math.PI / 2 }]);
+      } else if (editor.jointFrom === null) {
+        editor.jointFrom = target.body;
+        renderEditor();
+      } else {
+        const a = editor.jointFrom;
+        editor.jointFrom = null;
+        edit([{ op: "add_joint", a, b: target.body, x: point[0], y: point[1], motor: true }]);
+      }
       return;
     }
     const shape = shapeAt(editor.scene, point);

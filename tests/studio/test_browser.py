@@ -1,8 +1,10 @@
 """Impulse Studio in a real headless browser (Debian's chromium, driven by Playwright), against the studio served by
 uvicorn on a free port: the gallery shows the hand-made levels; the editor opens one, adds a red circle with a
 click, drags it, undoes and redoes, saves, and the saved file read back through the API is the level the page
-holds; the play page, with the right arrow held, drives the car's motor and the green wheel moves right, the page
-reporting the server's step time and the round trip. One browser and one server serve every test here.
+holds; a motorised joint pins the circle to the floor (two clicks), its motor is switched off and on in the
+joints table, and in play the arrow key turns the pinned circle; the play page, with the right arrow held, drives
+the car's motor and the green wheel moves right, the page reporting the server's step time and the round trip.
+One browser and one server serve every test here.
 
 Screenshots of the three pages go to `$STUDIO_SCREENSHOTS` when it is set (docs/studio/ holds the README's), else to
 a temporary folder. Skipped, saying why, where chromium or Playwright is missing.
@@ -131,6 +133,34 @@ def test_gallery_editor_save_and_reload(server, page, shots: Path) -> None:
     assert reloaded == page.evaluate("studio.editor.doc")
     roles = sorted(c["role"] for c in reloaded["env_state"]["circle"] if c["active"])
     assert roles == [2, 3]  # the level's blue ball and the new red circle
+
+    # A motorised joint pinning the red circle to the floor: click the floor, then the circle (the pin goes there).
+    page.click("#tool-joint")
+    page.locator("#editor-canvas").click(position={"x": 100, "y": 495})  # world (1.0, 0.05): the floor
+    page.locator("#editor-canvas").click(position={"x": 300, "y": 200})  # the red circle, now at (3.0, 3.0)
+    page.wait_for_function("studio.editor.actuators.joints.length === 1")
+    joint = page.evaluate("studio.editor.actuators.joints[0]")
+    red = page.evaluate("studio.editor.scene.circles.find(c => c.role === 'red').body")
+    assert joint["a"] == 0 and joint["b"] == red and joint["motor"] and not joint["weld"], joint
+    motor = page.locator("#editor-actuators input[type=checkbox]")
+    motor.uncheck()
+    page.wait_for_function("!studio.editor.actuators.joints[0].motor")
+    motor.check()
+    page.wait_for_function("studio.editor.actuators.joints[0].motor")
+    page.screenshot(path=str(shots / "editor-joint.png"))
+
+    page.click("#editor-play")  # the motor (binding 0: the arrow keys) turns the pinned circle
+    page.wait_for_function("studio.play.frame !== null && studio.play.frame.t >= 3")
+    mark = "studio.play.frame.scene.circles.find(c => c.role === 'red').mark"
+    centre = "studio.play.frame.scene.circles.find(c => c.role === 'red').centre"
+    before, pinned = page.evaluate(mark), page.evaluate(centre)
+    page.keyboard.down("ArrowRight")
+    try:
+        page.wait_for_function(f"studio.play.frame.t >= 25 && Math.hypot({mark}[0] - {before[0]}, "
+                               f"{mark}[1] - {before[1]}) > 0.05")
+    finally:
+        page.keyboard.up("ArrowRight")
+    assert page.evaluate(centre) == pytest.approx(pinned, abs=0.01), "the pin holds the circle in place"
 
 
 def test_play_drives_the_motor_with_the_arrow_key(server, page, shots: Path) -> None:

@@ -19,6 +19,7 @@ from impulse.engine.levels.handmade.files import level_differences
 from impulse.engine.levels.kinetix_json import level_file_problems, load_kinetix_level
 from impulse.engine.levels.sets import LevelSetError, kinetix_levels_root
 from impulse.studio.app import make_app
+from impulse.studio.level_io import load_document
 from PIL import Image
 from starlette.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
@@ -146,6 +147,78 @@ def test_editing_adds_moves_re_roles_fixes_and_deletes_within_the_size(client: T
     assert edit(client, gone["level"], [{"op": "explode"}]).status_code == 422
     saved = client.post("/api/save", json={"name": "edited", "level": freed["level"]})
     assert saved.status_code == 200, saved.text
+
+
+def test_editing_joints_thrusters_materials_sizes_and_triangles(client: TestClient, levels_dir: Path) -> None:
+    """A wheel pinned to the world by a motorised joint, a triangle in the freed polygon slot with a thruster, a
+    material change and a resize: each shows in the reply, is refused past the size's limits, survives saving as
+    Kinetix JSON, and the motor turns the wheel in play."""
+    level = level_json(client, "handmade", THRUST)  # S: the arena (bodies 0-3), a box (4) and a circle (5)
+
+    def edited(state: dict, ops: list[dict]) -> dict:
+        reply = edit(client, state["level"] if "scene" in state else state, ops)
+        assert reply.status_code == 200, reply.text
+        return reply.json()
+
+    state = edited(level, [{"op": "add_circle", "x": 2.5, "y": 2.5, "radius": 0.2}])
+    wheel = state["scene"]["circles"][-1]["body"]
+    state = edited(state, [{"op": "add_joint", "a": 0, "b": wheel, "x": 2.5, "y": 2.5, "motor": True, "speed": 2,
+                            "power": 2, "limits": [-1, 1], "binding": 0}])
+    [joint] = state["actuators"]["joints"]
+    assert joint == {"joint": 0, "a": 0, "b": wheel, "weld": False, "motor": True, "speed": 2.0, "power": 2.0,
+                     "limits": [-1.0, 1.0], "binding": 0}
+    assert state["scene"]["joints"][0]["position"] == [2.5, 2.5] and state["problems"] == []
+    state = edited(state, [{"op": "set_joint", "joint": 0, "limits": None, "binding": 1},
+                           {"op": "set_joint", "joint": 0, "binding": 0}])
+    assert state["actuators"]["joints"][0]["limits"] is None and state["actuators"]["joints"][0]["motor"]
+    full = edit(client, state["level"], [{"op": "add_joint", "a": 4, "b": 5, "x": 1.2, "y": 0.6}])
+    assert full.status_code == 422 and "at most 1 joints" in full.json()["error"]
+    same = edit(client, state["level"], [{"op": "add_joint", "a": wheel, "b": wheel, "x": 2.5, "y": 2.5}])
+    assert same.status_code == 422 and "two different shapes" in same.json()["error"]
+
+    no_slot = edit(client, state["level"], [{"op": "add_polygon", "x": 1.0, "y": 2.0, "sides": 3}])
+    assert no_slot.status_code == 422 and "no free polygon slot" in no_slot.json()["error"]
+    state = edited(state, [{"op": "delete", "body": 4},  # the box goes with its thruster
+                           {"op": "add_polygon", "x": 1.0, "y": 2.0, "width": 0.6, "height": 0.3, "sides": 3},
+                           {"op": "add_thruster", "body": 4, "angle": 0.0, "power": 2, "binding": 1},
+                           {"op": "set_material", "body": wheel, "density": 3, "friction": 0.2,
+                            "restitution": 0.5},
+                           {"op": "resize", "body": wheel, "scale": 1.5}])
+    [triangle] = [p for p in state["scene"]["polygons"] if p["body"] == 4]
+    assert len(triangle["points"]) == 3
+    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.0, "binding": 1}]
+    state = edited(state, [{"op": "set_thruster", "thruster": 0, "power": 2.5}])
+    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.5, "binding": 1}]
+    assert [c["radius"] for c in state["scene"]["circles"] if c["body"] == wheel] == [0.3]
+    too_big = edit(client, state["level"], [{"op": "resize", "body": wheel, "scale": 10}])
+    assert too_big.status_code == 422 and "across" in too_big.json()["error"]
+
+    saved = client.post("/api/save", json={"name": "jointed", "level": state["level"]})
+    assert saved.status_code == 200, saved.text
+    assert level_file_problems(levels_dir / "jointed.json") == []
+    back = load_kinetix_level(levels_dir / "jointed.json").level
+    bodies, joints, thrusters = back.state.bodies, back.state.joints, back.state.thrusters
+    assert bool(joints.motor_on[0]) and float(joints.motor_speed[0]) == 2.0 and int(joints.b_index[0]) == wheel
+    assert int(back.state.polygon_n_vertices[4]) == 3 and float(thrusters.power[0]) == 2.5
+    assert int(back.thruster_bindings[0]) == 1
+    assert float(bodies.friction[wheel]) == pytest.approx(0.2) and float(bodies.restitution[wheel]) == 0.5
+    # Three times the density, 1.5 times the radius: 6.75 times the mass of the disc added at density 1.
+    original = load_kinetix_level(handmade.level_file(THRUST)).level.state.bodies
+    added = edited(level, [{"op": "add_circle", "x": 2.5, "y": 2.5, "radius": 0.2}])
+    first = load_document(added["level"]).level.state.bodies
+    assert float(first.inverse_mass[wheel] / bodies.inverse_mass[wheel]) == pytest.approx(6.75, rel=1e-4)
+    assert not bool(original.active[wheel])
+
+    with client.websocket_connect("/ws/play") as socket:  # the motor turns the pinned wheel; the pin holds it
+        socket.send_json({"type": "load", "level": state["level"]})
+        start = socket.receive_json()["scene"]["circles"]
+        for _ in range(10):
+            socket.send_json({"type": "step", "action": MOTOR_RIGHT})
+            frame = socket.receive_json()
+    [before] = [c for c in start if c["body"] == wheel]
+    [after] = [c for c in frame["scene"]["circles"] if c["body"] == wheel]
+    assert np.hypot(*np.subtract(after["centre"], before["centre"])) < 0.01
+    assert np.hypot(*np.subtract(after["mark"], before["mark"])) > 0.05, "the motor turned the wheel"
 
 
 def test_moving_a_car_moves_its_wheels_along(client: TestClient) -> None:
