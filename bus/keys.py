@@ -18,6 +18,7 @@ share one credential): it tells actors apart, it does not authenticate one.
     <root>/curriculum/levels/sample     level-batch queryable
     <root>/curriculum/knobs             live knobs queryable (`impulse curriculum get|set`)
     <root>/curriculum/inspect           buffer report queryable (`impulse curriculum inspect`)
+    <root>/curriculum/inject            level injection queryable (`impulse curriculum inject`, the studio)
     <root>/actor/traj/<actor>           trajectory batches
     <root>/actor/results/<actor>        per-level results
     <root>/evaluator/results/<id>       evaluations of the learner's policy on level sets
@@ -129,6 +130,11 @@ class Keys:
     def curriculum_inspect(self) -> str:
         """Queryable of the curriculum: its buffer statistics and levels (`impulse curriculum inspect`)."""
         return self.own(CURRICULUM, "inspect")
+
+    @property
+    def curriculum_inject(self) -> str:
+        """Queryable of the curriculum: put a level a person sends into its buffer (`impulse curriculum inject`)."""
+        return self.own(CURRICULUM, "inject")
 
     # -- the actors' ----------------------------------------------------------------------------------------
 

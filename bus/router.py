@@ -14,7 +14,7 @@ Security material lives in one credentials directory (made for trials by deploy/
 - `router.password`: what a router presents when it links to another (`router.connect`), the user being `router`.
 
 A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`: `learner`, `curriculum`,
-`actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect`, status watchers).
+`actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect|inject`, status watchers).
 
 With access control on, the router denies by default and allows each role only its part of the protocol
 (`access_rules`): each role publishes only under its own key prefix (`bus.keys`), so only the learner can publish
@@ -148,7 +148,8 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("curriculum-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
         _allow("curriculum-hears-learner", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
-        _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect"]),
+        _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect",
+                                                       f"{run}/{CURRICULUM}/inject"]),
         _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
         _allow("router-passes-out", "egress", ALL_MESSAGES, everything),
     ]

@@ -226,6 +226,29 @@ class Curriculum:
                                            rejected=state.counters.rejected + (solve_rate.shape[0] - filled.sum()))
         return state._replace(buffer=buffer, counters=counters)
 
+    def insert(self, state: CurriculumState, level: Level) -> tuple[CurriculumState, Array]:
+        """Put one given `level` (unbatched, of the curriculum's sizes: a level a person sends into a running
+        curriculum) into the buffer: in an empty slot, else in place of the lowest-scored level, scored as high as
+        the best buffered level so that replay picks it soon; from then on its results re-score it like any
+        buffered level. Returns (state, the slot)."""
+        buffer = state.buffer
+        slot = jnp.where(buffer.filled.all(), jnp.argmin(jnp.where(buffer.filled, buffer.score, jnp.inf)),
+                         jnp.argmin(buffer.filled))
+        top = jnp.where(buffer.filled.any(), jnp.max(jnp.where(buffer.filled, buffer.score, -jnp.inf)), 0.0)
+        version = jnp.max(jnp.where(buffer.filled, buffer.score_version, 0))
+        clock = state.counters.clock
+        buffer = buffer._replace(
+            levels=jax.tree.map(lambda x, v: x.at[slot].set(v), buffer.levels, level),
+            filled=buffer.filled.at[slot].set(True), score=buffer.score.at[slot].set(top),
+            last_sampled=buffer.last_sampled.at[slot].set(clock), inserted_at=buffer.inserted_at.at[slot].set(clock),
+            max_return=buffer.max_return.at[slot].set(0.0), episodes=buffer.episodes.at[slot].set(0.0),
+            solved=buffer.solved.at[slot].set(0.0), score_version=buffer.score_version.at[slot].set(version),
+            parent_id=buffer.parent_id.at[slot].set(0), generation=buffer.generation.at[slot].set(0),
+            replays=buffer.replays.at[slot].set(0))
+        counters = state.counters._replace(inserted=state.counters.inserted + 1,
+                                           evicted=state.counters.evicted + state.buffer.filled[slot])
+        return state._replace(buffer=buffer, counters=counters), slot
+
     # -- update ---------------------------------------------------------------------------------------------------
 
     def update(self, state: CurriculumState, results: LevelResults) -> CurriculumState:

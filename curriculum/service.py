@@ -9,6 +9,10 @@ It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of 
 - `curriculum/knobs` (queryable): read the live knobs, or change them (`{"set": ["replay_prob=0.8", ...]}`),
   validated by the run's config system (a function the caller passes in) and applied at the next sample;
 - `curriculum/inspect` (queryable): buffer statistics, the top levels and, on request, their scenes;
+- `curriculum/inject` (queryable): a level a person sends in (`{"level": <a Kinetix level file's object>}`, from
+  `impulse curriculum inject` or the studio), loaded at the run's size and checked as `impulse levels validate`
+  does, then put into the buffer (`Curriculum.insert`); refused with the reason otherwise. Only the operator role
+  may ask (`bus.router.access_rules`);
 - `metrics/curriculum/0`: a status line with buffer statistics for `impulse launch`'s display.
 
 With batch-scored SFL (`curriculum.sfl_scoring=batch`) results do not score levels: every `sfl_refresh_updates`
@@ -58,7 +62,8 @@ from impulse.curriculum.stats import (
     top_levels,
 )
 from impulse.curriculum.wire import ResultsError, level_batch_arrays, results_from_message
-from impulse.engine.levels.level import Level
+from impulse.engine.levels.kinetix_json import load_level_document
+from impulse.engine.levels.level import Level, level_id_values
 from impulse.engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
@@ -157,6 +162,7 @@ class CurriculumService:
         self.result_messages = 0
         self.knob_changes = 0
         self.refills = 0
+        self.injected = 0
         self.policy_version = 0
         self.incarnation = secrets.randbits(31)
         """Drawn at start: tells this process's status counters from a predecessor's (`bus.status.DropTotals`)."""
@@ -168,6 +174,8 @@ class CurriculumService:
         self._sample_queries = bus.queryable(keys.levels_sample, queue)
         self._knob_queries = bus.queryable(keys.curriculum_knobs, 16)
         self._inspect_queries = bus.queryable(keys.curriculum_inspect, 16)
+        self._inject_queries = bus.queryable(keys.curriculum_inject, 16)
+        self._insert = jax.jit(curriculum.insert)
         self._status = StatusPublisher(bus, status_every_s)
         self.scorer = scorer if curriculum.batch_scored else None
         self._scoring: threading.Thread | None = None
@@ -200,6 +208,7 @@ class CurriculumService:
         # Restored too, so that the checkpoint step (their sum with the above) never goes back after a restart.
         self.knob_changes = int(counters.get("knob_changes", 0))
         self.refills = int(counters.get("refills", 0))
+        self.injected = int(counters.get("injected", 0))
         self._saved_step = restored.step
         log.info("curriculum resumed from checkpoint %s: %d levels buffered, %d staged, %d samples served",
                  self._saved_step, int(np.asarray(self.state.buffer.filled).sum()),
@@ -208,7 +217,7 @@ class CurriculumService:
     @property
     def step(self) -> int:
         """Checkpoint step: everything the service has done (monotonic across restarts)."""
-        return self.samples + self.result_messages + self.knob_changes + self.refills
+        return self.samples + self.result_messages + self.knob_changes + self.refills + self.injected
 
     def save(self, summary: dict[str, float] | None = None) -> None:
         """Checkpoint the whole state, unless nothing happened since the last checkpoint (`summary`, the run loop's
@@ -217,7 +226,7 @@ class CurriculumService:
             return
         counters = {"samples": self.samples, "result_messages": self.result_messages,
                     "policy_version": self.policy_version, "knob_changes": self.knob_changes,
-                    "refills": self.refills}
+                    "refills": self.refills, "injected": self.injected}
         self.checkpoints.save(self.step, {self.item: self.state}, counters, self.config_toml)
         self._saved_step = self.step
 
@@ -251,6 +260,8 @@ class CurriculumService:
             self._answer_knobs(query)
         for query in self._inspect_queries.poll():
             self._answer_inspect(query)
+        for query in self._inject_queries.poll():
+            self._answer_inject(query)
         if self._status.due():
             self._status.publish(self.status())
         if not applied and not served:
@@ -388,13 +399,40 @@ class CurriculumService:
         except (ValueError, TypeError, OverflowError) as err:
             query.reply(encode_refusal(self.bus.stamp, str(err)))
 
+    def inject(self, document: Any) -> dict[str, Any]:
+        """Put the level of a Kinetix level-file object into the buffer (see the module docstring): what was done
+        (`slot`, `level_id`, `evicted`); ValueError with every problem, and nothing changed, when the level does not
+        load at the run's size, is not a valid scene, or is buffered already."""
+        level = load_level_document(document, self.curriculum.spec.sizes)
+        level_id = int(level_id_values(np.asarray(level.level_id)[None])[0])
+        buffer = self.state.buffer
+        if level_id in set(level_id_values(np.asarray(buffer.levels.level_id)[np.asarray(buffer.filled)]).tolist()):
+            raise ValueError(f"level {level_id:016x} is in the buffer already")
+        evicted = bool(np.asarray(buffer.filled).all())
+        self.state, slot = self._insert(self.state, level)
+        self.injected += 1
+        log.info("level %016x injected into buffer slot %d%s", level_id, int(slot),
+                 " in place of the lowest-scored level" if evicted else "")
+        return {"slot": int(slot), "level_id": f"{level_id:016x}", "evicted": evicted}
+
+    def _answer_inject(self, query: IncomingQuery) -> None:
+        try:
+            request = control_reply(query.payload or b"{}")
+            if "level" not in request:
+                raise ValueError('an injection needs "level": a Kinetix level file\'s JSON object')
+            reply = {"ok": True, **self.inject(request["level"])}
+        except ValueError as err:
+            reply = {"ok": False, "error": str(err)}
+            log.warning("refused an injected level: %s", err)
+        query.reply(_json(reply))
+
     def status(self) -> dict[str, Any]:
         """The status line: counts and the buffer statistics (`curriculum.stats.buffer_summary`), which is how the
         service publishes them for monitoring."""
         summary = buffer_summary(self.state, self.curriculum.spec.sizes, self.policy_version)
         return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "incarnation": self.incarnation,
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
-                "policy_version": self.policy_version, "knob_changes": self.knob_changes,
+                "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
                 **({"refills": self.refills, "scoring": self._scoring is not None,
                     "last_refill": self._last_refill} if self.scorer is not None else {}),
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,

@@ -1,10 +1,12 @@
-"""`impulse curriculum serve|set|get|inspect`: run the curriculum service, and talk to a live one.
+"""`impulse curriculum serve|set|get|inspect|inject`: run the curriculum service, and talk to a live one.
 
 `serve` runs the service process (`impulse launch` starts it with `--run RUN_DIR` when the run trains on random
-levels). `set`, `get` and `inspect` find a running service through the run directory's config (run name and bus
-hub) and query it over the bus; they print what it answered and exit 1 if no service answered. `inspect
---checkpoint [STEP]` reads the level buffer from the run's checkpoints instead, with no service: a finished or
-stopped run, distributed (the curriculum service's checkpoints) or fused (`impulse train` on random levels).
+levels). `inject LEVEL.json` sends a level file into the running service's buffer (it is checked there, at the
+run's size). `set`, `get`, `inspect` and `inject` find a running service through the run directory's config (run
+name and bus hub) and query it over the bus; they print what it answered and exit 1 if no service answered.
+`inspect --checkpoint [STEP]` reads the level buffer from the run's checkpoints instead, with no service: a
+finished or stopped run, distributed (the curriculum service's checkpoints) or fused (`impulse train` on random
+levels).
 """
 
 from __future__ import annotations
@@ -55,7 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inspect.add_argument("--checkpoint", nargs="?", const=-1, type=int, metavar="STEP",
                          help="read the buffer from the run's checkpoint STEP (default: the newest) instead of "
                          "asking the live service")
-    for p in (set_, get, inspect):
+    inject = actions.add_parser("inject", help="send a level file into the running curriculum's buffer",
+                                allow_abbrev=False)
+    inject.add_argument("level", type=Path, metavar="LEVEL.json", help="a Kinetix level file")
+    for p in (set_, get, inspect, inject):
         p.add_argument("--run", type=Path, metavar="RUN_DIR", required=True, help="the run's directory")
         p.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint instead of the run's bus.hub")
 
@@ -76,6 +81,8 @@ def run(args: argparse.Namespace, _config: object) -> int:
         return EXIT_USAGE
     if args.curriculum_action == "inspect":
         return inspect(args, config)
+    if args.curriculum_action == "inject":
+        return inject(args, config)
     request: dict[str, Any] = {}
     if args.curriculum_action == "set":
         request["set"] = [a[len(CURRICULUM_SECTION):] if a.startswith(CURRICULUM_SECTION) else a
@@ -94,6 +101,34 @@ def run(args: argparse.Namespace, _config: object) -> int:
         print(f"method = {reply.get('method')}")
         for name, value in reply["knobs"].items():
             print(f"{name} = {json.dumps(value)}")
+    return 0
+
+
+def inject(args: argparse.Namespace, config: RunConfig) -> int:
+    """`inject LEVEL.json`: the file's JSON object to the service, which loads it at the run's size, checks it and
+    puts it into its buffer; prints the slot, or the service's reason for refusing it."""
+    from impulse.bus.control import control_reply, control_request
+
+    try:
+        document = json.loads(args.level.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        print(f"impulse curriculum inject: cannot read {args.level}: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    with _client(config) as bus:
+        replies = _ask(bus, bus.keys.curriculum_inject, control_request(level=document))
+        if not replies:
+            _no_answer(config, bus.keys.curriculum_inject)
+            return EXIT_FAILED
+        try:
+            reply = control_reply(replies[0])
+        except ValueError as err:
+            print(f"impulse curriculum inject: unreadable answer: {err}", file=sys.stderr)
+            return EXIT_FAILED
+    if not reply.get("ok"):
+        print(f"impulse curriculum inject: refused: {reply.get('error')}", file=sys.stderr)
+        return EXIT_USAGE
+    print(f"{args.level.name}: level {reply['level_id']} in buffer slot {reply['slot']}"
+          f"{' (in place of the lowest-scored level)' if reply.get('evicted') else ''}")
     return 0
 
 

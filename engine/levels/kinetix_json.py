@@ -512,7 +512,27 @@ def load_kinetix_level(
     pass `validate=False` and call `validate_scene` themselves.
     """
     path = Path(path)
-    raw = _read_json(path)
+    return level_from_document(_read_json(path), sizes, validate=validate, source=path)
+
+
+def load_level_document(document: Any, sizes: SceneSizes | None = None) -> Level:
+    """The level of a level file's JSON object received whole (a level a person sends into a running curriculum),
+    in `sizes`, validated; ValueError (a `LevelFileError`) naming every problem otherwise."""
+    source = "the level sent"
+    if not isinstance(document, dict):
+        raise LevelFileError(source, f"not a level file: the top level must be an object, got "
+                                     f"{type(document).__name__}")
+    if not isinstance(document.get("env_state"), dict):
+        raise LevelFileError(source, "not a level file: env_state missing or not an object")
+    return level_from_document(document, sizes, source=source).level
+
+
+def level_from_document(
+    raw: dict, sizes: SceneSizes | None = None, *, validate: bool = True, source: str | Path = "the level"
+) -> KinetixLevel:
+    """`load_kinetix_level` of a level file's JSON object (`raw`, whose `env_state` is an object); problems are
+    reported as those of `source`."""
+    path = source
     env_state = raw["env_state"]
     problems: list[str] = []
 

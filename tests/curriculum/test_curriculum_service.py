@@ -1,9 +1,11 @@
 """The curriculum service over a real bus (zenoh on loopback; the test plays the actors and a person at the
 command line): level batches on request, results applied, live knobs validated and applied at the next sample,
-malformed input refused while it keeps serving, and a restart from its checkpoint losing no buffered level."""
+malformed input refused while it keeps serving, a restart from its checkpoint losing no buffered level, and a level
+a person sends in (`impulse curriculum inject`) put into the buffer or refused with the reason."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -24,6 +26,7 @@ from impulse.curriculum.wire import (
 )
 from impulse.deploy.config import ConfigError, apply_overrides
 from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels import handmade
 from impulse.engine.levels.level import level_id_values, level_id_words
 from impulse.learner.checkpoint import CURRICULUM, Checkpointer
 
@@ -153,4 +156,34 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
             == staged
         assert restarted.live_knobs()["robust"] is True and restarted.samples == samples_saved
         assert (tmp_path / "ckpt-corrupt" / str(corrupted)).is_dir()
+        checkpoints.close()
+
+
+def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tmp_path):
+    with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, Bus(hub.config, RUN, "operator", "cli") as person:
+
+        def inject(document) -> dict:
+            [payload] = person.get(person.keys.curriculum_inject, payload=control_request(level=document),
+                                   timeout_s=20)
+            return control_reply(payload)
+
+        service, checkpoints = start_service(bus, tmp_path / "ckpt", resume=False)
+        car = json.loads(handmade.level_file("s_easy_car_right").read_text())
+        reply = serve_until(service, lambda: inject(car))
+        assert reply["ok"] and reply["slot"] == 0 and not reply["evicted"], reply
+        buffer = service.state.buffer
+        assert np.asarray(buffer.filled).sum() == 1 and service.injected == 1 and service.status()["injected"] == 1
+        assert f"{int(level_id_values(np.asarray(buffer.levels.level_id))[0]):016x}" == reply["level_id"]
+
+        for document, reason in ((car, "in the buffer already"),
+                                 (json.loads(handmade.level_file("m_car_bump").read_text()), "too large for the size"),
+                                 ({"env_state": 3}, "env_state missing or not an object"),
+                                 ([1, 2], "the top level must be an object")):
+            reply = serve_until(service, lambda d=document: inject(d))
+            assert not reply["ok"] and reason in reply["error"], (reason, reply)
+        assert service.injected == 1
+        service.save()  # the injection is checkpointed with the buffer
+        checkpoints.close()
+        restarted, checkpoints = start_service(bus, tmp_path / "ckpt", resume=True)
+        assert restarted.injected == 1 and np.asarray(restarted.state.buffer.filled).sum() == 1
         checkpoints.close()

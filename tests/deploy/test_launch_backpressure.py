@@ -5,7 +5,8 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    drops are counted and every process's resident memory, the curriculum service's included, stays flat;
 2. the curriculum: the launcher started it, actors train on the levels it serves and report results back, and a
    person retunes it while it runs with `impulse curriculum set` (a bad value refused, a good one taking effect
-   at the next sample), reads it back with `get` and looks at its buffer with `inspect`;
+   at the next sample), reads it back with `get`, sends a level into its buffer with `inject` and looks at the
+   buffer with `inspect`;
 3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
    service checkpoints its buffer;
 4. `--record` without `--view`: every process streams to one Rerun recording (the run's name as its id) through
@@ -105,6 +106,13 @@ def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
     batch = level_batch_from_message(decode(payload, run=run_dir.name, kinds=Kind.LEVELS),
                                      level_batch_schema(template), template)
     assert (np.asarray(batch.origin) == ORIGIN_REPLAY).all()
+
+    # A level a person sends in (`impulse curriculum inject`) enters the running service's buffer.
+    car = REPO / "engine" / "levels" / "handmade" / "s_easy_car_right.json"
+    injected = curriculum_cli(run_dir, "inject", str(car))
+    assert injected.returncode == 0 and "s_easy_car_right.json: level " in injected.stdout, injected
+    assert "in buffer slot" in injected.stdout
+    wait_for(lambda: watcher.poll().get("curriculum", {}).get("injected") == 1, 10, "the service to count it")
 
     inspected = curriculum_cli(run_dir, "inspect", "--json", "--top", "3", "--render", str(tmp_path / "top"))
     assert inspected.returncode == 0, inspected.stderr

@@ -156,7 +156,8 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
     """Probes join at the actor's router, so its rules decide what they may send and hear, while the learner's
     weights and the actor's trajectories cross the link to the learner's router. Every role's credentials try to
     forge what only another role may send: the learner's status saying the run is finished, weights, credits,
-    level batches and knob changes. None reaches anyone; the actor keeps its real weights and keeps training."""
+    level batches, knob changes and levels sent into the curriculum's buffer. None reaches anyone; the actor keeps
+    its real weights and keeps training."""
     watcher = watch(cluster)
     try:
         wait_update(watcher, cluster, 2, 240)
@@ -183,12 +184,15 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             trajectories = rogues["actor"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
             # The curriculum role answers level and knob queries (a stand-in: this run has no curriculum service);
             # a second queryable of each, under actor credentials, tries to.
-            asked: dict[str, list[str]] = {"knobs": []}
+            asked: dict[str, list[str]] = {"knobs": [], "inject": []}
             sessions["curriculum"].declare_queryable(
                 keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"curriculum"))
             sessions["curriculum"].declare_queryable(
                 keys.curriculum_knobs, lambda q: (asked["knobs"].append(bytes(q.payload.to_bytes()).decode()),
                                                   q.reply(keys.curriculum_knobs, b"knobs")))
+            sessions["curriculum"].declare_queryable(
+                keys.curriculum_inject, lambda q: (asked["inject"].append(bytes(q.payload.to_bytes()).decode()),
+                                                   q.reply(keys.curriculum_inject, b"injected")))
             rogues["actor"].declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"rogue"))
             real = weights.recv().payload.to_bytes()  # the learner publishes after every update
             genuine = decode(real, run=RUN, kinds=Kind.WEIGHTS)
@@ -214,9 +218,14 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             knob_replies = {  # not from the session serving the knobs: it would answer itself, unrouted
                 role: (rogues["curriculum"] if role == "curriculum" else sessions[role]).get(
                     keys.curriculum_knobs, payload=f"set by {role}".encode(), timeout=3) for role in roles}
+            inject_replies = {
+                role: (rogues["curriculum"] if role == "curriculum" else sessions[role]).get(
+                    keys.curriculum_inject, payload=f"level from {role}".encode(), timeout=3) for role in roles}
             answers = sorted(r.ok.payload.to_bytes() for r in level_replies if r.ok is not None)
             knob_answers = {role: [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
                             for role, replies in knob_replies.items()}
+            inject_answers = {role: [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+                              for role, replies in inject_replies.items()}
             time.sleep(3)
             heard_weights = collect(weights, Kind.WEIGHTS)
             heard_credits = collect(credits, Kind.CREDIT)
@@ -229,6 +238,10 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         assert answers == [b"curriculum"]  # the actor-credentialed queryable was never declared to the probe
         assert asked["knobs"] == ["set by operator"], asked  # only the operator may ask the curriculum's knobs
         assert knob_answers["operator"] == [b"knobs"] and not any(knob_answers[r] for r in ("actor", "learner"))
+        # Only the operator may send a level into the curriculum's buffer.
+        assert asked["inject"] == ["level from operator"], asked
+        assert inject_answers["operator"] == [b"injected"] and not any(inject_answers[r]
+                                                                       for r in ("actor", "learner", "curriculum"))
         versions = [m.policy_version for m in heard_weights if m is not None]
         assert versions and FORGED_VERSION not in versions  # the learner's weights arrive, the rogues' do not
         assert all(m is not None and m.meta.get("incarnation") != FORGED_VERSION for m in heard_credits)
