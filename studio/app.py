@@ -11,7 +11,9 @@ the server keeps running):
   and the problems `validate_scene` finds (ops [] just draws a level);
 - `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
   with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
-- `GET /api/agents`: the checkpoints offered for watching;
+- `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
+- `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`inject`): its
+  reply, or 422 with the service's reason; 409 when the studio has no run to send to;
 - `WebSocket /ws/play`: play and watch (`protocol`).
 
 Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
@@ -31,6 +33,7 @@ from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.summary import size_class
 from impulse.engine.physics.validate import validate_scene
 from impulse.studio.editing import apply_edits
+from impulse.studio.inject import LevelSender
 from impulse.studio.level_io import (
     LevelInputError,
     level_document,
@@ -114,10 +117,13 @@ def make_app(
     token: str | None = None,
     load_pilot: PilotLoader | None = None,
     agents: Sequence[str] = (),
+    send_level: LevelSender | None = None,
+    run_name: str | None = None,
 ) -> Starlette:
     """The studio app: levels from the hand-made and Kinetix sets, `levels_dir` (where it saves) and `sources`
     (folders, files or glob patterns); `token` required on every request when given; `load_pilot` loads a
-    checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers."""
+    checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `send_level` sends a
+    level into run `run_name`'s curriculum (None: no run to send to)."""
     library = Library(Path(levels_dir), tuple(sources))
 
     async def index(request: Request) -> Response:
@@ -173,7 +179,21 @@ def make_app(
                              "size": size_class(loaded.sizes)})
 
     async def agent_list(request: Request) -> Response:
-        return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents)})
+        return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents),
+                             "inject_run": run_name if send_level is not None else None})
+
+    async def inject(request: Request) -> Response:
+        body = await _body(request)
+        if send_level is None:
+            return _error(409, "this studio has no running curriculum to send levels to: start it with --run RUN_DIR "
+                               "of a run on random levels")
+        if not isinstance(body.get("level"), dict):
+            raise RequestError('inject needs "level": a Kinetix level JSON object')
+        reply = await run_in_threadpool(send_level, body["level"])
+        if not reply.get("ok"):
+            return _error(422, f"the curriculum refused the level: {reply.get('error')}")
+        log.info("studio: sent a level into run %s's curriculum: slot %s", run_name, reply.get("slot"))
+        return JSONResponse(reply)
 
     async def play(websocket: WebSocket) -> None:
         await websocket.accept()
@@ -225,6 +245,7 @@ def make_app(
         Route("/api/validate", validate, methods=["POST"]),
         Route("/api/save", save, methods=["POST"]),
         Route("/api/agents", agent_list),
+        Route("/api/inject", inject, methods=["POST"]),
         WebSocketRoute("/ws/play", play),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]

@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="more levels for the gallery: a level file, a folder of them or a glob pattern "
                         "(repeatable)")
     parser.add_argument("--run", type=Path, metavar="RUN_DIR",
-                        help="a run directory (or a checkpoint folder) whose agent the Play page offers to watch")
+                        help="a run directory (or a checkpoint folder) whose agent the Play page offers to watch; "
+                        "when the run has a curriculum service, the editor can send levels into its buffer")
     parser.add_argument("--token", metavar="T",
                         help="access token every request must carry (required when --host is not loopback); 8 or "
                         "more letters, digits or ._~-")
@@ -110,6 +111,24 @@ def _offered(args: argparse.Namespace) -> list[str]:
     return offered
 
 
+def _curriculum_of(run: Path | None) -> tuple[Any, str | None]:
+    """(a `studio.inject.LevelSender`, the run's name) for `--run`'s run when it trains with a curriculum service
+    (levels can be sent into its buffer), else (None, None)."""
+    if run is None:
+        return None, None
+    from impulse.deploy.config import ConfigError, resolve_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.studio.inject import curriculum_sender
+
+    try:
+        config = resolve_config(RunConfig, _run_dir_of(run) / "config.toml", [])
+    except (FileNotFoundError, ConfigError):
+        return None, None
+    if not config.uses_curriculum_service:
+        return None, None
+    return curriculum_sender(config.bus, config.name), config.name
+
+
 def run(args: argparse.Namespace, _config: object = None) -> int:
     problem = _problem(args) or _port_free(args.host, args.port)
     if problem:
@@ -125,8 +144,9 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
     from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
     enable_compile_cache()
+    send_level, run_name = _curriculum_of(args.run)
     app = make_app(args.levels_dir, tuple(args.levels), token=args.token, load_pilot=load_pilot,
-                   agents=_offered(args))
+                   agents=_offered(args), send_level=send_level, run_name=run_name)
     shown = f"[{args.host}]" if ":" in args.host else args.host
     address = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
     print(f"Impulse Studio: open {address}  (levels are saved in {args.levels_dir}; Ctrl-C stops)", flush=True)

@@ -428,6 +428,15 @@ function setupEditor() {
   document.getElementById("editor-undo").addEventListener("click", () => undoRedo(editor.undo, editor.redo));
   document.getElementById("editor-redo").addEventListener("click", () => undoRedo(editor.redo, editor.undo));
   document.getElementById("editor-save").addEventListener("click", saveLevel);
+  document.getElementById("editor-send").addEventListener("click", async () => {
+    if (!editor.doc) return;
+    try {
+      const sent = await api("/api/inject", { level: editor.doc });
+      say(`in the run's curriculum buffer: slot ${sent.slot}${sent.evicted ? " (in place of its lowest-scored level)" : ""}`, "ok");
+    } catch (error) {
+      sayError(error);
+    }
+  });
   document.getElementById("editor-play").addEventListener("click", () => {
     if (editor.doc) openInPlay({ level: editor.doc }, editor.title + " (edited)");
   });
@@ -660,6 +669,9 @@ async function loadAgents() {
         document.getElementById(id).disabled = true;
       }
     }
+    const send = document.getElementById("editor-send");
+    send.hidden = !data.inject_run;
+    if (data.inject_run) send.textContent = `Send to run ${data.inject_run}`;
   } catch (error) {
     sayError(error);
   }

@@ -1,7 +1,8 @@
 """The curriculum service over a real bus (zenoh on loopback; the test plays the actors and a person at the
 command line): level batches on request, results applied, live knobs validated and applied at the next sample,
 malformed input refused while it keeps serving, a restart from its checkpoint losing no buffered level, and a level
-a person sends in (`impulse curriculum inject`) put into the buffer or refused with the reason."""
+a person sends in (`impulse curriculum inject`, or the studio's editor) put into the buffer or refused with the
+reason."""
 
 from __future__ import annotations
 
@@ -29,6 +30,9 @@ from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels import handmade
 from impulse.engine.levels.level import level_id_values, level_id_words
 from impulse.learner.checkpoint import CURRICULUM, Checkpointer
+from impulse.studio.app import make_app
+from impulse.studio.inject import curriculum_sender
+from starlette.testclient import TestClient
 
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.launch_procs import free_port
@@ -182,8 +186,19 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
             reply = serve_until(service, lambda d=document: inject(d))
             assert not reply["ok"] and reason in reply["error"], (reason, reply)
         assert service.injected == 1
-        service.save()  # the injection is checkpointed with the buffer
+
+        # The studio's editor sends a level the same way (`impulse studio --run RUN_DIR`: POST /api/inject).
+        sender = curriculum_sender(hub.config, RUN)
+        with TestClient(make_app(tmp_path / "levels", send_level=sender, run_name=RUN)) as client:
+            assert client.get("/api/agents").json()["inject_run"] == RUN
+            hop = json.loads(handmade.level_file("s_hop_over").read_text())
+            sent = serve_until(service, lambda: client.post("/api/inject", json={"level": hop}))
+            assert sent.status_code == 200 and sent.json()["slot"] == 1, sent.text
+            again = serve_until(service, lambda: client.post("/api/inject", json={"level": hop}))
+            assert again.status_code == 422 and "in the buffer already" in again.json()["error"], again.text
+        assert service.injected == 2
+        service.save()  # the injections are checkpointed with the buffer
         checkpoints.close()
         restarted, checkpoints = start_service(bus, tmp_path / "ckpt", resume=True)
-        assert restarted.injected == 1 and np.asarray(restarted.state.buffer.filled).sum() == 1
+        assert restarted.injected == 2 and np.asarray(restarted.state.buffer.filled).sum() == 2
         checkpoints.close()

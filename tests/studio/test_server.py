@@ -116,6 +116,9 @@ def test_bad_input_is_a_4xx_naming_the_problem_and_the_server_goes_on(client: Te
     assert client.post("/api/save", json={"name": "x", "level": [1, 2]}).status_code == 422
     assert client.post("/api/save", content=b"{}", headers={"content-type": "text/plain"}).status_code == 415
     assert client.get("/api/level", params={"set": "handmade", "name": "../../etc/passwd"}).status_code == 404
+    no_run = client.post("/api/inject", json={"level": big})  # started without --run: nowhere to send a level
+    assert no_run.status_code == 409 and "--run" in no_run.json()["error"]
+    assert client.get("/api/agents").json()["inject_run"] is None
     assert client.get("/api/sets").status_code == 200
 
 
@@ -344,7 +347,7 @@ def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_p
         return tiny_pilot
 
     with TestClient(make_app(levels_dir, load_pilot=load, agents=["tiny"])) as client:
-        assert client.get("/api/agents").json() == {"enabled": True, "checkpoints": ["tiny"]}
+        assert client.get("/api/agents").json() == {"enabled": True, "checkpoints": ["tiny"], "inject_run": None}
         with client.websocket_connect("/ws/play") as socket:
             socket.send_json({"type": "load", "set": "handmade", "name": CAR})
             assert socket.receive_json()["agent"] is None
