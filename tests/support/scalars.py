@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -80,8 +81,19 @@ def wandb_run(wandb_dir: Path) -> tuple[Any, Points]:
     """The one offline run under `wandb_dir`: its run record (name, group, config) and its history as points."""
     files = list(wandb_dir.glob("offline-run-*/run-*.wandb"))
     assert len(files) == 1, files
+    # W&B's core process writes the file: `finish` can return before it has written the last records (seen in
+    # CI: the file read back without its run record), so wait for the closing `exit` record.
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            records = wandb_records(files[0])
+        except Exception:  # noqa: BLE001 - a record still being written does not parse yet
+            records = []
+        if any(r.WhichOneof("record_type") == "exit" for r in records) or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
     run, points = None, {}
-    for record in wandb_records(files[0]):
+    for record in records:
         kind = record.WhichOneof("record_type")
         if kind == "run":
             run = record.run
