@@ -114,8 +114,20 @@ def require_wandb() -> None:
                               f"it with `{WANDB_INSTALL}`, or leave monitor.wandb_project empty") from err
 
 
+def require_tensorboard() -> None:
+    """Raise `ScalarSinkError` naming the key when tensorboardX cannot be imported. It is one of Impulse's own
+    dependencies, but a machine running the checkout with its own Python (a lent GPU, docs/gpu.md) may lack it."""
+    try:
+        import tensorboardX  # noqa: F401
+    except ImportError as err:
+        raise ScalarSinkError(f"monitor.tensorboard is on but tensorboardX cannot be imported ({err}); install "
+                              "it with `pip install tensorboardX`, or set monitor.tensorboard=false") from err
+
+
 def check_sinks(monitor: MonitorConfig) -> None:
     """Everything the configured sinks need, checked before a run starts (`ScalarSinkError`)."""
+    if monitor.tensorboard:
+        require_tensorboard()
     if monitor.wandb_project:
         require_wandb()
 

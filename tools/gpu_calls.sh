@@ -15,6 +15,10 @@ exec 2> >(tee -a "$OUT/log" >&2)
 started=$(date +%s)
 [ -d /tmp/site/zenoh ] || python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
     .device/wheels/*.whl >&2 || echo "gpu_calls: installing the bundle's wheels failed" >&2
+# A bundle built by an older checkout can lack a package that ours needs now (tensorboardX did, once, and a run
+# failed after its first compile): say so at once, before any device time goes into a benchmark.
+PYTHONPATH=/tmp/site python3 -c "import zenoh, tomli_w, tensorboardX" >&2 \
+    || { echo "gpu_calls: the bundle lacks a package above; rebuild it with python -m tools.gpu_bundle" >&2; exit 2; }
 # Preallocation off: the reference systems run in a child process beside ours, which would otherwise hold 75% of
 # the GPU's memory while they run.
 export PYTHONPATH=/tmp/site IMPULSE_REFERENCE_SITE=/tmp/site IMPULSE_KINETIX_LEVELS=$PWD/.device/kinetix-levels \

@@ -102,7 +102,8 @@ def check_hub_port(config: RunConfig) -> None:
 
 
 def check_scalar_sinks(config: RunConfig) -> None:
-    """What the learner's TensorBoard and W&B sinks need (the W&B client when `monitor.wandb_project` is set)."""
+    """What the learner's TensorBoard and W&B sinks need (tensorboardX when `monitor.tensorboard` is on, the W&B
+    client when `monitor.wandb_project` is set)."""
     from impulse.monitor.scalars import ScalarSinkError, check_sinks
 
     try:

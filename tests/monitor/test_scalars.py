@@ -86,7 +86,7 @@ def test_export_writes_what_the_live_run_wrote(tmp_path: Path, capsys: pytest.Ca
     assert "no metrics.jsonl" in capsys.readouterr().err
 
 
-def test_wandb_without_its_client_stops_before_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+def test_a_sink_without_its_client_stops_before_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "wandb", None)  # what `import wandb` meets where it is not installed
     for command in ("train", "learner"):
@@ -99,6 +99,14 @@ def test_wandb_without_its_client_stops_before_the_run(tmp_path: Path, capsys: p
                                                   f"bus.hub=tcp/127.0.0.1:{free_port()}"])
     with pytest.raises(PreflightError, match=r"monitor\.wandb_project.*impulse\[wandb\]"):
         run_preflight(config, tmp_path / "launch", resume=False, curriculum_service=False)
+    # The same for TensorBoard's writer, on by default: a lent GPU's Python lacked it, and a run failed only after
+    # its first compile.
+    monkeypatch.setitem(sys.modules, "tensorboardX", None)
+    run_dir = tmp_path / "without-tensorboard"
+    assert main(["train", f"run_dir={run_dir}"]) == 2
+    err = capsys.readouterr().err
+    assert "monitor.tensorboard=false" in err and "tensorboardX" in err, err
+    assert not (run_dir / "metrics.jsonl").exists()
 
 
 def test_wandb_offline_holds_the_runs_name_config_and_every_row(tmp_path: Path,
