@@ -17,23 +17,22 @@ import json
 import logging
 import os
 import sys
+from collections.abc import Callable
 from contextlib import nullcontext
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypeVar
 
+from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
 from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
-
-if TYPE_CHECKING:
-    from impulse.bus.session import Bus
 
 log = logging.getLogger("impulse.curriculum")
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
-ANSWER_TIMEOUT_S = 30.0
 CURRICULUM_SECTION = "curriculum."
+Reply = TypeVar("Reply")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,11 +82,11 @@ def run(args: argparse.Namespace, _config: object) -> int:
         return inspect(args, config)
     if args.curriculum_action == "inject":
         return inject(args, config)
-    request: dict[str, Any] = {}
+    assignments = None
     if args.curriculum_action == "set":
-        request["set"] = [a[len(CURRICULUM_SECTION):] if a.startswith(CURRICULUM_SECTION) else a
-                          for a in args.assignments]
-    reply = _ask_knobs(config, request)
+        assignments = [a[len(CURRICULUM_SECTION):] if a.startswith(CURRICULUM_SECTION) else a
+                       for a in args.assignments]
+    reply = _ask(config, args.curriculum_action, lambda client: client.knobs(assignments))
     if reply is None:
         return EXIT_FAILED
     if not reply.get("ok"):
@@ -107,23 +106,14 @@ def run(args: argparse.Namespace, _config: object) -> int:
 def inject(args: argparse.Namespace, config: RunConfig) -> int:
     """`inject LEVEL.json`: the file's JSON object to the service, which loads it at the run's size, checks it and
     puts it into its buffer; prints the slot, or the service's reason for refusing it."""
-    from impulse.bus.control import control_reply, control_request
-
     try:
         document = json.loads(args.level.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as err:
         print(f"impulse curriculum inject: cannot read {args.level}: {err}", file=sys.stderr)
         return EXIT_USAGE
-    with _client(config) as bus:
-        replies = _ask(bus, bus.keys.curriculum_inject, control_request(level=document))
-        if not replies:
-            _no_answer(config, bus.keys.curriculum_inject)
-            return EXIT_FAILED
-        try:
-            reply = control_reply(replies[0])
-        except ValueError as err:
-            print(f"impulse curriculum inject: unreadable answer: {err}", file=sys.stderr)
-            return EXIT_FAILED
+    reply = _ask(config, "inject", lambda client: client.inject(document))
+    if reply is None:
+        return EXIT_FAILED
     if not reply.get("ok"):
         print(f"impulse curriculum inject: refused: {reply.get('error')}", file=sys.stderr)
         return EXIT_USAGE
@@ -132,40 +122,15 @@ def inject(args: argparse.Namespace, config: RunConfig) -> int:
     return 0
 
 
-def _ask(bus: Bus, key: str, payload: bytes) -> list[bytes]:
-    """The service's replies to one query. Waits first until this new session knows the service's queryable: a
-    query sent before that finds nobody and returns at once, which happens on a busy machine."""
-    if not bus.wait_queryable(key, ANSWER_TIMEOUT_S):
-        return []
-    return bus.get(key, payload=payload, timeout_s=ANSWER_TIMEOUT_S)
-
-
-def _client(config: RunConfig):
-    from impulse.bus.keys import OPERATOR
-    from impulse.bus.session import Bus
-
-    return Bus(config.bus, config.name, OPERATOR, f"cli-{os.getpid()}")
-
-
-def _no_answer(config: RunConfig, key: str) -> None:
-    print(f"impulse curriculum: no curriculum service answered on {key} within {ANSWER_TIMEOUT_S:.0f} s (is run "
-          f"{config.name!r} running with env.levels=random, on hub {config.bus.connect or config.bus.hub}?)",
-          file=sys.stderr)
-
-
-def _ask_knobs(config: RunConfig, request: dict[str, Any]) -> dict[str, Any] | None:
-    from impulse.bus.control import control_reply, control_request
-
-    with _client(config) as bus:
-        replies = _ask(bus, bus.keys.curriculum_knobs, control_request(**request))
-        if not replies:
-            _no_answer(config, bus.keys.curriculum_knobs)
-            return None
-        try:
-            return control_reply(replies[0])
-        except ValueError as err:
-            print(f"impulse curriculum: unreadable answer: {err}", file=sys.stderr)
-            return None
+def _ask(config: RunConfig, action: str, request: Callable[[CurriculumClient], Reply]) -> Reply | None:
+    """`request` made of the run's curriculum service through an operator's client (`curriculum.client`); None,
+    with the reason printed, when no readable answer came."""
+    try:
+        with CurriculumClient(config.bus, config.name, f"cli-{os.getpid()}") as client:
+            return request(client)
+    except CurriculumUnreachable as err:
+        print(f"impulse curriculum {action}: {err}", file=sys.stderr)
+        return None
 
 
 def _show(args: argparse.Namespace, config: RunConfig, report: dict[str, Any], arrays: dict[str, Any]) -> None:
@@ -223,24 +188,13 @@ def inspect_checkpoint(args: argparse.Namespace, config: RunConfig, run_dir: Pat
 
 
 def inspect(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.bus.codec import Rejected
-    from impulse.bus.control import control_request, decode_report
-
-    with _client(config) as bus:
-        replies = _ask(bus, bus.keys.curriculum_inspect, control_request(top=args.top, levels=bool(args.render)))
-        if not replies:
-            _no_answer(config, bus.keys.curriculum_inspect)
-            return EXIT_FAILED
-        try:
-            reply = decode_report(replies[0], config.name)
-        except Rejected as err:
-            print(f"impulse curriculum inspect: unreadable answer: {err}", file=sys.stderr)
-            return EXIT_FAILED
-        if reply.error is not None:
-            print(f"impulse curriculum inspect: refused: {reply.error}", file=sys.stderr)
-            return EXIT_USAGE
-        report, arrays = reply.report, reply.arrays
-    _show(args, config, report, arrays)
+    reply = _ask(config, "inspect", lambda client: client.inspect(args.top, levels=bool(args.render)))
+    if reply is None:
+        return EXIT_FAILED
+    if reply.error is not None:
+        print(f"impulse curriculum inspect: refused: {reply.error}", file=sys.stderr)
+        return EXIT_USAGE
+    _show(args, config, reply.report, reply.arrays)
     return 0
 
 
