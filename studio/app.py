@@ -12,8 +12,12 @@ the server keeps running):
 - `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
   with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
 - `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
-- `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`inject`): its
-  reply, or 422 with the service's reason; 409 when the studio has no run to send to;
+- `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`console`): its
+  reply, or 422 with the service's reason;
+- `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels (`console`), 503 when no
+  service answers; `GET /api/curriculum/thumbnail?level_id=ID`: one of those levels as a PNG;
+  `POST /api/curriculum/knobs` {"set": ["replay_prob=0.8", ...]}: change live knobs (or, without "set", read
+  them), 422 with the service's reason when refused. All four answer 409 when the studio has no run;
 - `WebSocket /ws/play`: play and watch (`protocol`).
 
 Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
@@ -29,11 +33,12 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
+from impulse.curriculum.client import CurriculumUnreachable
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.summary import size_class
 from impulse.engine.physics.validate import validate_scene
+from impulse.studio.console import CurriculumLink
 from impulse.studio.editing import apply_edits
-from impulse.studio.inject import LevelSender
 from impulse.studio.level_io import (
     LevelInputError,
     level_document,
@@ -62,8 +67,16 @@ MAX_BODY_BYTES = 8 * 2**20
 """The largest request the studio reads (Kinetix's largest level files are about 50 KB)."""
 
 
+MAX_BUFFER_ROWS = 256
+"""The most buffer levels the Curriculum page asks for at once (each is drawn)."""
+
+
 class RequestError(ValueError):
     """A request the studio cannot read (not JSON, too large, a missing field): HTTP 400."""
+
+
+class NoRun(LookupError):
+    """A curriculum request to a studio started without a run: HTTP 409."""
 
 
 def _error(status: int, message: str, problems: list[str] | None = None) -> JSONResponse:
@@ -117,13 +130,12 @@ def make_app(
     token: str | None = None,
     load_pilot: PilotLoader | None = None,
     agents: Sequence[str] = (),
-    send_level: LevelSender | None = None,
-    run_name: str | None = None,
+    curriculum: CurriculumLink | None = None,
 ) -> Starlette:
     """The studio app: levels from the hand-made and Kinetix sets, `levels_dir` (where it saves) and `sources`
     (folders, files or glob patterns); `token` required on every request when given; `load_pilot` loads a
-    checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `send_level` sends a
-    level into run `run_name`'s curriculum (None: no run to send to)."""
+    checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `curriculum` links to
+    a running run's curriculum service (the Curriculum page and "Send to run"; None: no run)."""
     library = Library(Path(levels_dir), tuple(sources))
 
     async def index(request: Request) -> Response:
@@ -180,19 +192,55 @@ def make_app(
 
     async def agent_list(request: Request) -> Response:
         return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents),
-                             "inject_run": run_name if send_level is not None else None})
+                             "inject_run": curriculum.run if curriculum is not None else None})
+
+    def linked() -> CurriculumLink:
+        if curriculum is None:
+            raise NoRun("this studio has no running curriculum: start it with --run RUN_DIR of a run on random "
+                        "levels")
+        return curriculum
 
     async def inject(request: Request) -> Response:
         body = await _body(request)
-        if send_level is None:
-            return _error(409, "this studio has no running curriculum to send levels to: start it with --run RUN_DIR "
-                               "of a run on random levels")
+        link = linked()
         if not isinstance(body.get("level"), dict):
             raise RequestError('inject needs "level": a Kinetix level JSON object')
-        reply = await run_in_threadpool(send_level, body["level"])
+        reply = await run_in_threadpool(link.inject, body["level"])
         if not reply.get("ok"):
             return _error(422, f"the curriculum refused the level: {reply.get('error')}")
-        log.info("studio: sent a level into run %s's curriculum: slot %s", run_name, reply.get("slot"))
+        log.info("studio: sent a level into run %s's curriculum: slot %s", link.run, reply.get("slot"))
+        return JSONResponse(reply)
+
+    async def buffer(request: Request) -> Response:
+        link = linked()
+        top = request.query_params.get("top", "24")
+        if not top.isdigit() or not 1 <= int(top) <= MAX_BUFFER_ROWS:
+            raise RequestError(f"top must be a whole number from 1 to {MAX_BUFFER_ROWS}, got {top!r}")
+        try:
+            report = await run_in_threadpool(link.buffer, int(top))
+        except CurriculumUnreachable as err:
+            return _error(503, str(err))
+        except ValueError as err:
+            return _error(422, str(err))
+        return JSONResponse(report)
+
+    async def buffer_thumbnail(request: Request) -> Response:
+        [level_id] = _query(request, "level_id")
+        png = linked().thumbnail(level_id)
+        return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
+
+    async def knobs(request: Request) -> Response:
+        body = await _body(request)
+        link = linked()
+        assignments = body.get("set")
+        if assignments is not None and (not isinstance(assignments, list)
+                                        or not all(isinstance(a, str) for a in assignments)):
+            raise RequestError('"set" must be a list of "knob=value" strings')
+        reply = await run_in_threadpool(link.knobs, assignments)
+        if not reply.get("ok"):
+            return _error(422, f"the curriculum refused: {reply.get('error')}")
+        if assignments:
+            log.info("studio: run %s's curriculum knobs: %s", link.run, reply.get("changed"))
         return JSONResponse(reply)
 
     async def play(websocket: WebSocket) -> None:
@@ -228,6 +276,9 @@ def make_app(
     async def bad_request(request: Request, err: Exception) -> Response:
         return _error(400, str(err))
 
+    async def no_run(request: Request, err: Exception) -> Response:
+        return _error(409, str(err))
+
     async def not_found(request: Request, err: Exception) -> Response:
         return _error(404, str(err.args[0]) if err.args else "not found")
 
@@ -246,11 +297,15 @@ def make_app(
         Route("/api/save", save, methods=["POST"]),
         Route("/api/agents", agent_list),
         Route("/api/inject", inject, methods=["POST"]),
+        Route("/api/curriculum", buffer),
+        Route("/api/curriculum/thumbnail", buffer_thumbnail),
+        Route("/api/curriculum/knobs", knobs, methods=["POST"]),
         WebSocketRoute("/ws/play", play),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
     app = Starlette(routes=routes, exception_handlers={
-        LevelInputError: bad_input, RequestError: bad_request, UnknownLevel: not_found, Exception: failed,
+        LevelInputError: bad_input, RequestError: bad_request, NoRun: no_run, UnknownLevel: not_found,
+        Exception: failed,
     })
     app.add_middleware(Guard, token=token)
     return app

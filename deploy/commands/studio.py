@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(repeatable)")
     parser.add_argument("--run", type=Path, metavar="RUN_DIR",
                         help="a run directory (or a checkpoint folder) whose agent the Play page offers to watch; "
-                        "when the run has a curriculum service, the editor can send levels into its buffer")
+                        "when the run has a curriculum service, the Curriculum page shows its buffer and knobs "
+                        "and the editor can send levels into its buffer")
     parser.add_argument("--token", metavar="T",
                         help="access token every request must carry (required when --host is not loopback); 8 or "
                         "more letters, digits or ._~-")
@@ -111,22 +112,24 @@ def _offered(args: argparse.Namespace) -> list[str]:
     return offered
 
 
-def _curriculum_of(run: Path | None) -> tuple[Any, str | None]:
-    """(a `studio.inject.LevelSender`, the run's name) for `--run`'s run when it trains with a curriculum service
-    (levels can be sent into its buffer), else (None, None)."""
+def _curriculum_of(run: Path | None) -> Any:
+    """A `studio.console.CurriculumLink` to `--run`'s curriculum service when the run trains with one (the
+    Curriculum page, and levels sent into its buffer), else None."""
     if run is None:
-        return None, None
+        return None
     from impulse.deploy.config import ConfigError, resolve_config
     from impulse.deploy.run_config import RunConfig
-    from impulse.studio.inject import curriculum_sender
+    from impulse.engine.env.spec import env_from_config
+    from impulse.studio.console import CurriculumLink
 
     try:
         config = resolve_config(RunConfig, _run_dir_of(run) / "config.toml", [])
     except (FileNotFoundError, ConfigError):
-        return None, None
+        return None
     if not config.uses_curriculum_service:
-        return None, None
-    return curriculum_sender(config.bus, config.name), config.name
+        return None
+    spec, _ = env_from_config(config.env)
+    return CurriculumLink(config.bus, config.name, spec.sizes)
 
 
 def run(args: argparse.Namespace, _config: object = None) -> int:
@@ -144,9 +147,8 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
     from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
     enable_compile_cache()
-    send_level, run_name = _curriculum_of(args.run)
     app = make_app(args.levels_dir, tuple(args.levels), token=args.token, load_pilot=load_pilot,
-                   agents=_offered(args), send_level=send_level, run_name=run_name)
+                   agents=_offered(args), curriculum=_curriculum_of(args.run))
     shown = f"[{args.host}]" if ":" in args.host else args.host
     address = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
     print(f"Impulse Studio: open {address}  (levels are saved in {args.levels_dir}; Ctrl-C stops)", flush=True)

@@ -672,6 +672,7 @@ async function loadAgents() {
     const send = document.getElementById("editor-send");
     send.hidden = !data.inject_run;
     if (data.inject_run) send.textContent = `Send to run ${data.inject_run}`;
+    setupCurriculum(data.inject_run);
   } catch (error) {
     sayError(error);
   }
@@ -719,6 +720,145 @@ function setupPlay() {
   });
   window.addEventListener("keyup", (event) => play.held.delete(event.code));
   window.addEventListener("blur", () => play.held.clear());
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Curriculum: the running run's buffer and knobs (GET /api/curriculum, POST /api/curriculum/knobs)
+
+const curriculum = { run: null, knobs: {}, timer: null, report: null };
+studio.curriculum = curriculum;
+
+// The buffer statistics shown above the table (`curriculum.stats.buffer_summary` has more: `impulse curriculum
+// inspect` prints them all).
+const SUMMARY_FIELDS = ["buffer_size", "buffer_fill", "count_inserted", "count_evicted", "count_rejected",
+  "count_replay_batches", "score_mean", "score_max", "age_mean"];
+
+const KNOB_CHOICES = {
+  score: ["maxmc", "pvl", "l1_value_loss", "learnability"],
+  prioritization: ["rank", "power"],
+};
+
+function fixed(value, digits) {
+  return value === null || value === undefined ? "-" : Number(value).toFixed(digits);
+}
+
+async function loadCurriculum() {
+  if (!curriculum.run) return;
+  const top = Number(document.getElementById("curriculum-top").value) || 24;
+  try {
+    const report = await api(`/api/curriculum?top=${top}`);
+    curriculum.report = report;
+    renderCurriculum(report);
+  } catch (error) {
+    sayError(error);
+  }
+}
+
+function renderCurriculum(report) {
+  const summary = report.summary || {};
+  const shown = SUMMARY_FIELDS.filter((k) => typeof summary[k] === "number").map((k) =>
+    `${k.replace(/_/g, " ")} ${Number.isInteger(summary[k]) ? summary[k] : summary[k].toFixed(3)}`);
+  document.getElementById("curriculum-summary").textContent =
+    [`${report.method}`, `policy version ${report.policy_version}`, ...shown].join(" · ");
+  const body = document.querySelector("#curriculum-table tbody");
+  body.replaceChildren();
+  report.top.forEach((row, rank) => {
+    const tr = document.createElement("tr");
+    tr.dataset.levelId = row.level_id;
+    const cells = [rank + 1, null, row.level_id, fixed(row.score, 4), fixed(row.solve_rate, 2), row.episodes,
+      row.staleness, row.age, row.replays, fixed(row.p_replay, 4), row.origin,
+      `${row.shapes} / ${row.joints} / ${row.thrusters}`];
+    cells.forEach((value, i) => {
+      const td = document.createElement("td");
+      if (i === 1) {
+        const img = document.createElement("img");
+        img.alt = `level ${row.level_id}`;
+        img.src = `/api/curriculum/thumbnail?level_id=${row.level_id}`;
+        td.appendChild(img);
+      } else {
+        td.textContent = value;
+        if (i === 2) td.className = "id";
+      }
+      tr.appendChild(td);
+    });
+    body.appendChild(tr);
+  });
+  curriculum.knobs = report.knobs;
+  renderKnobs();
+}
+
+function renderKnobs() {
+  const table = document.getElementById("curriculum-knobs");
+  table.replaceChildren();
+  for (const [name, value] of Object.entries(curriculum.knobs)) {
+    const tr = document.createElement("tr");
+    const label = document.createElement("td");
+    label.textContent = name;
+    const cell = document.createElement("td");
+    let input;
+    if (name in KNOB_CHOICES) {
+      input = document.createElement("select");
+      for (const choice of KNOB_CHOICES[name]) {
+        const option = document.createElement("option");
+        option.value = option.textContent = choice;
+        input.appendChild(option);
+      }
+    } else if (typeof value === "boolean") {
+      input = document.createElement("select");
+      for (const choice of ["true", "false"]) {
+        const option = document.createElement("option");
+        option.value = option.textContent = choice;
+        input.appendChild(option);
+      }
+    } else {
+      input = document.createElement("input");
+      input.type = "number";
+      input.step = "any";
+    }
+    input.value = String(value);
+    input.dataset.knob = name;
+    input.id = `knob-${name}`;
+    cell.appendChild(input);
+    tr.append(label, cell);
+    table.appendChild(tr);
+  }
+}
+
+async function applyKnobs() {
+  const changes = [];
+  for (const input of document.querySelectorAll("#curriculum-knobs [data-knob]")) {
+    const name = input.dataset.knob;
+    if (input.value !== String(curriculum.knobs[name])) changes.push(`${name}=${input.value}`);
+  }
+  if (!changes.length) {
+    say("no knob changed", "ok");
+    return;
+  }
+  try {
+    const reply = await api("/api/curriculum/knobs", { set: changes });
+    curriculum.knobs = reply.knobs || curriculum.knobs;
+    const changed = Object.entries(reply.changed || {}).map(([k, [a, b]]) => `${k}: ${a} -> ${b}`);
+    say(changed.length ? `changed ${changed.join(", ")}` : "nothing changed", "ok");
+    renderKnobs();
+  } catch (error) {
+    sayError(error);
+  }
+}
+
+function setupCurriculum(run) {
+  curriculum.run = run;
+  document.getElementById("tab-curriculum").hidden = !run;
+  if (!run) return;
+  document.getElementById("curriculum-title").textContent = `run ${run}`;
+  document.getElementById("curriculum-refresh").addEventListener("click", loadCurriculum);
+  document.getElementById("curriculum-apply").addEventListener("click", applyKnobs);
+  document.getElementById("curriculum-auto").addEventListener("change", (event) => {
+    clearInterval(curriculum.timer);
+    curriculum.timer = event.target.checked ? setInterval(() => {
+      if (studio.page === "curriculum") loadCurriculum();
+    }, 5000) : null;
+  });
+  document.getElementById("tab-curriculum").addEventListener("click", loadCurriculum);
 }
 
 // ---------------------------------------------------------------------------------------------------------------

@@ -16,8 +16,6 @@ from impulse.bus.config import BusConfig
 from impulse.bus.control import control_reply, control_request
 from impulse.bus.levels import encode_level_results
 from impulse.bus.session import Bus
-from impulse.curriculum.algorithms import Curriculum
-from impulse.curriculum.config import CurriculumConfig
 from impulse.curriculum.service import CurriculumService
 from impulse.curriculum.state import ORIGIN_NEW
 from impulse.curriculum.wire import (
@@ -25,40 +23,19 @@ from impulse.curriculum.wire import (
     level_batch_schema,
     level_batch_template,
 )
-from impulse.deploy.config import ConfigError, apply_overrides
-from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels import handmade
 from impulse.engine.levels.level import level_id_values, level_id_words
-from impulse.learner.checkpoint import CURRICULUM, Checkpointer
 from impulse.studio.app import make_app
-from impulse.studio.inject import curriculum_sender
+from impulse.studio.console import CurriculumLink
 from starlette.testclient import TestClient
 
 from tests.support.checkpoint_damage import corrupt_newest
+from tests.support.curriculum_service import BATCH, SPEC, start_service
 from tests.support.launch_procs import free_port
 
 pytestmark = pytest.mark.heavy
 
 RUN = "curriculum-test"
-BATCH = 8
-SPEC = EnvSpec()
-
-
-def resolve_knobs(current, assignments):
-    try:
-        return apply_overrides(current, assignments, source="live knob change")
-    except ConfigError as err:
-        raise ValueError(str(err)) from None
-
-
-def start_service(bus: Bus, directory, resume: bool) -> tuple[CurriculumService, Checkpointer]:
-    config = CurriculumConfig(method="plr", buffer_size=16, noop_filter=False, replay_prob=0.0)
-    checkpoints = Checkpointer(directory)
-    service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "", resolve_knobs,
-                                item=CURRICULUM, resume=resume)
-    # As the run loop does in `impulse curriculum serve`: a cold compile on a loaded machine outlasts a query.
-    service.start()
-    return service, checkpoints
 
 
 def serve_until(service: CurriculumService, asked, timeout_s: float = 30.0):
@@ -187,15 +164,36 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
             assert not reply["ok"] and reason in reply["error"], (reason, reply)
         assert service.injected == 1
 
-        # The studio's editor sends a level the same way (`impulse studio --run RUN_DIR`: POST /api/inject).
-        sender = curriculum_sender(hub.config, RUN)
-        with TestClient(make_app(tmp_path / "levels", send_level=sender, run_name=RUN)) as client:
+        # The studio's editor sends a level the same way (`impulse studio --run RUN_DIR`: POST /api/inject), and
+        # its Curriculum page shows the buffer, draws its levels and changes knobs through the service.
+        link = CurriculumLink(hub.config, RUN, SPEC.sizes)
+        with TestClient(make_app(tmp_path / "levels", curriculum=link)) as client:
             assert client.get("/api/agents").json()["inject_run"] == RUN
             hop = json.loads(handmade.level_file("s_hop_over").read_text())
             sent = serve_until(service, lambda: client.post("/api/inject", json={"level": hop}))
             assert sent.status_code == 200 and sent.json()["slot"] == 1, sent.text
             again = serve_until(service, lambda: client.post("/api/inject", json={"level": hop}))
             assert again.status_code == 422 and "in the buffer already" in again.json()["error"], again.text
+
+            page = serve_until(service, lambda: client.get("/api/curriculum?top=5"))
+            assert page.status_code == 200, page.text
+            report = page.json()
+            ids = {f"{int(i):016x}" for i in level_id_values(np.asarray(service.state.buffer.levels.level_id))[:2]}
+            assert report["run"] == RUN and {row["level_id"] for row in report["top"]} == ids, report["top"]
+            assert all(row["origin"] == "new" for row in report["top"])
+            png = client.get(f"/api/curriculum/thumbnail?level_id={report['top'][0]['level_id']}")
+            assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
+            assert client.get("/api/curriculum/thumbnail?level_id=00").status_code == 404
+
+            before = report["knobs"]["replay_prob"]
+            changed = serve_until(service, lambda: client.post("/api/curriculum/knobs",
+                                                               json={"set": [f"replay_prob={1 - before}"]}))
+            assert changed.status_code == 200 and "replay_prob" in changed.json()["changed"], changed.text
+            refused = serve_until(service, lambda: client.post("/api/curriculum/knobs",
+                                                               json={"set": ["replay_prob=7"]}))
+            assert refused.status_code == 422 and "replay_prob" in refused.json()["error"], refused.text
+            knobs = serve_until(service, lambda: client.post("/api/curriculum/knobs", json={}))
+            assert knobs.json()["knobs"]["replay_prob"] == pytest.approx(1 - before)
         assert service.injected == 2
         service.save()  # the injections are checkpointed with the buffer
         checkpoints.close()

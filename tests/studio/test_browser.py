@@ -21,7 +21,10 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
+from impulse.bus.session import Bus
+from impulse.engine.levels.level import level_id_values
 
 pytestmark = pytest.mark.heavy
 
@@ -29,6 +32,7 @@ CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 60_000  # a first compilation of the S environment on a busy 2-core machine
+RUN = "studio-console"
 
 
 def free_port() -> int:
@@ -38,14 +42,30 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory):
-    """(base address, levels folder) of a studio served by uvicorn in a thread of this process."""
+def hub():
+    """The bus of the run the studio is linked to (`impulse studio --run`): a zenoh router session on a free
+    loopback port. Its curriculum service runs only in the console test."""
+    from impulse.bus.config import BusConfig
+    from impulse.bus.session import Bus
+
+    with Bus(BusConfig(hub=f"tcp/127.0.0.1:{free_port()}"), RUN, "operator", "hub", listen=True) as bus:
+        yield bus
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory, hub):
+    """(base address, levels folder) of a studio served by uvicorn in a thread of this process, linked to run RUN's
+    curriculum service on `hub`."""
     uvicorn = pytest.importorskip("uvicorn")
     from impulse.studio.app import make_app
+    from impulse.studio.console import CurriculumLink
+
+    from tests.support.curriculum_service import SPEC
 
     levels_dir = tmp_path_factory.mktemp("studio-levels")
     port = free_port()
-    config = uvicorn.Config(make_app(levels_dir), host="127.0.0.1", port=port, log_config=None, log_level="warning")
+    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC.sizes))
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, log_level="warning")
     served = uvicorn.Server(config)
     thread = threading.Thread(target=served.run, daemon=True)
     thread.start()
@@ -181,3 +201,41 @@ def test_play_drives_the_motor_with_the_arrow_key(server, page, shots: Path) -> 
     assert page.locator("#stat-step-ms").inner_text().endswith(")")  # "x ms (median y)": the server's step time
     assert "ms" in page.locator("#stat-rtt-ms").inner_text()
     page.screenshot(path=str(shots / "play.png"))
+
+
+def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, page, shots: Path,
+                                                                              tmp_path: Path) -> None:
+    from impulse.curriculum.stats import live_knob_values
+
+    from tests.support.curriculum_service import serving
+
+    with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, serving(bus, tmp_path / "ckpt") as service:
+        assert page.locator("#tab-curriculum").is_visible()
+        page.click("#tab-gallery")
+        page.locator('.card[data-name="s_easy_car_right"] button.edit').click()
+        page.wait_for_function("studio.editor.doc !== null && studio.page === 'editor'")
+        assert page.locator("#editor-send").inner_text() == f"Send to run {RUN}"
+        page.click("#editor-send")
+        page.wait_for_function("document.getElementById('message').textContent.startsWith(\"in the run's\")")
+        assert service.status()["injected"] == 1  # the service's own count
+
+        page.click("#tab-curriculum")
+        page.wait_for_function("document.querySelectorAll('#curriculum-table tbody tr').length === 1")
+        level_id = page.locator("#curriculum-table tbody tr").get_attribute("data-level-id")
+        assert level_id == f"{int(level_id_values(np.asarray(service.state.buffer.levels.level_id))[0]):016x}"
+        page.wait_for_function("[...document.querySelectorAll('#curriculum-table img')]"
+                               ".every(i => i.complete && i.naturalWidth > 0)")
+
+        assert live_knob_values(service.curriculum.config, service.state)["replay_prob"] == 0.0
+        page.fill("#knob-replay_prob", "0.7")
+        page.click("#curriculum-apply")
+        page.wait_for_function("document.getElementById('message').textContent.startsWith('changed replay_prob')")
+        assert live_knob_values(service.curriculum.config, service.state)["replay_prob"] == pytest.approx(0.7)
+        assert service.status()["knob_changes"] == 1
+        page.fill("#knob-replay_prob", "7")  # out of range: the service refuses it with its reason
+        page.click("#curriculum-apply")
+        page.wait_for_function("document.getElementById('message').className === 'error'")
+        assert "replay_prob" in page.locator("#message").inner_text()
+        page.click("#curriculum-refresh")
+        page.wait_for_function("document.getElementById('knob-replay_prob').value === '0.7'")
+        page.screenshot(path=str(shots / "curriculum.png"))

@@ -1,0 +1,119 @@
+"""The studio's line to a running run's curriculum service: the Curriculum page's buffer table and thumbnails, its
+knobs, and the editor's "Send to run", all asked over the run's bus as the operator role (the only role a router
+lets ask them) through `curriculum.client`.
+
+`impulse studio --run RUN_DIR` builds the link from the run's configuration (`deploy.commands.studio`), since the
+studio cannot read run configurations itself; `studio.app` serves it under `/api/curriculum` and `/api/inject`.
+Each request opens a short session and closes it, so a run that stops or restarts between two requests is found
+again; a dead run is a clear error in the page, never a stuck server.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import jax
+import numpy as np
+from impulse.bus.config import BusConfig
+from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
+from impulse.engine.levels.generator import sample_random_level
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.pytree import tree_from_arrays
+from impulse.monitor.png import render_level
+from impulse.studio.library import THUMBNAIL_SCALE, UnknownLevel, png_bytes
+
+ANSWER_TIMEOUT_S = 15.0
+THUMBNAILS_KEPT = 256
+"""Buffer thumbnails kept in memory (by level id), newest first; a level that left the buffer ages out."""
+
+
+def json_ready(value: Any) -> Any:
+    """`value` with every NaN or infinity replaced by None: a level that has no episodes yet has no solve rate,
+    and strict JSON (a browser's) has no NaN."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_ready(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [json_ready(item) for item in value]
+    return value
+
+
+class CurriculumLink:
+    """Run `run`'s curriculum service on `bus`, for a studio; `sizes` are the run's scene sizes (to draw the
+    buffered levels the service sends)."""
+
+    def __init__(self, bus: BusConfig, run: str, sizes: SceneSizes, timeout_s: float = ANSWER_TIMEOUT_S):
+        self.bus, self.run, self.sizes, self.timeout_s = bus, run, sizes, timeout_s
+        self._thumbnails: OrderedDict[str, bytes] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def _client(self) -> CurriculumClient:
+        return CurriculumClient(self.bus, self.run, f"studio-{os.getpid()}", self.timeout_s)
+
+    def inject(self, document: dict[str, Any]) -> dict[str, Any]:
+        """Send a Kinetix level-file object into the buffer: `{"ok": true, "slot", "level_id", "evicted"}`, or
+        `{"ok": false, "error"}` with the service's reason or why it could not be asked."""
+        try:
+            with self._client() as client:
+                return client.inject(document)
+        except CurriculumUnreachable as err:
+            return {"ok": False, "error": str(err)}
+
+    def knobs(self, assignments: list[str] | None = None) -> dict[str, Any]:
+        """The live knobs (`{"ok", "method", "knobs"}`), after `assignments` ("replay_prob=0.8", ...) when given,
+        checked by the service as for `impulse curriculum set`; `{"ok": false, "error"}` when refused or
+        unreachable."""
+        try:
+            with self._client() as client:
+                return client.knobs(assignments)
+        except CurriculumUnreachable as err:
+            return {"ok": False, "error": str(err)}
+
+    def buffer(self, top: int) -> dict[str, Any]:
+        """The buffer's report (`curriculum.stats.inspect_report`: summary, histograms, live knobs) with its
+        `top` levels by score as rows whose `level_id` and `parent_id` are hexadecimal strings (a browser's
+        numbers cannot hold 64 bits) and whose `origin` says how the level came; their thumbnails are drawn
+        now and served by `thumbnail`. Raises `CurriculumUnreachable`, or `ValueError` with the service's
+        refusal."""
+        with self._client() as client:
+            reply = client.inspect(top, levels=True)
+        if reply.error is not None:
+            raise ValueError(f"the curriculum service refused: {reply.error}")
+        report = reply.report
+        rows = report.get("top", [])
+        drawn = self._draw(reply.arrays, len(rows))
+        for i, row in enumerate(rows):
+            row["level_id"] = f"{int(row['level_id']):016x}"
+            row["parent_id"] = f"{int(row['parent_id']):016x}"
+            row["origin"] = f"mutated, generation {row['generation']}" if row.get("generation", 0) > 0 else "new"
+            if i < len(drawn):
+                with self._lock:
+                    self._thumbnails[row["level_id"]] = drawn[i]
+                    self._thumbnails.move_to_end(row["level_id"])
+        with self._lock:
+            while len(self._thumbnails) > THUMBNAILS_KEPT:
+                self._thumbnails.popitem(last=False)
+        return json_ready({"run": self.run, **report})
+
+    def thumbnail(self, level_id: str) -> bytes:
+        """The PNG of a level the last `buffer` calls listed; `UnknownLevel` for any other."""
+        with self._lock:
+            png = self._thumbnails.get(level_id)
+        if png is None:
+            raise UnknownLevel(f"no thumbnail of buffer level {level_id!r}: refresh the curriculum page")
+        return png
+
+    def _draw(self, arrays: dict[str, np.ndarray], count: int) -> list[bytes]:
+        """The levels the service sent (one batch of `count`, as `curriculum.stats.top_levels` gives), drawn."""
+        if not arrays or count == 0:
+            return []
+        template: Level = jax.eval_shape(lambda key: sample_random_level(key, self.sizes), jax.random.PRNGKey(0))
+        return [png_bytes(render_level(tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template),
+                                       scale=THUMBNAIL_SCALE))
+                for i in range(count)]
