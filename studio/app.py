@@ -7,8 +7,9 @@ the server keeps running):
 - `GET /api/sets`: the level sets (`library.Library.sets`); `GET /api/levels?set=S`: a set's levels with size,
   counts and thumbnail address; `GET /api/thumbnail?set=S&name=N`: the level drawn as a PNG;
 - `GET /api/level?set=S&name=N`: the level as a Kinetix level file (JSON);
-- `POST /api/edit` {"level", "ops"}: the level after the editor's operations (`editing`), with its scene, counts
-  and the problems `validate_scene` finds (ops [] just draws a level);
+- `POST /api/edit` {"level", "ops", "size"?}: the level after the editor's operations (`editing`), with its scene,
+  counts and the problems `validate_scene` finds (ops [] just draws a level); with "size" ("s", "m", "l") the level
+  is first moved into that size (more slots, or a refusal naming what does not fit);
 - `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
   with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
 - `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
@@ -115,7 +116,7 @@ def _edited(body: dict[str, Any]) -> dict[str, Any]:
     and problems."""
     if "level" not in body:
         raise RequestError("edit needs \"level\" (a Kinetix level JSON object) and \"ops\" (a list)")
-    loaded = load_document(body["level"], validate=False)
+    loaded = load_document(body["level"], parse_size(body.get("size")), validate=False)
     level = apply_edits(loaded.level, loaded.sizes, body.get("ops", []))
     return {"level": level_document(loaded, level), "scene": scene_json(scene_drawing(level)),
             "actuators": actuator_settings(level), "size": size_class(loaded.sizes),

@@ -26,7 +26,8 @@ An operation is a JSON object with an "op" field:
 - {"op": "set_joint", "joint": k, "motor"?, "speed"?, "power"?, "limits"? (null: none), "binding"?};
 - {"op": "add_thruster", "body": i, "x"?, "y"?, "angle"?, "power"?, "binding"?}: a thruster on the shape at the
   world point (x, y) (default: its centre) pushing along the world direction `angle` (radians, default up);
-- {"op": "set_thruster", "thruster": k, "power"?, "binding"?};
+- {"op": "set_thruster", "thruster": k, "power"?, "binding"?, "angle"?}: "angle" turns it to push along that
+  world direction (radians);
 - {"op": "delete_joint", "joint": k}, {"op": "delete_thruster", "thruster": k}.
 
 The arena (the first static polygons) can take a role but not be moved, rotated, freed or deleted. A level is
@@ -416,11 +417,17 @@ def _set_thruster(level: Level, sizes: SceneSizes, op: dict) -> Level:
     k = _slot(t, op, "thruster", "a thruster")
     power = t.power.copy()
     power[k] = _number(op, "power", 0, MAX_POWER, default=float(power[k]))
+    rotation = t.rotation.copy()
+    if op.get("angle") is not None:
+        body = int(t.body_index[k])
+        angle = _number(op, "angle", -2 * math.pi, 2 * math.pi, default=0.0)
+        rotation[k] = np.float32(angle - float(level.state.bodies.rotation[body]))
     bindings = level.thruster_bindings.copy()
     binding = _binding(op, NUM_THRUSTER_BINDINGS)
     if binding is not None:
         bindings[k] = binding
-    return level.replace(thruster_bindings=bindings, state=level.state.replace(thrusters=t.replace(power=power)))
+    return level.replace(thruster_bindings=bindings,
+                         state=level.state.replace(thrusters=t.replace(power=power, rotation=rotation)))
 
 
 def _delete_joint(level: Level, sizes: SceneSizes, op: dict) -> Level:

@@ -69,8 +69,8 @@ def scene_json(drawing: SceneDrawing) -> dict[str, Any]:
 
 def actuator_settings(level: Level) -> dict[str, list[dict[str, Any]]]:
     """What the editor's panel shows of each joint and thruster in `level` (host arrays): the joint's shapes, weld
-    or motor (on, speed, power, limits in radians or None) and action binding; the thruster's shape, power and
-    binding."""
+    or motor (on, speed, power, limits in radians or None) and action binding; the thruster's shape, power, world
+    direction (radians, at the level's start) and binding."""
     j, t = level.state.joints, level.state.thrusters
     joints = [
         {"joint": int(k), "a": int(j.a_index[k]), "b": int(j.b_index[k]), "weld": bool(j.is_fixed_joint[k]),
@@ -83,6 +83,7 @@ def actuator_settings(level: Level) -> dict[str, list[dict[str, Any]]]:
     ]
     thrusters = [
         {"thruster": int(k), "body": int(t.body_index[k]), "power": round(float(t.power[k]), DIGITS),
+         "angle": round(float(t.rotation[k] + level.state.bodies.rotation[t.body_index[k]]), DIGITS),
          "binding": int(level.thruster_bindings[k])}
         for k in np.flatnonzero(np.asarray(t.active))
     ]

@@ -317,11 +317,14 @@ function renderActuators() {
       j.weld ? "" : input(j.binding, (e) => set({ binding: Number(e.value) }), { step: 1, min: 0, max: 3 }),
       remove({ op: "delete_joint", joint: j.joint })]);
   }
-  row(["thruster", "shape", "", "", "power", "", "key", ""]);
+  row(["thruster", "shape", "", "", "power", "direction \u00b0", "key", ""]);
   for (const t of thrusters) {
     const set = (fields) => edit([{ op: "set_thruster", thruster: t.thruster, ...fields }]);
+    const degrees = Math.round(t.angle * 180 / Math.PI);
     row([`${t.thruster}`, `${t.body}`, "", "", input(t.power, (e) => set({ power: Number(e.value) }), { min: 0 }),
-      "", input(t.binding, (e) => set({ binding: Number(e.value) }), { step: 1, min: 0, max: 1 }),
+      input(degrees, (e) => set({ angle: Number(e.value) * Math.PI / 180 }),
+        { step: 15, min: -360, max: 360, title: "the world direction it pushes: 90 is up, 0 is right" }),
+      input(t.binding, (e) => set({ binding: Number(e.value) }), { step: 1, min: 0, max: 1 }),
       remove({ op: "delete_thruster", thruster: t.thruster })]);
   }
 }
@@ -351,6 +354,7 @@ function renderEditor() {
     item.textContent = problem;
     problems.appendChild(item);
   }
+  document.getElementById("editor-size").value = (editor.size || "").toLowerCase();
   document.getElementById("editor-undo").disabled = editor.undo.length === 0;
   document.getElementById("editor-redo").disabled = editor.redo.length === 0;
   document.getElementById("editor-material").hidden = !shape;
@@ -358,19 +362,20 @@ function renderEditor() {
   renderActuators();
 }
 
-async function edit(ops) {
+async function edit(ops, size) {
   if (!editor.doc || editor.busy) return;
   editor.busy = true;
   try {
-    const state = await api("/api/edit", { level: editor.doc, ops });
+    const state = await api("/api/edit", size ? { level: editor.doc, ops, size } : { level: editor.doc, ops });
     editor.undo.push({ level: editor.doc, scene: editor.scene, size: editor.size, counts: editor.counts, problems: editor.problems });
     editor.redo = [];
     setEditorState(state);
-    say(`${ops.map((op) => op.op).join(", ")}: done`, "ok");
+    say(size ? `the level is now size ${state.size}` : `${ops.map((op) => op.op).join(", ")}: done`, "ok");
   } catch (error) {
     sayError(error);
   } finally {
     editor.busy = false;
+    renderEditor();
   }
 }
 
@@ -428,6 +433,7 @@ function setupEditor() {
   document.getElementById("editor-undo").addEventListener("click", () => undoRedo(editor.undo, editor.redo));
   document.getElementById("editor-redo").addEventListener("click", () => undoRedo(editor.redo, editor.undo));
   document.getElementById("editor-save").addEventListener("click", saveLevel);
+  document.getElementById("editor-size").addEventListener("change", (event) => edit([], event.target.value));
   document.getElementById("editor-send").addEventListener("click", async () => {
     if (!editor.doc) return;
     try {
@@ -465,7 +471,8 @@ function setupEditor() {
       } else {
         const a = editor.jointFrom;
         editor.jointFrom = null;
-        edit([{ op: "add_joint", a, b: target.body, x: point[0], y: point[1], motor: true }]);
+        const weld = document.getElementById("editor-weld").checked;
+        edit([{ op: "add_joint", a, b: target.body, x: point[0], y: point[1], ...(weld ? { weld } : { motor: true }) }]);
       }
       return;
     }

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import io
+import math
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +50,8 @@ def level_json(client: TestClient, set_id: str, name: str) -> dict:
     return response.json()
 
 
-def edit(client: TestClient, level: dict, ops: list[dict]):
-    return client.post("/api/edit", json={"level": level, "ops": ops})
+def edit(client: TestClient, level: dict, ops: list[dict], size: str | None = None):
+    return client.post("/api/edit", json={"level": level, "ops": ops, **({"size": size} if size else {})})
 
 
 def green_circle_x(frame: dict) -> float:
@@ -189,12 +190,29 @@ def test_editing_joints_thrusters_materials_sizes_and_triangles(client: TestClie
                            {"op": "resize", "body": wheel, "scale": 1.5}])
     [triangle] = [p for p in state["scene"]["polygons"] if p["body"] == 4]
     assert len(triangle["points"]) == 3
-    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.0, "binding": 1}]
-    state = edited(state, [{"op": "set_thruster", "thruster": 0, "power": 2.5}])
-    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.5, "binding": 1}]
+    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.0, "angle": 0.0, "binding": 1}]
+    state = edited(state, [{"op": "set_thruster", "thruster": 0, "power": 2.5, "angle": math.pi / 2}])
+    assert state["actuators"]["thrusters"] == [{"thruster": 0, "body": 4, "power": 2.5,
+                                                "angle": round(math.pi / 2, 4), "binding": 1}]
     assert [c["radius"] for c in state["scene"]["circles"] if c["body"] == wheel] == [0.3]
     too_big = edit(client, state["level"], [{"op": "resize", "body": wheel, "scale": 10}])
     assert too_big.status_code == 422 and "across" in too_big.json()["error"]
+
+    # Into size M: the same level in more slots, with room for another circle.
+    bigger = edit(client, state["level"], [], size="m")
+    assert bigger.status_code == 200 and bigger.json()["size"] == "M", bigger.text
+    assert bigger.json()["counts"] == state["counts"]
+
+    def settings(actuators: dict) -> list:  # body indices move with the size's slot layout; settings do not
+        return [{k: v for k, v in item.items() if k not in ("a", "b", "body")}
+                for item in actuators["joints"] + actuators["thrusters"]]
+
+    assert settings(bigger.json()["actuators"]) == settings(state["actuators"])
+    added = edited(bigger.json(), [{"op": "add_circle", "x": 4.0, "y": 4.0, "radius": 0.2}])
+    assert added["counts"]["circles"] == state["counts"]["circles"] + 1
+    # A file holds its size's slots, active or not, so a level does not go back down (a clear refusal).
+    refused = edit(client, added["level"], [], size="s")
+    assert refused.status_code == 422 and "too large for the size" in refused.text, refused.text
 
     saved = client.post("/api/save", json={"name": "jointed", "level": state["level"]})
     assert saved.status_code == 200, saved.text
