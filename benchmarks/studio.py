@@ -7,9 +7,12 @@ action, one at a time: each step is sent, its reply awaited, then the next sent,
 reply's `step_ms` (the jitted environment step on the server, device work included) and the client's round trip
 (send to reply parsed: socket, JSON both ways, the scene drawn for the reply) are recorded.
 
+With `--agent CHECKPOINT` (a run directory or `pretrained/general-s`) the socket first loads that agent, as the
+Play page's "Load agent" does, and every step is the agent's (`{"type": "step", "agent": true}`): watching, whose
+server step adds the policy's forward pass and its sampled action.
+
 Prints one JSON line per level with p50/p99/max of both, in milliseconds, and the steps per second the loop held.
-What it does not measure: a browser's own event loop and drawing (the Play page shows its own readout), and an
-agent's forward pass (watching).
+What it does not measure: a browser's own event loop and drawing (the Play page shows its own readout).
 """
 
 from __future__ import annotations
@@ -44,21 +47,27 @@ def _percentiles(values: list[float]) -> dict[str, float]:
             "max": round(float(array.max()), 3)}
 
 
-async def _play(url: str, level: str, warmup: int, steps: int) -> dict[str, Any]:
+async def _play(url: str, level: str, warmup: int, steps: int, agent: str | None) -> dict[str, Any]:
     import websockets
 
+    step = {"type": "step", "agent": True} if agent else {"type": "step", "action": HELD_ACTION}
     async with websockets.connect(url, max_size=None) as socket_:
         await socket_.send(json.dumps({"type": "load", "set": "handmade", "name": level}))
         reply = json.loads(await socket_.recv())
         if reply.get("type") != "state":
             raise RuntimeError(f"loading {level} failed: {reply}")
+        if agent:
+            await socket_.send(json.dumps({"type": "agent", "checkpoint": agent}))
+            reply = json.loads(await socket_.recv())
+            if reply.get("type") == "error":
+                raise RuntimeError(f"loading the agent {agent} failed: {reply['message']}")
         server_ms, round_trip_ms = [], []
         started = time.perf_counter()
         for index in range(warmup + steps):
             if index == warmup:
                 started = time.perf_counter()
             sent = time.perf_counter()
-            await socket_.send(json.dumps({"type": "step", "action": HELD_ACTION}))
+            await socket_.send(json.dumps(step))
             reply = json.loads(await socket_.recv())
             if reply.get("type") != "state":
                 raise RuntimeError(f"step {index} on {level} failed: {reply}")
@@ -70,13 +79,14 @@ async def _play(url: str, level: str, warmup: int, steps: int) -> dict[str, Any]
             "steps_per_s": round(steps / elapsed, 1)}
 
 
-def run(levels: list[str], warmup: int, steps: int) -> list[dict[str, Any]]:
+def run(levels: list[str], warmup: int, steps: int, agent: str | None = None) -> list[dict[str, Any]]:
     import uvicorn
+    from impulse.deploy.commands.studio import load_pilot
     from impulse.studio.app import make_app
 
     port = _free_port()
     with tempfile.TemporaryDirectory() as saved:
-        app = make_app(Path(saved))
+        app = make_app(Path(saved), load_pilot=load_pilot)
         server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
         thread = threading.Thread(target=server.run, daemon=True)
         thread.start()
@@ -89,8 +99,9 @@ def run(levels: list[str], warmup: int, steps: int) -> list[dict[str, Any]]:
         try:
             for level in levels:
                 progress(f"studio: {level}, {warmup} warm-up + {steps} steps")
-                result = asyncio.run(_play(f"ws://127.0.0.1:{port}/ws/play", level, warmup, steps))
-                records.append({"measure": "studio_play_latency", "level": level, "steps": steps, "warmup": warmup,
+                result = asyncio.run(_play(f"ws://127.0.0.1:{port}/ws/play", level, warmup, steps, agent))
+                records.append({"measure": "studio_watch_latency" if agent else "studio_play_latency",
+                                "level": level, "agent": agent, "steps": steps, "warmup": warmup,
                                 "client": "websockets over loopback to uvicorn", **result, **environment()})
         finally:
             server.should_exit = True
@@ -103,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--levels", nargs="+", default=list(DEFAULT_LEVELS), help="hand-made level names")
     parser.add_argument("--warmup", type=int, default=20, help="steps not counted (the first compiles)")
     parser.add_argument("--steps", type=int, default=300, help="steps measured per level")
+    parser.add_argument("--agent", metavar="CHECKPOINT",
+                        help="watch: this agent (a run directory or pretrained/general-s) chooses every action")
     args = parser.parse_args(argv)
-    for record in run(args.levels, args.warmup, args.steps):
+    for record in run(args.levels, args.warmup, args.steps, args.agent):
         emit(record)
     return 0
 
