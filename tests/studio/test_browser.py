@@ -3,7 +3,8 @@ uvicorn on a free port: the gallery shows the hand-made levels; the editor opens
 click, drags it, undoes and redoes, saves, and the saved file read back through the API is the level the page
 holds; a motorised joint pins the circle to the floor (two clicks), its motor is switched off and on in the
 joints table, and in play the arrow key turns the pinned circle; the play page, with the right arrow held, drives
-the car's motor and the green wheel moves right, the page reporting the server's step time and the round trip.
+the car's motor and the green wheel moves right, the page reporting the server's step time and the round trip; the
+shipped agent is loaded from the Play page and drives; and the Curriculum page talks to a real curriculum service.
 One browser and one server serve every test here.
 
 Screenshots of the three pages go to `$STUDIO_SCREENSHOTS` when it is set (docs/studio/ holds the README's), else to
@@ -33,6 +34,8 @@ CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-q
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TIMEOUT_MS = 60_000  # a first compilation of the S environment on a busy 2-core machine
 RUN = "studio-console"
+AGENT = Path(__file__).resolve().parents[2] / "pretrained" / "general-s"
+"""The shipped agent, which the Play page offers to watch."""
 
 
 def free_port() -> int:
@@ -57,6 +60,7 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub):
     """(base address, levels folder) of a studio served by uvicorn in a thread of this process, linked to run RUN's
     curriculum service on `hub`."""
     uvicorn = pytest.importorskip("uvicorn")
+    from impulse.deploy.commands.studio import load_pilot
     from impulse.studio.app import make_app
     from impulse.studio.console import CurriculumLink
 
@@ -64,7 +68,8 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub):
 
     levels_dir = tmp_path_factory.mktemp("studio-levels")
     port = free_port()
-    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC.sizes))
+    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC.sizes), load_pilot=load_pilot,
+                   agents=[str(AGENT)])
     config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, log_level="warning")
     served = uvicorn.Server(config)
     thread = threading.Thread(target=served.run, daemon=True)
@@ -201,6 +206,26 @@ def test_play_drives_the_motor_with_the_arrow_key(server, page, shots: Path) -> 
     assert page.locator("#stat-step-ms").inner_text().endswith(")")  # "x ms (median y)": the server's step time
     assert "ms" in page.locator("#stat-rtt-ms").inner_text()
     page.screenshot(path=str(shots / "play.png"))
+
+
+def test_watching_the_shipped_agent_play(server, page) -> None:
+    """The Play page loads `pretrained/general-s` from its list and, with "agent drives" ticked, every step is the
+    agent's: the steps go on without a key held, the readout names the agent, and its actions drive the car's
+    motor; unticked, the person drives again."""
+    page.click("#tab-gallery")
+    page.locator('.card[data-name="s_easy_car_right"] button.play').click()
+    page.wait_for_function("studio.play.frame !== null && studio.play.frame.t >= 1")
+    page.select_option("#play-agent", str(AGENT))
+    page.click("#play-load-agent")
+    page.wait_for_function("studio.play.agent !== null")
+    assert page.evaluate("studio.play.agent").startswith("general-s")
+    page.check("#play-agent-drives")
+    start = page.evaluate("studio.play.frame.t")
+    page.wait_for_function(f"studio.play.frame.t >= {start + 15} && studio.play.frame.scene.joints[0].drive !== 0")
+    assert page.locator("#stat-driver").inner_text().startswith("agent general-s")
+    page.uncheck("#play-agent-drives")
+    assert page.locator("#stat-driver").inner_text() == "you"
+    page.wait_for_function("studio.play.frame.scene.joints[0].drive === 0")  # no key held: the person's no-op
 
 
 def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, page, shots: Path,
