@@ -13,6 +13,8 @@ the server keeps running):
 - `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
   with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
 - `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
+- `GET /api/solve_rates?set=S&checkpoint=C&attempts=N`: how often that agent solves each level of the set
+  (`solve_rates`, `impulse eval`'s scoring), 409 when the studio cannot load agents;
 - `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`console`): its
   reply, or 422 with the service's reason;
 - `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels (`console`), 503 when no
@@ -53,6 +55,7 @@ from impulse.studio.library import SAVED, Library, UnknownLevel, level_counts
 from impulse.studio.protocol import PilotLoader, PlayConnection
 from impulse.studio.scene import actuator_settings, scene_json
 from impulse.studio.security import Guard
+from impulse.studio.solve_rates import DEFAULT_ATTEMPTS, SolveRates
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
@@ -77,7 +80,8 @@ class RequestError(ValueError):
 
 
 class NoRun(LookupError):
-    """A curriculum request to a studio started without a run: HTTP 409."""
+    """A request this studio was not started for (a curriculum request without a run, solve rates without agents):
+    HTTP 409."""
 
 
 def _error(status: int, message: str, problems: list[str] | None = None) -> JSONResponse:
@@ -138,6 +142,7 @@ def make_app(
     checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `curriculum` links to
     a running run's curriculum service (the Curriculum page and "Send to run"; None: no run)."""
     library = Library(Path(levels_dir), tuple(sources))
+    solve_rates = SolveRates(library, load_pilot) if load_pilot is not None else None
 
     async def index(request: Request) -> Response:
         return FileResponse(STATIC / "index.html")
@@ -194,6 +199,15 @@ def make_app(
     async def agent_list(request: Request) -> Response:
         return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents),
                              "inject_run": curriculum.run if curriculum is not None else None})
+
+    async def agent_rates(request: Request) -> Response:
+        set_id, checkpoint = _query(request, "set", "checkpoint")
+        attempts = request.query_params.get("attempts", str(DEFAULT_ATTEMPTS))
+        if not attempts.isdigit():
+            raise RequestError(f"attempts must be a whole number, got {attempts!r}")
+        if solve_rates is None:
+            raise NoRun("this studio cannot load agents")
+        return JSONResponse(await run_in_threadpool(solve_rates.rates, set_id, checkpoint, int(attempts)))
 
     def linked() -> CurriculumLink:
         if curriculum is None:
@@ -297,6 +311,7 @@ def make_app(
         Route("/api/validate", validate, methods=["POST"]),
         Route("/api/save", save, methods=["POST"]),
         Route("/api/agents", agent_list),
+        Route("/api/solve_rates", agent_rates),
         Route("/api/inject", inject, methods=["POST"]),
         Route("/api/curriculum", buffer),
         Route("/api/curriculum/thumbnail", buffer_thumbnail),

@@ -163,7 +163,7 @@ function findShape(scene, body) {
 // ---------------------------------------------------------------------------------------------------------------
 // Pages
 
-const studio = { page: "gallery", sets: [], levels: [], editor: null, play: null };
+const studio = { page: "gallery", sets: [], levels: [], editor: null, play: null, rates: null };
 window.studio = studio; // for the browser test and for poking at the page from the console
 
 function show(page) {
@@ -222,12 +222,43 @@ function renderGallery() {
     card.querySelector(".name").textContent = level.name;
     card.querySelector(".meta").textContent = `size ${level.size}${counts ? " \u00b7 " + counts : ""}`;
     card.querySelector(".problem").textContent = level.problem || "";
+    const rates = studio.rates;
+    if (rates && rates.set === level.set) {
+      const rate = document.createElement("div");
+      rate.className = "rate";
+      rate.textContent = level.name in rates.rates
+        ? `agent solves ${Math.round(rates.rates[level.name] * 100)}% (${rates.attempts} attempts)`
+        : `agent: ${rates.skipped[level.name] || "not scored"}`;
+      card.querySelector(".meta").after(rate);
+    }
     card.querySelector(".edit").addEventListener("click", (e) => { e.stopPropagation(); openInEditor(level.set, level.name); });
     card.querySelector(".play").addEventListener("click", (e) => { e.stopPropagation(); openInPlay({ set: level.set, name: level.name }); });
     card.addEventListener("click", () => openInEditor(level.set, level.name));
     grid.appendChild(card);
   }
   document.getElementById("gallery-count").textContent = `${shown.length} of ${studio.levels.length} levels`;
+}
+
+async function loadSolveRates() {
+  const checkpoint = document.getElementById("gallery-agent").value;
+  const setId = document.getElementById("gallery-set").value;
+  if (!checkpoint) {
+    studio.rates = null;
+    renderGallery();
+    return;
+  }
+  say(`scoring ${checkpoint} on ${setId} (the first time compiles) ...`, "ok");
+  try {
+    const query = new URLSearchParams({ set: setId, checkpoint });
+    const data = await api(`/api/solve_rates?${query}`);
+    studio.rates = { set: setId, ...data };
+    const scored = Object.values(data.rates);
+    const mean = scored.length ? scored.reduce((a, b) => a + b, 0) / scored.length : 0;
+    say(`${data.agent} on ${setId}: mean solve rate ${Math.round(mean * 100)}% over ${scored.length} levels`, "ok");
+    renderGallery();
+  } catch (error) {
+    sayError(error);
+  }
 }
 
 // ----- Editor
@@ -664,13 +695,16 @@ function tick(now) {
 async function loadAgents() {
   try {
     const data = await api("/api/agents");
-    const select = document.getElementById("play-agent");
-    for (const checkpoint of data.checkpoints) {
-      const option = document.createElement("option");
-      option.value = checkpoint;
-      option.textContent = checkpoint;
-      select.appendChild(option);
+    for (const id of ["play-agent", "gallery-agent"]) {
+      for (const checkpoint of data.checkpoints) {
+        const option = document.createElement("option");
+        option.value = checkpoint;
+        option.textContent = checkpoint;
+        document.getElementById(id).appendChild(option);
+      }
     }
+    document.getElementById("gallery-agent").disabled = !data.enabled;
+    document.getElementById("gallery-rates").disabled = !data.enabled;
     if (!data.enabled) {
       for (const id of ["play-agent", "play-checkpoint", "play-load-agent", "play-agent-drives"]) {
         document.getElementById(id).disabled = true;
@@ -874,6 +908,7 @@ function setup() {
   for (const tab of document.querySelectorAll(".tab")) tab.addEventListener("click", () => show(tab.dataset.page));
   document.getElementById("gallery-set").addEventListener("change", (event) => loadGallery(event.target.value));
   document.getElementById("gallery-filter").addEventListener("input", renderGallery);
+  document.getElementById("gallery-rates").addEventListener("click", loadSolveRates);
   setupEditor();
   setupPlay();
   show("gallery");

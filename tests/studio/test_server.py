@@ -385,3 +385,19 @@ def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_p
             assert socket.receive_json()["agent"] is None
             socket.send_json({"type": "step", "agent": True})
             assert "no agent loaded" in socket.receive_json()["message"]
+
+        # The gallery's solve rates: every S level scored as `impulse eval` scores, the M levels listed as not fitting.
+        reply = client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=2")
+        assert reply.status_code == 200, reply.text
+        rates = reply.json()
+        names = [level["name"] for level in client.get("/api/levels?set=handmade").json()["levels"]]
+        assert rates["agent"] == "tiny" and rates["attempts"] == 2
+        assert set(rates["rates"]) == {n for n in names if n.startswith("s_")}
+        assert set(rates["skipped"]) == set(names) - set(rates["rates"]) and rates["skipped"]
+        assert all(r in (0.0, 0.5, 1.0) for r in rates["rates"].values())
+        assert all(why == "too large for the agent's size S" for why in rates["skipped"].values()), rates
+        assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=2").json() == rates  # kept
+        assert client.get("/api/solve_rates?set=handmade&checkpoint=elsewhere").status_code == 422
+        assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=0").status_code == 422
+    with TestClient(make_app(levels_dir)) as client:
+        assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny").status_code == 409
