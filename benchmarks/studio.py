@@ -81,7 +81,7 @@ async def _play(url: str, level: str, warmup: int, steps: int, agent: str | None
 
 def run(levels: list[str], warmup: int, steps: int, agent: str | None = None) -> list[dict[str, Any]]:
     import uvicorn
-    from impulse.deploy.commands.studio import load_pilot
+    from impulse.deploy.runtime.pilots import load_pilot
     from impulse.studio.app import make_app
 
     port = _free_port()

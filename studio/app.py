@@ -5,7 +5,8 @@ the server keeps running):
 
 - `GET /`: the page (`static/index.html`; its scripts and styles under `/static/`);
 - `GET /api/sets`: the level sets (`library.Library.sets`); `GET /api/levels?set=S`: a set's levels with size,
-  counts and thumbnail address; `GET /api/thumbnail?set=S&name=N`: the level drawn as a PNG;
+  counts and thumbnail address (the set "run:NAME" of a linked run is its buffer, fetched anew each time);
+  `GET /api/thumbnail?set=S&name=N`: the level drawn as a PNG;
 - `GET /api/level?set=S&name=N`: the level as a Kinetix level file (JSON);
 - `POST /api/edit` {"level", "ops", "size"?}: the level after the editor's operations (`editing`), with its scene,
   counts and the problems `validate_scene` finds (ops [] just draws a level); with "size" ("s", "m", "l") the level
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -73,6 +75,8 @@ MAX_BODY_BYTES = 8 * 2**20
 
 MAX_BUFFER_ROWS = 256
 """The most buffer levels the Curriculum page asks for at once (each is drawn)."""
+BUFFER_SET_LEVELS = 64
+"""The buffer levels the gallery's set of a linked run holds: the best by score."""
 
 
 class RequestError(ValueError):
@@ -141,7 +145,15 @@ def make_app(
     (folders, files or glob patterns); `token` required on every request when given; `load_pilot` loads a
     checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `curriculum` links to
     a running run's curriculum service (the Curriculum page and "Send to run"; None: no run)."""
-    library = Library(Path(levels_dir), tuple(sources))
+    # A linked run's buffer is a gallery set too: a folder of level files that each listing rewrites from the
+    # service (`CurriculumLink.snapshot`), so its levels open, play and score as any others do.
+    buffer_folder, buffer_set, folders = None, None, {}
+    if curriculum is not None:
+        buffer_folder = tempfile.TemporaryDirectory(prefix="impulse-studio-buffer-")
+        buffer_set = f"run:{curriculum.run}"
+        folders[buffer_set] = (f"Curriculum buffer of run {curriculum.run} (live: its best {BUFFER_SET_LEVELS} "
+                               "levels by score)", Path(buffer_folder.name))
+    library = Library(Path(levels_dir), tuple(sources), folders)
     solve_rates = SolveRates(library, load_pilot) if load_pilot is not None else None
 
     async def index(request: Request) -> Response:
@@ -153,6 +165,13 @@ def make_app(
 
     async def levels(request: Request) -> Response:
         [set_id] = _query(request, "set")
+        if set_id == buffer_set:
+            try:
+                await run_in_threadpool(linked().snapshot, folders[set_id][1], BUFFER_SET_LEVELS)
+            except CurriculumUnreachable as err:
+                return _error(503, str(err))
+            except ValueError as err:
+                return _error(422, str(err))
         entries = await run_in_threadpool(library.summaries, set_id)
         for entry in entries:
             entry["thumbnail"] = "/api/thumbnail?" + urlencode({"set": set_id, "name": entry["name"]})
@@ -324,4 +343,5 @@ def make_app(
         Exception: failed,
     })
     app.add_middleware(Guard, token=token)
+    app.state.buffer_folder = buffer_folder  # removed with the app
     return app

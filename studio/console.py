@@ -10,19 +10,22 @@ again; a dead run is a clear error in the page, never a stuck server.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import threading
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 from impulse.bus.config import BusConfig
 from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
+from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.generator import sample_random_level
+from impulse.engine.levels.kinetix_json import level_to_json_dict
 from impulse.engine.levels.level import Level
-from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.pytree import tree_from_arrays
 from impulse.monitor.png import render_level
 from impulse.studio.library import THUMBNAIL_SCALE, UnknownLevel, png_bytes
@@ -45,11 +48,15 @@ def json_ready(value: Any) -> Any:
 
 
 class CurriculumLink:
-    """Run `run`'s curriculum service on `bus`, for a studio; `sizes` are the run's scene sizes (to draw the
-    buffered levels the service sends)."""
+    """Run `run`'s curriculum service on `bus`, for a studio; `spec` and `env_params` are the run's environment
+    (its scene sizes, to read the buffered levels the service sends, and its physics settings, written into the
+    level files of `snapshot`)."""
 
-    def __init__(self, bus: BusConfig, run: str, sizes: SceneSizes, timeout_s: float = ANSWER_TIMEOUT_S):
-        self.bus, self.run, self.sizes, self.timeout_s = bus, run, sizes, timeout_s
+    def __init__(self, bus: BusConfig, run: str, spec: EnvSpec, env_params: EnvParams | None = None,
+                 timeout_s: float = ANSWER_TIMEOUT_S):
+        self.bus, self.run, self.timeout_s = bus, run, timeout_s
+        self.spec, self.env_params = spec, env_params or EnvParams()
+        self.sizes = spec.sizes
         self._thumbnails: OrderedDict[str, bytes] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -109,11 +116,30 @@ class CurriculumLink:
             raise UnknownLevel(f"no thumbnail of buffer level {level_id!r}: refresh the curriculum page")
         return png
 
-    def _draw(self, arrays: dict[str, np.ndarray], count: int) -> list[bytes]:
-        """The levels the service sent (one batch of `count`, as `curriculum.stats.top_levels` gives), drawn."""
+    def snapshot(self, folder: Path, top: int) -> int:
+        """Write the buffer's `top` levels by score into `folder` as Kinetix level files named
+        `<rank>_<level id>` (the studio's gallery set of the run), in place of the files a previous snapshot
+        wrote; how many. Raises `CurriculumUnreachable`, or `ValueError` with the service's refusal."""
+        with self._client() as client:
+            reply = client.inspect(top, levels=True)
+        if reply.error is not None:
+            raise ValueError(f"the curriculum service refused: {reply.error}")
+        rows = reply.report.get("top", [])
+        levels = self._levels(reply.arrays, len(rows))
+        for old in folder.glob("*.json"):
+            old.unlink()
+        for rank, (row, level) in enumerate(zip(rows, levels, strict=True), start=1):
+            document = level_to_json_dict(level, self.sizes, self.env_params.sim, self.spec.frame_skip,
+                                          self.spec.solver)
+            (folder / f"{rank:03d}_{int(row['level_id']):016x}.json").write_text(json.dumps(document))
+        return len(levels)
+
+    def _levels(self, arrays: dict[str, np.ndarray], count: int) -> list[Level]:
+        """The levels the service sent (one batch of `count`, as `curriculum.stats.top_levels` gives)."""
         if not arrays or count == 0:
             return []
         template: Level = jax.eval_shape(lambda key: sample_random_level(key, self.sizes), jax.random.PRNGKey(0))
-        return [png_bytes(render_level(tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template),
-                                       scale=THUMBNAIL_SCALE))
-                for i in range(count)]
+        return [tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template) for i in range(count)]
+
+    def _draw(self, arrays: dict[str, np.ndarray], count: int) -> list[bytes]:
+        return [png_bytes(render_level(level, scale=THUMBNAIL_SCALE)) for level in self._levels(arrays, count)]

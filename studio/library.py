@@ -75,11 +75,15 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 class Library:
-    """The sets of one studio: hand-made, Kinetix's, the saved folder and the command line's `sources`."""
+    """The sets of one studio: hand-made, Kinetix's, the saved folder, the command line's `sources` and `folders`."""
 
-    def __init__(self, levels_dir: Path, sources: tuple[str, ...] = ()):
+    def __init__(self, levels_dir: Path, sources: tuple[str, ...] = (),
+                 folders: dict[str, tuple[str, Path]] | None = None):
         self.levels_dir = Path(levels_dir)
         self.sources = tuple(sources)
+        self.folders = dict(folders or {})
+        """Sets kept in folders that the studio writes itself (a running curriculum's buffer): id -> (title,
+        folder)."""
         self._lock = threading.Lock()
         self._summaries: dict[tuple, dict[str, Any]] = {}
         self._thumbnails: dict[tuple, bytes] = {}
@@ -98,7 +102,7 @@ class Library:
             found.append(LevelSet(f"kinetix:{size}", f"Kinetix hand-made, size {size.upper()}", missing))
         found.append(LevelSet(SAVED, f"Saved in {self.levels_dir}"))
         found += [LevelSet(source, source) for source in self.sources]
-        return found
+        return found + [LevelSet(set_id, title) for set_id, (title, _) in self.folders.items()]
 
     def files(self, set_id: str) -> list[tuple[str, Path]]:
         """(name, file) of every level of a set, sorted by name; `UnknownLevel` for a set it does not have."""
@@ -114,6 +118,8 @@ class Library:
             return _json_files(self.levels_dir) if self.levels_dir.is_dir() else []
         if set_id in self.sources:
             return self._source_files(set_id)
+        if set_id in self.folders:
+            return _json_files(self.folders[set_id][1])
         raise UnknownLevel(f"no level set {set_id!r}; known: {', '.join(s.id for s in self.sets())}")
 
     @staticmethod

@@ -72,37 +72,6 @@ def _port_free(host: str, port: int) -> str | None:
     return None
 
 
-def _run_dir_of(path: Path) -> Path:
-    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder."""
-    for candidate in (path, path.parent, path.parent.parent):
-        if (candidate / "config.toml").is_file():
-            return candidate
-    raise FileNotFoundError(f"no config.toml in {path} or above it: choose a run directory")
-
-
-def load_pilot(checkpoint: str) -> Any:
-    """A `studio.play.Pilot` from a run directory or one checkpoint's folder, as `impulse eval --checkpoint`
-    restores it; `LevelInputError` with the reason when it cannot be loaded."""
-    from impulse.deploy.config import ConfigError, resolve_config
-    from impulse.deploy.run_config import RunConfig
-    from impulse.learner.checkpoint import TRAIN
-    from impulse.learner.run import RunError, build, restore_policy
-    from impulse.studio.level_io import LevelInputError
-    from impulse.studio.play import Pilot
-
-    path = Path(checkpoint)
-    try:
-        run_dir = _run_dir_of(path)
-        config = resolve_config(RunConfig, run_dir / "config.toml", [])
-        trainer, agent, _, levels = build(config)
-        step = int(path.name) if path.name.isdigit() else None
-        restored = restore_policy(config, run_dir, step, trainer, levels)
-    except (FileNotFoundError, ConfigError, RunError, ValueError) as err:
-        raise LevelInputError(f"cannot load an agent from {checkpoint}: {err}") from None
-    name = f"{run_dir.name} (update {restored.step})"
-    return Pilot(agent, restored.items[TRAIN].params, trainer.env_params, name)
-
-
 def _offered(args: argparse.Namespace) -> list[str]:
     """Checkpoints the Play page lists: --run, then ./pretrained/* run directories."""
     offered = [str(args.run)] if args.run is not None else []
@@ -119,17 +88,18 @@ def _curriculum_of(run: Path | None) -> Any:
         return None
     from impulse.deploy.config import ConfigError, resolve_config
     from impulse.deploy.run_config import RunConfig
+    from impulse.deploy.runtime.run_dirs import run_dir_of
     from impulse.engine.env.spec import env_from_config
     from impulse.studio.console import CurriculumLink
 
     try:
-        config = resolve_config(RunConfig, _run_dir_of(run) / "config.toml", [])
+        config = resolve_config(RunConfig, run_dir_of(run) / "config.toml", [])
     except (FileNotFoundError, ConfigError):
         return None
     if not config.uses_curriculum_service:
         return None
-    spec, _ = env_from_config(config.env)
-    return CurriculumLink(config.bus, config.name, spec.sizes)
+    spec, env_params = env_from_config(config.env)
+    return CurriculumLink(config.bus, config.name, spec, env_params)
 
 
 def run(args: argparse.Namespace, _config: object = None) -> int:
@@ -145,6 +115,7 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
               "'uvicorn[standard]')", file=sys.stderr)
         return EXIT_USAGE
     from impulse.deploy.runtime.compile_cache import enable_compile_cache
+    from impulse.deploy.runtime.pilots import load_pilot
 
     enable_compile_cache()
     app = make_app(args.levels_dir, tuple(args.levels), token=args.token, load_pilot=load_pilot,

@@ -24,7 +24,7 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
-from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run, run_dir_of
 
 log = logging.getLogger("impulse.train")
 
@@ -110,7 +110,7 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
                   file=sys.stderr)
             return EXIT_USAGE
         try:
-            init_from = _run_dir_of(args.init_from)
+            init_from = run_dir_of(args.init_from)
             config = dataclasses.replace(config, network=load_run_config(RunConfig, init_from).network)
         except (FileNotFoundError, ConfigError) as err:
             print(f"impulse train: --init-from: {err}", file=sys.stderr)
@@ -161,19 +161,11 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
                         "green if solved, red if not)")
 
 
-def _run_dir_of(path: Path) -> Path:
-    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder."""
-    for candidate in (path, path.parent, path.parent.parent):
-        if (candidate / "config.toml").is_file():
-            return candidate
-    raise FileNotFoundError(f"no config.toml in {path} or above it; --checkpoint takes a run directory")
-
-
 def _open_checkpoint(args: argparse.Namespace, command: str) -> tuple[RunConfig, Path, int | None] | None:
     """(config, run directory, checkpoint step or None for the newest) of `--checkpoint`, with the key=value
     overrides; None after printing the problem as `impulse COMMAND: ...`."""
     try:
-        run_dir = _run_dir_of(args.checkpoint)
+        run_dir = run_dir_of(args.checkpoint)
         config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
     except (FileNotFoundError, ConfigError) as err:
         print(f"impulse {command}: {err}", file=sys.stderr)

@@ -79,3 +79,12 @@ def remove_unstarted_run(run_dir: Path, checkpoints: Path) -> bool:
         return False
     shutil.rmtree(run_dir, ignore_errors=True)
     return not run_dir.exists()
+
+
+def run_dir_of(path: Path) -> Path:
+    """The run directory holding config.toml: PATH itself, or up to two levels above a checkpoint folder
+    (`checkpoints/<step>`); `FileNotFoundError` when there is none."""
+    for candidate in (path, path.parent, path.parent.parent):
+        if (candidate / "config.toml").is_file():
+            return candidate
+    raise FileNotFoundError(f"no config.toml in {path} or above it: give a run directory")

@@ -27,6 +27,7 @@ from impulse.engine.levels import handmade
 from impulse.engine.levels.level import level_id_values, level_id_words
 from impulse.studio.app import make_app
 from impulse.studio.console import CurriculumLink
+from impulse.studio.level_io import load_document
 from starlette.testclient import TestClient
 
 from tests.support.checkpoint_damage import corrupt_newest
@@ -166,7 +167,7 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
 
         # The studio's editor sends a level the same way (`impulse studio --run RUN_DIR`: POST /api/inject), and
         # its Curriculum page shows the buffer, draws its levels and changes knobs through the service.
-        link = CurriculumLink(hub.config, RUN, SPEC.sizes)
+        link = CurriculumLink(hub.config, RUN, SPEC)
         with TestClient(make_app(tmp_path / "levels", curriculum=link)) as client:
             assert client.get("/api/agents").json()["inject_run"] == RUN
             hop = json.loads(handmade.level_file("s_hop_over").read_text())
@@ -184,6 +185,15 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
             png = client.get(f"/api/curriculum/thumbnail?level_id={report['top'][0]['level_id']}")
             assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
             assert client.get("/api/curriculum/thumbnail?level_id=00").status_code == 404
+
+            # The run's buffer is a gallery set as well: its levels, best first, open as level files.
+            listed = serve_until(service, lambda: client.get(f"/api/levels?set=run:{RUN}"))
+            assert listed.status_code == 200, listed.text
+            names = [level["name"] for level in listed.json()["levels"]]
+            assert [name.split("_")[1] for name in names] == [row["level_id"] for row in report["top"]]
+            opened = client.get(f"/api/level?set=run:{RUN}&name={names[0]}").json()
+            assert np.array_equal(load_document(opened).level.level_id, level_id_words(int(names[0].split("_")[1], 16)))
+            assert any(s["id"] == f"run:{RUN}" for s in client.get("/api/sets").json()["sets"])
 
             before = report["knobs"]["replay_prob"]
             changed = serve_until(service, lambda: client.post("/api/curriculum/knobs",

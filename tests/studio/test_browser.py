@@ -60,7 +60,7 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub):
     """(base address, levels folder) of a studio served by uvicorn in a thread of this process, linked to run RUN's
     curriculum service on `hub`."""
     uvicorn = pytest.importorskip("uvicorn")
-    from impulse.deploy.commands.studio import load_pilot
+    from impulse.deploy.runtime.pilots import load_pilot
     from impulse.studio.app import make_app
     from impulse.studio.console import CurriculumLink
 
@@ -68,7 +68,7 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub):
 
     levels_dir = tmp_path_factory.mktemp("studio-levels")
     port = free_port()
-    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC.sizes), load_pilot=load_pilot,
+    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC), load_pilot=load_pilot,
                    agents=[str(AGENT)])
     config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, log_level="warning")
     served = uvicorn.Server(config)
