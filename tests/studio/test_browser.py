@@ -208,10 +208,11 @@ def test_play_drives_the_motor_with_the_arrow_key(server, page, shots: Path) -> 
     page.screenshot(path=str(shots / "play.png"))
 
 
-def test_watching_the_shipped_agent_play(server, page, shots: Path) -> None:
+def test_watching_the_shipped_agent_play(server, page) -> None:
     """The Play page loads `pretrained/general-s` from its list and, with "agent drives" ticked, every step is the
     agent's: the steps go on without a key held, the readout names the agent, and its actions drive the car's
-    motor; unticked, the person drives again. The gallery then shows its solve rate on each level of the set."""
+    motor; unticked, the person drives again. (The gallery's solve rates are tested on the server, in
+    test_server.py: scoring compiles an evaluation, too dear for this stream.)"""
     page.click("#tab-gallery")
     page.locator('.card[data-name="s_easy_car_right"] button.play').click()
     page.wait_for_function("studio.play.frame !== null && studio.play.frame.t >= 1")
@@ -227,18 +228,6 @@ def test_watching_the_shipped_agent_play(server, page, shots: Path) -> None:
     assert page.locator("#stat-driver").inner_text() == "you"
     page.wait_for_function("studio.play.frame.scene.joints[0].drive === 0")  # no key held: the person's no-op
 
-    # The same agent scored on the gallery's set: a rate on every S level, the M levels named as not fitting.
-    page.click("#tab-gallery")
-    page.fill("#gallery-filter", "")
-    page.select_option("#gallery-agent", str(AGENT))
-    page.click("#gallery-rates")
-    page.wait_for_function("document.querySelectorAll('.card .rate').length === "
-                           "document.querySelectorAll('.card').length")
-    rates = page.evaluate("studio.rates")
-    assert rates["rates"] and all(name.startswith("s_") for name in rates["rates"]), rates
-    assert page.locator('.card[data-name="s_easy_car_right"] .rate').inner_text().startswith("agent solves")
-    assert "too large" in page.locator('.card[data-name="m_car_bump"] .rate').inner_text()
-    page.screenshot(path=str(shots / "gallery-rates.png"))
 
 
 def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, page, shots: Path,
