@@ -88,21 +88,15 @@ class CurriculumLink:
         numbers cannot hold 64 bits) and whose `origin` says how the level came; their thumbnails are drawn
         now and served by `thumbnail`. Raises `CurriculumUnreachable`, or `ValueError` with the service's
         refusal."""
-        with self._client() as client:
-            reply = client.inspect(top, levels=True)
-        if reply.error is not None:
-            raise ValueError(f"the curriculum service refused: {reply.error}")
-        report = reply.report
-        rows = report.get("top", [])
-        drawn = self._draw(reply.arrays, len(rows))
-        for i, row in enumerate(rows):
+        report, levels = self._best(top)
+        for row, level in zip(report.get("top", []), levels, strict=True):
             row["level_id"] = f"{int(row['level_id']):016x}"
             row["parent_id"] = f"{int(row['parent_id']):016x}"
             row["origin"] = f"mutated, generation {row['generation']}" if row.get("generation", 0) > 0 else "new"
-            if i < len(drawn):
-                with self._lock:
-                    self._thumbnails[row["level_id"]] = drawn[i]
-                    self._thumbnails.move_to_end(row["level_id"])
+            png = png_bytes(render_level(level, scale=THUMBNAIL_SCALE))
+            with self._lock:
+                self._thumbnails[row["level_id"]] = png
+                self._thumbnails.move_to_end(row["level_id"])
         with self._lock:
             while len(self._thumbnails) > THUMBNAILS_KEPT:
                 self._thumbnails.popitem(last=False)
@@ -120,12 +114,8 @@ class CurriculumLink:
         """Write the buffer's `top` levels by score into `folder` as Kinetix level files named
         `<rank>_<level id>` (the studio's gallery set of the run), in place of the files a previous snapshot
         wrote; how many. Raises `CurriculumUnreachable`, or `ValueError` with the service's refusal."""
-        with self._client() as client:
-            reply = client.inspect(top, levels=True)
-        if reply.error is not None:
-            raise ValueError(f"the curriculum service refused: {reply.error}")
-        rows = reply.report.get("top", [])
-        levels = self._levels(reply.arrays, len(rows))
+        report, levels = self._best(top)
+        rows = report.get("top", [])
         for old in folder.glob("*.json"):
             old.unlink()
         for rank, (row, level) in enumerate(zip(rows, levels, strict=True), start=1):
@@ -134,12 +124,19 @@ class CurriculumLink:
             (folder / f"{rank:03d}_{int(row['level_id']):016x}.json").write_text(json.dumps(document))
         return len(levels)
 
-    def _levels(self, arrays: dict[str, np.ndarray], count: int) -> list[Level]:
-        """The levels the service sent (one batch of `count`, as `curriculum.stats.top_levels` gives)."""
-        if not arrays or count == 0:
-            return []
+    def _best(self, top: int) -> tuple[dict[str, Any], list[Level]]:
+        """The service's inspect report of its `top` levels by score, and those levels (in the report's order)."""
+        with self._client() as client:
+            reply = client.inspect(top, levels=True)
+        if reply.error is not None:
+            raise ValueError(f"the curriculum service refused: {reply.error}")
+        count = len(reply.report.get("top", []))
+        if count == 0:
+            return reply.report, []
+        if not reply.arrays:
+            raise ValueError("the curriculum service sent its report without the levels")
         template: Level = jax.eval_shape(lambda key: sample_random_level(key, self.sizes), jax.random.PRNGKey(0))
-        return [tree_from_arrays({k: np.asarray(v)[i] for k, v in arrays.items()}, template) for i in range(count)]
-
-    def _draw(self, arrays: dict[str, np.ndarray], count: int) -> list[bytes]:
-        return [png_bytes(render_level(level, scale=THUMBNAIL_SCALE)) for level in self._levels(arrays, count)]
+        arrays = {name: np.asarray(values) for name, values in reply.arrays.items()}
+        levels = [tree_from_arrays({name: values[i] for name, values in arrays.items()}, template)
+                  for i in range(count)]
+        return reply.report, levels
