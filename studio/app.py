@@ -10,7 +10,8 @@ the server keeps running):
 - `GET /api/level?set=S&name=N`: the level as a Kinetix level file (JSON);
 - `POST /api/edit` {"level", "ops", "size"?}: the level after the editor's operations (`editing`), with its scene,
   counts and the problems `validate_scene` finds (ops [] just draws a level); with "size" ("s", "m", "l") the level
-  is first moved into that size (more slots, or a refusal naming what does not fit);
+  is first moved into that size (into a larger one with more slots; into a smaller one with the unused slots
+  dropped, or a refusal naming what the level uses that does not fit);
 - `POST /api/validate` {"level", "size"?}: 200 when `impulse levels validate [--size]` would accept it, else 422
   with every problem; `POST /api/save` {"name", "level", "size"?}: validate, then write `<levels-dir>/<name>.json`;
 - `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
@@ -18,10 +19,11 @@ the server keeps running):
   (`solve_rates`, `impulse eval`'s scoring), 409 when the studio cannot load agents;
 - `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`console`): its
   reply, or 422 with the service's reason;
-- `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels (`console`), 503 when no
-  service answers; `GET /api/curriculum/thumbnail?level_id=ID`: one of those levels as a PNG;
+- `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels (`console`);
+  `GET /api/curriculum/thumbnail?level_id=ID`: one of those levels as a PNG;
   `POST /api/curriculum/knobs` {"set": ["replay_prob=0.8", ...]}: change live knobs (or, without "set", read
-  them), 422 with the service's reason when refused. All four answer 409 when the studio has no run;
+  them), 422 with the service's reason when refused. All four answer 409 when the studio has no run and 503
+  when no curriculum service answers (one handler each, for every route);
 - `WebSocket /ws/play`: play and watch (`protocol`).
 
 Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
@@ -42,7 +44,7 @@ from impulse.curriculum.client import CurriculumUnreachable
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.summary import size_class
 from impulse.engine.physics.validate import validate_scene
-from impulse.studio.console import CurriculumLink
+from impulse.studio.console import CurriculumLink, CurriculumRefused
 from impulse.studio.editing import apply_edits
 from impulse.studio.level_io import (
     LevelInputError,
@@ -124,7 +126,7 @@ def _edited(body: dict[str, Any]) -> dict[str, Any]:
     and problems."""
     if "level" not in body:
         raise RequestError("edit needs \"level\" (a Kinetix level JSON object) and \"ops\" (a list)")
-    loaded = load_document(body["level"], parse_size(body.get("size")), validate=False)
+    loaded = load_document(body["level"], parse_size(body.get("size")), validate=False, compact=True)
     level = apply_edits(loaded.level, loaded.sizes, body.get("ops", []))
     return {"level": level_document(loaded, level), "scene": scene_json(scene_drawing(level)),
             "actuators": actuator_settings(level), "size": size_class(loaded.sizes),
@@ -166,12 +168,7 @@ def make_app(
     async def levels(request: Request) -> Response:
         [set_id] = _query(request, "set")
         if set_id == buffer_set:
-            try:
-                await run_in_threadpool(linked().snapshot, folders[set_id][1], BUFFER_SET_LEVELS)
-            except CurriculumUnreachable as err:
-                return _error(503, str(err))
-            except ValueError as err:
-                return _error(422, str(err))
+            await run_in_threadpool(linked().snapshot, folders[set_id][1], BUFFER_SET_LEVELS)
         entries = await run_in_threadpool(library.summaries, set_id)
         for entry in entries:
             entry["thumbnail"] = "/api/thumbnail?" + urlencode({"set": set_id, "name": entry["name"]})
@@ -241,7 +238,7 @@ def make_app(
             raise RequestError('inject needs "level": a Kinetix level JSON object')
         reply = await run_in_threadpool(link.inject, body["level"])
         if not reply.get("ok"):
-            return _error(422, f"the curriculum refused the level: {reply.get('error')}")
+            raise CurriculumRefused(f"the curriculum refused the level: {reply.get('error')}")
         log.info("studio: sent a level into run %s's curriculum: slot %s", link.run, reply.get("slot"))
         return JSONResponse(reply)
 
@@ -250,13 +247,7 @@ def make_app(
         top = request.query_params.get("top", "24")
         if not top.isdigit() or not 1 <= int(top) <= MAX_BUFFER_ROWS:
             raise RequestError(f"top must be a whole number from 1 to {MAX_BUFFER_ROWS}, got {top!r}")
-        try:
-            report = await run_in_threadpool(link.buffer, int(top))
-        except CurriculumUnreachable as err:
-            return _error(503, str(err))
-        except ValueError as err:
-            return _error(422, str(err))
-        return JSONResponse(report)
+        return JSONResponse(await run_in_threadpool(link.buffer, int(top)))
 
     async def buffer_thumbnail(request: Request) -> Response:
         [level_id] = _query(request, "level_id")
@@ -272,7 +263,7 @@ def make_app(
             raise RequestError('"set" must be a list of "knob=value" strings')
         reply = await run_in_threadpool(link.knobs, assignments)
         if not reply.get("ok"):
-            return _error(422, f"the curriculum refused: {reply.get('error')}")
+            raise CurriculumRefused(f"the curriculum refused: {reply.get('error')}")
         if assignments:
             log.info("studio: run %s's curriculum knobs: %s", link.run, reply.get("changed"))
         return JSONResponse(reply)
@@ -313,6 +304,12 @@ def make_app(
     async def no_run(request: Request, err: Exception) -> Response:
         return _error(409, str(err))
 
+    async def curriculum_refused(request: Request, err: Exception) -> Response:
+        return _error(422, str(err))
+
+    async def curriculum_unreachable(request: Request, err: Exception) -> Response:
+        return _error(503, str(err))
+
     async def not_found(request: Request, err: Exception) -> Response:
         return _error(404, str(err.args[0]) if err.args else "not found")
 
@@ -340,7 +337,7 @@ def make_app(
     ]
     app = Starlette(routes=routes, exception_handlers={
         LevelInputError: bad_input, RequestError: bad_request, NoRun: no_run, UnknownLevel: not_found,
-        Exception: failed,
+        CurriculumRefused: curriculum_refused, CurriculumUnreachable: curriculum_unreachable, Exception: failed,
     })
     app.add_middleware(Guard, token=token)
     app.state.buffer_folder = buffer_folder  # removed with the app

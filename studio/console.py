@@ -21,7 +21,7 @@ from typing import Any
 import jax
 import numpy as np
 from impulse.bus.config import BusConfig
-from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
+from impulse.curriculum.client import CurriculumClient
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.generator import sample_random_level
 from impulse.engine.levels.kinetix_json import level_to_json_dict
@@ -33,6 +33,11 @@ from impulse.studio.library import THUMBNAIL_SCALE, UnknownLevel, png_bytes
 ANSWER_TIMEOUT_S = 15.0
 THUMBNAILS_KEPT = 256
 """Buffer thumbnails kept in memory (by level id), newest first; a level that left the buffer ages out."""
+
+
+class CurriculumRefused(ValueError):
+    """The run's curriculum service answered, and refused the request (or sent a reply the studio cannot use); the
+    message gives its reason."""
 
 
 def json_ready(value: Any) -> Any:
@@ -65,29 +70,23 @@ class CurriculumLink:
 
     def inject(self, document: dict[str, Any]) -> dict[str, Any]:
         """Send a Kinetix level-file object into the buffer: `{"ok": true, "slot", "level_id", "evicted"}`, or
-        `{"ok": false, "error"}` with the service's reason or why it could not be asked."""
-        try:
-            with self._client() as client:
-                return client.inject(document)
-        except CurriculumUnreachable as err:
-            return {"ok": False, "error": str(err)}
+        `{"ok": false, "error"}` with the service's reason; `CurriculumUnreachable` when it could not be asked."""
+        with self._client() as client:
+            return client.inject(document)
 
     def knobs(self, assignments: list[str] | None = None) -> dict[str, Any]:
         """The live knobs (`{"ok", "method", "knobs"}`), after `assignments` ("replay_prob=0.8", ...) when given,
-        checked by the service as for `impulse curriculum set`; `{"ok": false, "error"}` when refused or
-        unreachable."""
-        try:
-            with self._client() as client:
-                return client.knobs(assignments)
-        except CurriculumUnreachable as err:
-            return {"ok": False, "error": str(err)}
+        checked by the service as for `impulse curriculum set`; `{"ok": false, "error"}` when refused,
+        `CurriculumUnreachable` when it could not be asked."""
+        with self._client() as client:
+            return client.knobs(assignments)
 
     def buffer(self, top: int) -> dict[str, Any]:
         """The buffer's report (`curriculum.stats.inspect_report`: summary, histograms, live knobs) with its
         `top` levels by score as rows whose `level_id` and `parent_id` are hexadecimal strings (a browser's
         numbers cannot hold 64 bits) and whose `origin` says how the level came; their thumbnails are drawn
-        now and served by `thumbnail`. Raises `CurriculumUnreachable`, or `ValueError` with the service's
-        refusal."""
+        now and served by `thumbnail`. Raises `CurriculumUnreachable`, or `CurriculumRefused` with the service's
+        reason."""
         report, levels = self._best(top)
         for row, level in zip(report.get("top", []), levels, strict=True):
             row["level_id"] = f"{int(row['level_id']):016x}"
@@ -113,7 +112,7 @@ class CurriculumLink:
     def snapshot(self, folder: Path, top: int) -> int:
         """Write the buffer's `top` levels by score into `folder` as Kinetix level files named
         `<rank>_<level id>` (the studio's gallery set of the run), in place of the files a previous snapshot
-        wrote; how many. Raises `CurriculumUnreachable`, or `ValueError` with the service's refusal."""
+        wrote; how many. Raises `CurriculumUnreachable`, or `CurriculumRefused` with the service's reason."""
         report, levels = self._best(top)
         rows = report.get("top", [])
         for old in folder.glob("*.json"):
@@ -129,12 +128,12 @@ class CurriculumLink:
         with self._client() as client:
             reply = client.inspect(top, levels=True)
         if reply.error is not None:
-            raise ValueError(f"the curriculum service refused: {reply.error}")
+            raise CurriculumRefused(f"the curriculum service refused: {reply.error}")
         count = len(reply.report.get("top", []))
         if count == 0:
             return reply.report, []
         if not reply.arrays:
-            raise ValueError("the curriculum service sent its report without the levels")
+            raise CurriculumRefused("the curriculum service sent its report without the levels")
         template: Level = jax.eval_shape(lambda key: sample_random_level(key, self.sizes), jax.random.PRNGKey(0))
         arrays = {name: np.asarray(values) for name, values in reply.arrays.items()}
         levels = [tree_from_arrays({name: values[i] for name, values in arrays.items()}, template)

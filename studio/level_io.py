@@ -71,13 +71,16 @@ def level_problems(document: Any, sizes: SceneSizes | None = None) -> list[str]:
     return _with_file(document, lambda path: level_file_problems(path, sizes))
 
 
-def load_document(document: Any, sizes: SceneSizes | None = None, *, validate: bool = True) -> KinetixLevel:
-    """The document loaded as a level file (into `sizes`, else its own size); `LevelInputError` with every problem
-    when it does not load (or, with `validate`, holds an invalid scene)."""
+def load_document(
+    document: Any, sizes: SceneSizes | None = None, *, validate: bool = True, compact: bool = False
+) -> KinetixLevel:
+    """The document loaded as a level file (into `sizes`, else its own size; with `compact`, cut to the slots it
+    uses when it is larger than `sizes`); `LevelInputError` with every problem when it does not load (or, with
+    `validate`, holds an invalid scene)."""
 
     def load(path: Path) -> KinetixLevel:
         try:
-            return load_kinetix_level(path, sizes, validate=validate)
+            return load_kinetix_level(path, sizes, validate=validate, compact=compact)
         except LevelFileError as err:
             raise LevelInputError("the level is not valid", err.problems) from None
 

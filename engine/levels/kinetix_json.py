@@ -502,7 +502,7 @@ def _read_json(path: Path) -> dict:
 
 
 def load_kinetix_level(
-    path: str | Path, sizes: SceneSizes | None = None, *, validate: bool = True
+    path: str | Path, sizes: SceneSizes | None = None, *, validate: bool = True, compact: bool = False
 ) -> KinetixLevel:
     """Load a level file, in its own size or padded into `sizes` (which must be at least as large).
 
@@ -510,9 +510,13 @@ def load_kinetix_level(
     body indices follow them. Raises `LevelFileError` for a malformed file, one too large for `sizes`, or (with
     `validate`, the default) a scene that `validate_scene` rejects; tools that want to show such a scene anyway
     pass `validate=False` and call `validate_scene` themselves.
+
+    A Kinetix file holds every slot of its size, used or not, so an M file is "too large" for S however few
+    shapes it uses. With `compact`, a file larger than `sizes` is first cut to the slots it uses
+    (`used_slots`) and loads when those fit: moving a level into a smaller size is then an explicit choice.
     """
     path = Path(path)
-    return level_from_document(_read_json(path), sizes, validate=validate, source=path)
+    return level_from_document(_read_json(path), sizes, validate=validate, source=path, compact=compact)
 
 
 def load_level_document(document: Any, sizes: SceneSizes | None = None) -> Level:
@@ -528,7 +532,8 @@ def load_level_document(document: Any, sizes: SceneSizes | None = None) -> Level
 
 
 def level_from_document(
-    raw: dict, sizes: SceneSizes | None = None, *, validate: bool = True, source: str | Path = "the level"
+    raw: dict, sizes: SceneSizes | None = None, *, validate: bool = True, source: str | Path = "the level",
+    compact: bool = False,
 ) -> KinetixLevel:
     """`load_kinetix_level` of a level file's JSON object (`raw`, whose `env_state` is an object); problems are
     reported as those of `source`."""
@@ -583,13 +588,18 @@ def level_from_document(
         iterations=int(static["num_solver_iterations"]), warm_starting=bool(static["do_warm_starting"])
     )
     target = sizes or file_sizes
-    if not file_sizes.fits_in(target):
-        raise LevelFileError(path, _does_not_fit(file_sizes, target))
     cache = _manifold_cache(env_state, file_sizes, problems)
     if problems:
         raise LevelFileError(path, problems)
+    layout = file_sizes
+    if compact and not file_sizes.fits_in(target):
+        layout, (polygons, circles, joints, thrusters) = used_slots(file_sizes, polygons, circles, joints, thrusters)
+        P, C = layout.num_polygons, layout.num_circles
+        cache = None  # the contact cache is laid out by the file's slots
+    if not layout.fits_in(target):
+        raise LevelFileError(path, _does_not_fit(layout, target, compacted=layout is not file_sizes))
 
-    state = _build_state(target, P, C, polygons, circles, joints, thrusters, gravity, cache, file_sizes)
+    state = _build_state(target, P, C, polygons, circles, joints, thrusters, gravity, cache, layout)
     if validate:
         found = validate_scene(state)
         if found:
@@ -617,7 +627,7 @@ def level_from_document(
     )
 
 
-def _does_not_fit(file_sizes: SceneSizes, target: SceneSizes) -> str:
+def _does_not_fit(file_sizes: SceneSizes, target: SceneSizes, *, compacted: bool = False) -> str:
     if file_sizes.num_static_polygons != target.num_static_polygons:
         return (f"the file has {file_sizes.num_static_polygons} static arena polygons but the size expects "
                 f"{target.num_static_polygons}")
@@ -627,7 +637,43 @@ def _does_not_fit(file_sizes: SceneSizes, target: SceneSizes) -> str:
         for n in names
         if getattr(file_sizes, n) > getattr(target, n)
     ]
-    return "too large for the size: the file has " + ", ".join(over)
+    return f"too large for the size: the {'level uses' if compacted else 'file has'} " + ", ".join(over)
+
+
+def used_slots(
+    file_sizes: SceneSizes, polygons: dict, circles: dict, joints: dict, thrusters: dict
+) -> tuple[SceneSizes, tuple[dict, dict, dict, dict]]:
+    """A file's slot columns cut to what the level uses, with the slot counts that remain.
+
+    Kept: the static arena polygons, every active shape and every shape an active joint or thruster names (an
+    inactive one stays so that the scene's own validation, not this cut, reports it), and the active joints and
+    thrusters. Shapes keep their order (polygons, then circles) and joint and thruster body indices are renumbered
+    to the kept shapes."""
+    P, S = file_sizes.num_polygons, file_sizes.num_static_polygons
+    joint_on = joints["active"].astype(bool) if joints else np.zeros(0, bool)
+    thruster_on = thrusters["active"].astype(bool) if thrusters else np.zeros(0, bool)
+    named = np.zeros(P + file_sizes.num_circles, bool)
+    for column in (joints.get("a_index"), joints.get("b_index")):
+        if column is not None:
+            named[column[joint_on]] = True
+    if thrusters:
+        named[thrusters["object_index"][thruster_on]] = True
+    keep_polygon = (polygons["active"].astype(bool) | named[:P]) if polygons else np.zeros(0, bool)
+    keep_polygon[:S] = True
+    keep_circle = (circles["active"].astype(bool) | named[P:]) if circles else np.zeros(0, bool)
+    renumber = np.cumsum(np.concatenate([keep_polygon, keep_circle])) - 1
+
+    def cut(columns: dict, keep: np.ndarray, indices: tuple[str, ...] = ()) -> dict:
+        return {name: renumber[column[keep]].astype(np.int32) if name in indices else column[keep]
+                for name, column in columns.items()}
+
+    kept = (cut(polygons, keep_polygon), cut(circles, keep_circle), cut(joints, joint_on, ("a_index", "b_index")),
+            cut(thrusters, thruster_on, ("object_index",)))
+    layout = dataclasses.replace(
+        file_sizes, num_polygons=int(keep_polygon.sum()), num_circles=int(keep_circle.sum()),
+        num_joints=int(joint_on.sum()), num_thrusters=int(thruster_on.sum()),
+    )
+    return layout, kept
 
 
 def _build_state(

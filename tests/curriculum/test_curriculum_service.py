@@ -205,6 +205,13 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
             knobs = serve_until(service, lambda: client.post("/api/curriculum/knobs", json={}))
             assert knobs.json()["knobs"]["replay_prob"] == pytest.approx(1 - before)
         assert service.injected == 2
+        # A run whose service does not answer: every curriculum route says so (503), and the studio goes on.
+        silent = CurriculumLink(hub.config, "no-such-run", SPEC, timeout_s=1.0)
+        with TestClient(make_app(tmp_path / "levels", curriculum=silent)) as client:
+            for reply in (client.get("/api/curriculum?top=5"), client.post("/api/inject", json={"level": hop}),
+                          client.post("/api/curriculum/knobs", json={}), client.get("/api/levels?set=run:no-such-run")):
+                assert reply.status_code == 503 and "no-such-run" in reply.json()["error"], reply.text
+            assert client.get("/api/sets").status_code == 200
         service.save()  # the injections are checkpointed with the buffer
         checkpoints.close()
         restarted, checkpoints = start_service(bus, tmp_path / "ckpt", resume=True)

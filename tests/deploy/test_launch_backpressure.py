@@ -6,7 +6,9 @@ checks to keep the suite short; real processes, real zenoh on loopback):
 2. the curriculum: the launcher started it, actors train on the levels it serves and report results back, and a
    person retunes it while it runs with `impulse curriculum set` (a bad value refused, a good one taking effect
    at the next sample), reads it back with `get`, sends a level into its buffer with `inject` and looks at the
-   buffer with `inspect`;
+   buffer with `inspect`; and `impulse studio --run RUN_DIR`, as its own process, shows that buffer and its knobs,
+   changes a knob and sends a level in over HTTP (the page's own requests; tests/studio/test_browser.py drives the
+   page itself in a browser);
 3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
    service checkpoints its buffer;
 4. `--record` without `--view`: every process streams to one Rerun recording (the run's name as its id) through
@@ -19,10 +21,13 @@ checks to keep the suite short; real processes, real zenoh on loopback):
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 
 import numpy as np
 import pytest
@@ -122,6 +127,65 @@ def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
     assert len(list((tmp_path / "top").glob("*.png"))) == len(report["top"])
 
 
+def studio_request(base: str, path: str, body: dict | None = None) -> tuple[int, dict | bytes]:
+    """(status, JSON reply or raw bytes) of one request to a studio, as its page makes them."""
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(base + path, data=data, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=60) as response:
+            status, raw, kind = response.status, response.read(), response.headers.get_content_type()
+    except urllib.error.HTTPError as err:
+        status, raw, kind = err.code, err.read(), err.headers.get_content_type()
+    return status, (json.loads(raw) if kind == "application/json" else raw)
+
+
+def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
+    """`impulse studio --run RUN_DIR` (its own process) linked to the launched run's curriculum service."""
+    port = free_port()
+    log_path = tmp_path / "studio.log"
+    command = [sys.executable, "-m", "impulse.deploy.cli", "studio", "--run", str(run_dir), "--port", str(port),
+               "--levels-dir", str(tmp_path / "studio-levels")]
+    env = {**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache"), "PYTHONUNBUFFERED": "1"}
+    with log_path.open("wb") as out:
+        studio = subprocess.Popen(command, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_for(lambda: "Impulse Studio: open" in log_path.read_text(), 60, "the studio to start", studio, log_path)
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                status, agents = studio_request(base, "/api/agents")
+                break
+            except OSError:
+                assert time.monotonic() < deadline, tail(log_path)
+                time.sleep(0.2)
+        assert status == 200 and agents["inject_run"] == run_dir.name, agents
+
+        status, page = studio_request(base, "/api/curriculum?top=3")
+        assert status == 200 and page["run"] == run_dir.name and page["knobs"]["sfl_ratio"] == 1.0, page
+        assert 0 < len(page["top"]) <= 3, page["top"]
+        status, png = studio_request(base, f"/api/curriculum/thumbnail?level_id={page['top'][0]['level_id']}")
+        assert status == 200 and png.startswith(b"\x89PNG")
+
+        status, reply = studio_request(base, "/api/curriculum/knobs", {"set": ["sfl_ratio=7"]})
+        assert status == 422 and "sfl_ratio must be in [0, 1]" in reply["error"], reply
+        status, reply = studio_request(base, "/api/curriculum/knobs", {"set": ["sfl_ratio=0.5"]})
+        assert status == 200 and "sfl_ratio" in reply["changed"], reply
+        got = curriculum_cli(run_dir, "get")  # the service's own answer
+        assert got.returncode == 0 and "sfl_ratio = 0.5" in got.stdout, got
+
+        thrust = REPO / "engine" / "levels" / "handmade" / "s_easy_thrust_right.json"
+        status, reply = studio_request(base, "/api/inject", {"level": json.loads(thrust.read_text())})
+        assert status == 200 and reply["ok"] and "slot" in reply, reply
+        wait_for(lambda: watcher.poll().get("curriculum", {}).get("injected") == 2, 10, "the service to count it")
+    finally:
+        studio.send_signal(signal.SIGINT)
+        try:
+            studio.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            studio.kill()
+
+
 def check_recording(path, run: str) -> None:
     """The .rrd the recording server wrote: one recording of the run, with what every process streamed."""
     reader = RrdReader(path)
@@ -167,6 +231,7 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
         wait_for(lambda: curriculum().get("results", 0) >= 2 and curriculum().get("buffer_fill", 0) > 0, 120,
                  "the curriculum to receive results and keep a level", launch, log)
         check_live_curriculum(run_dir, watcher, tmp_path)
+        check_studio_console(run_dir, watcher, tmp_path)
         # The evaluator scores the learner's policies; the learner writes the scores into its metrics rows.
         wait_for(lambda: watcher.poll().get("learner", {}).get("evaluation", {}).get("policy_version") is not None
                  and any("eval/level/s_easy_car_right" in row for row in metrics(run_dir)), 180,

@@ -19,6 +19,7 @@ from impulse.engine.levels import handmade
 from impulse.engine.levels.handmade.files import level_differences
 from impulse.engine.levels.kinetix_json import level_file_problems, load_kinetix_level
 from impulse.engine.levels.sets import LevelSetError, kinetix_levels_root
+from impulse.engine.physics.sizes import SIZE_S
 from impulse.studio.app import make_app
 from impulse.studio.level_io import load_document
 from PIL import Image
@@ -210,9 +211,16 @@ def test_editing_joints_thrusters_materials_sizes_and_triangles(client: TestClie
     assert settings(bigger.json()["actuators"]) == settings(state["actuators"])
     added = edited(bigger.json(), [{"op": "add_circle", "x": 4.0, "y": 4.0, "radius": 0.2}])
     assert added["counts"]["circles"] == state["counts"]["circles"] + 1
-    # A file holds its size's slots, active or not, so a level does not go back down (a clear refusal).
+    # Back down: the unused slots are dropped, so the level returns to S as it was; one that uses more than S
+    # holds is refused, naming what it uses.
+    smaller = edit(client, bigger.json()["level"], [], size="s")
+    assert smaller.status_code == 200 and smaller.json()["size"] == "S", smaller.text
+    assert smaller.json()["counts"] == state["counts"] and smaller.json()["problems"] == []
+    assert smaller.json()["actuators"] == state["actuators"]
+    assert [c["radius"] for c in smaller.json()["scene"]["circles"] if c["body"] == wheel] == [0.3]
+    assert added["counts"]["circles"] > SIZE_S.num_circles
     refused = edit(client, added["level"], [], size="s")
-    assert refused.status_code == 422 and "too large for the size" in refused.text, refused.text
+    assert refused.status_code == 422 and "too large for the size: the level uses" in refused.text, refused.text
 
     saved = client.post("/api/save", json={"name": "jointed", "level": state["level"]})
     assert saved.status_code == 200, saved.text

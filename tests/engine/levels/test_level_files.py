@@ -302,6 +302,52 @@ def test_shared_levels_load_into_every_larger_size() -> None:
                     load_kinetix_level(path, sizes)
 
 
+def test_a_padded_level_compacts_back_into_its_own_size(tmp_path: Path) -> None:
+    """`compact` drops the slots a file does not use: every shared S level padded into L (saved as an L file)
+    loads back into S as the same scene: every used shape, joint and thruster in the same slot with the same
+    values, the unused slots inactive (Kinetix's files keep leftover values in those, which the cut drops).
+    Without `compact` the L file is refused, and a level that uses more than the smaller size allows is refused
+    naming what it uses."""
+
+    def used(loaded) -> dict[str, np.ndarray]:
+        host = jax.tree.map(np.asarray, loaded.level)
+        state, P = host.state, loaded.sizes.num_polygons
+        body_on, joint_on, thruster_on = state.bodies.active, state.joints.active, state.thrusters.active
+        out = {f"bodies.{name}": value[body_on] for name, value in vars(state.bodies).items()}
+        out |= {f"joints.{name}": value[joint_on] for name, value in vars(state.joints).items()}
+        out |= {f"thrusters.{name}": value[thruster_on] for name, value in vars(state.thrusters).items()}
+        out |= {"active": body_on, "joints_on": joint_on, "thrusters_on": thruster_on,
+                "roles": host.roles[body_on], "densities": host.densities[body_on],
+                "vertices": state.polygon_vertices[body_on[:P]], "n_vertices": state.polygon_n_vertices[body_on[:P]],
+                "radius": state.circle_radius[body_on[P:]], "motor_bindings": host.motor_bindings[joint_on],
+                "thruster_bindings": host.thruster_bindings[thruster_on], "gravity": state.gravity}
+        return out
+
+    checked = 0
+    for path in shared_level_files():
+        if path.parent.name != "s":
+            continue
+        native = load_kinetix_level(path)
+        padded = load_kinetix_level(path, SIZE_L)
+        as_l = save_kinetix_level(tmp_path / path.name, padded.level, SIZE_L, padded.params, padded.frame_skip,
+                                  padded.options)
+        with pytest.raises(LevelFileError, match="too large for the size: the file has"):
+            load_kinetix_level(as_l, SIZE_S)
+        back = load_kinetix_level(as_l, SIZE_S, compact=True)
+        assert back.sizes == SIZE_S and back.file_sizes == SIZE_L
+        assert (back.params, back.frame_skip, back.options) == (native.params, native.frame_skip, native.options)
+        expected, got = used(native), used(back)
+        for name, value in expected.items():
+            assert np.array_equal(got[name], value), (path.name, name)
+        checked += 1
+    assert checked >= 10
+    for path in shared_level_files():
+        if path.parent.name == "m":
+            with pytest.raises(LevelFileError, match="too large for the size: the level uses"):
+                load_kinetix_level(path, SIZE_S, compact=True)
+            break
+
+
 def test_padded_level_keeps_its_joints_in_place() -> None:
     """Each joint's two world anchors are as far apart in the padded scene as in the file's own size (the
     indices still name the same bodies); Kinetix's files hold a few joints that start slightly apart."""
