@@ -17,6 +17,12 @@ from impulse.learner.networks import ActorCritic, make_network
 
 Array = jax.Array
 
+NETWORK_OBSERVATIONS: dict[str, tuple[str, ...]] = {
+    "flat": ("symbolic", "symbolic_padded", "blind"),
+    "cnn": ("pixels",),
+}
+"""The observations each network kind takes (`env.observation`); the others take "entity"."""
+
 
 @dataclass(frozen=True)
 class Agent:
@@ -50,8 +56,11 @@ class Agent:
 
 
 def make_agent(network: NetworkConfig, spec: EnvSpec) -> Agent:
-    needed = {"flat": "symbolic", "cnn": "pixels"}.get(network.kind, "entity")
-    if spec.observation != needed:
-        raise ValueError(f'network.kind "{network.kind}" needs env.observation "{needed}", got "{spec.observation}"')
+    takes = NETWORK_OBSERVATIONS.get(network.kind, ("entity",))
+    if spec.observation not in takes:
+        wanted = " or ".join(f'"{kind}"' for kind in takes)
+        raise ValueError(f'network.kind "{network.kind}" needs env.observation {wanted}, got "{spec.observation}"')
     distribution = distribution_for(action_space(spec))
-    return Agent(make_network(network, distribution), distribution, spec)
+    shape = observation_shape(spec)
+    array_dims = len(shape.shape) if isinstance(shape, jax.ShapeDtypeStruct) else 1
+    return Agent(make_network(network, distribution, array_dims), distribution, spec)

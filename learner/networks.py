@@ -11,7 +11,8 @@ Torsos (`NetworkConfig.kind`):
 - "entity" (`PermutationInvariantMLP`, entity observation): every entity row (polygon, circle, joint direction,
   thruster) is encoded by its type's Dense layer and tagged with a type one-hot, passed through a multi-head
   Dense + ReLU, and summed over active entities: a set function, invariant to the order of slots.
-- "flat" (`FlatMLP`, symbolic flat observation vector): one Dense + ReLU layer.
+- "flat" (`FlatMLP`, an array observation: the symbolic vector, the padded symbolic matrix or the blind one-hot,
+  flattened): one Dense + ReLU layer.
 - "cnn" (`PixelCNN`, pixel observation): Kinetix's two convolutions + ReLU, flattened, plus global_info.
 Heads (`ActorCriticHeads`): `depth` x Dense(`width`) + activation for each of actor and critic (orthogonal init,
 scale sqrt 2); actor output Dense(num_outputs) at scale 0.01, critic Dense(1) at scale 1. With a Gaussian policy
@@ -27,8 +28,8 @@ each adds a constant to the sum that does not depend on its features).
 
 `ActorCritic(obs) -> (distribution params [..., P], value [...])` accepts observations with any leading
 dimensions, none included: an `EntityObservation` whose leaves are [..., slots, features] (leading dimensions
-read from `polygon_mask`), a `PixelObservation` (image [..., W, H, 3], global_info [..., 1]), or a flat vector
-[..., F]. The distribution parameters are what the matching
+read from `polygon_mask`), a `PixelObservation` (image [..., W, H, 3], global_info [..., 1]), or an array
+[..., F] ([..., R, F] with `array_dims=2`). The distribution parameters are what the matching
 `learner.distributions` object takes. Use `make_network(config, distribution)`, then `params =
 network.init(key, obs)` and `network.apply(params, obs)` as the `apply_fn` of `learner.losses.ppo_loss`.
 """
@@ -264,13 +265,14 @@ class PermutationInvariantMLP(nn.Module):
 
 
 class FlatMLP(nn.Module):
-    """Symbolic flat observation [B, F] -> embedding [B, flat_embedding_size]."""
+    """Array observation [B, ...] (a symbolic vector, the padded symbolic matrix or the blind one-hot), flattened
+    per environment -> embedding [B, flat_embedding_size]."""
 
     config: NetworkConfig
 
     @nn.compact
     def __call__(self, obs: Array) -> Array:
-        return nn.relu(_dense(self.config.flat_embedding_size, name="embed")(obs))
+        return nn.relu(_dense(self.config.flat_embedding_size, name="embed")(obs.reshape(obs.shape[0], -1)))
 
 
 class PixelCNN(nn.Module):
@@ -295,32 +297,35 @@ _TORSOS: dict[str, type[nn.Module]] = {
 }
 
 
-def _batch_shape(obs: EntityObservation | PixelObservation | Array) -> tuple[int, ...]:
+def _batch_shape(obs: EntityObservation | PixelObservation | Array, array_dims: int) -> tuple[int, ...]:
     if isinstance(obs, EntityObservation):
         return obs.polygon_mask.shape[:-1]
     if isinstance(obs, PixelObservation):
         return obs.global_info.shape[:-1]
-    return obs.shape[:-1]
+    return obs.shape[: obs.ndim - array_dims]
 
 
 class ActorCritic(nn.Module):
     """Torso by `config.kind`, then actor and critic heads: obs [..., ...] -> (params [..., P], value [...]).
-    P = num_outputs, or 2 * num_outputs (means, then log-stds) when `gaussian`."""
+    P = num_outputs, or 2 * num_outputs (means, then log-stds) when `gaussian`. `array_dims`: the dimensions of
+    one environment's array observation (1 for a vector, 2 for the padded symbolic matrix)."""
 
     config: NetworkConfig
     num_outputs: int
     gaussian: bool = False
+    array_dims: int = 1
 
     @nn.compact
     def __call__(self, obs: EntityObservation | PixelObservation | Array) -> tuple[Array, Array]:
-        given = type(obs).__name__ if isinstance(obs, EntityObservation | PixelObservation) else "flat vector"
-        if self.config.kind == "flat" and given != "flat vector":
-            raise TypeError(f'network kind "flat" takes the symbolic flat observation, got {given}')
+        given = type(obs).__name__ if isinstance(obs, EntityObservation | PixelObservation) else "array"
+        if self.config.kind == "flat" and given != "array":
+            raise TypeError(f'network kind "flat" takes an array observation (symbolic, symbolic_padded or blind), '
+                            f"got {given}")
         if self.config.kind == "cnn" and given != "PixelObservation":
             raise TypeError(f'network kind "cnn" takes a PixelObservation, got {given}')
         if self.config.kind not in ("flat", "cnn") and given != "EntityObservation":
             raise TypeError(f'network kind "{self.config.kind}" takes an EntityObservation, got {given}')
-        batch = _batch_shape(obs)
+        batch = _batch_shape(obs, self.array_dims)
         size = int(np.prod(batch, dtype=int))
         leading = len(batch)
         flat_obs = jax.tree.map(lambda x: x.reshape((size,) + x.shape[leading:]), obs)
@@ -329,11 +334,12 @@ class ActorCritic(nn.Module):
         return dist_params.reshape(batch + dist_params.shape[1:]), value.reshape(batch)
 
 
-def make_network(config: NetworkConfig, distribution: Distribution) -> ActorCritic:
-    """The actor-critic whose outputs parameterise `distribution` (see `learner.distributions.distribution_for`)."""
+def make_network(config: NetworkConfig, distribution: Distribution, array_dims: int = 1) -> ActorCritic:
+    """The actor-critic whose outputs parameterise `distribution` (see `learner.distributions.distribution_for`);
+    `array_dims` as in `ActorCritic`."""
     if isinstance(distribution, DiagGaussian):
-        return ActorCritic(config, distribution.dim, gaussian=True)
-    return ActorCritic(config, distribution.num_params)
+        return ActorCritic(config, distribution.dim, gaussian=True, array_dims=array_dims)
+    return ActorCritic(config, distribution.num_params, array_dims=array_dims)
 
 
 def count_parameters(params: Any) -> int:

@@ -80,9 +80,10 @@ def make_env(levels: str = "handmade", size: str = "s", observation: str = "enti
              **options: Any) -> Env:
     """An environment over the level set `levels` (anything `env.levels` takes except "random": "handmade",
     "handmade:NAME,...", "kinetix:s", a level file or a folder of them), in Kinetix size class `size`, with the
-    observation ("entity", "symbolic", "pixels") and action ("multi_discrete", "continuous", "discrete") types
-    named. `options` are the other `EnvConfig` fields (frame_skip, max_timesteps, dense_reward_scale,
-    pixel_downscale, solver, physics_backend). Raises ValueError naming what is wrong."""
+    observation ("entity", "symbolic", "symbolic_padded", "pixels", "blind") and action ("multi_discrete",
+    "continuous", "discrete") types named. `options` are the other `EnvConfig` fields (frame_skip,
+    max_timesteps, dense_reward_scale, pixel_downscale, solver, physics_backend). Raises ValueError naming what is
+    wrong."""
     if levels == RANDOM:
         raise ValueError("make_env plays a fixed level set (\"handmade\", \"kinetix:s\", a file or a folder); "
                          "random levels are drawn by the curriculum during training (impulse train "

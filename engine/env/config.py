@@ -32,9 +32,12 @@ class EnvConfig:
     dense_reward_scale: float = 0.2
     """Weight of the shaping term that rewards moving the goal shapes closer together (0.2 as in Kinetix's training
     configs; its level files and EnvParams carry 0.1); 0: the sparse reward alone."""
-    observation: Literal["entity", "symbolic", "pixels"] = "entity"
-    """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector; pixels: the
-    scene drawn as an RGB image (Kinetix's pixel observation, for the "cnn" network)."""
+    observation: Literal["entity", "symbolic", "symbolic_padded", "pixels", "blind"] = "entity"
+    """Entity: a structure of per-shape arrays for set/attention networks; symbolic: one flat vector;
+    symbolic_padded: the same rows as a [rows, width] matrix tagged with their type (Kinetix's
+    symbolic_flat_padded); pixels: the scene drawn as an RGB image (for the "cnn" network); blind: the time step
+    alone (Kinetix's blind, a baseline that sees nothing of the scene). The "flat" network takes symbolic,
+    symbolic_padded and blind."""
     pixel_downscale: int = 4
     """Pixel observation only: the 500 x 500 screen is drawn at 1 / this resolution (Kinetix's downscale; 4 gives
     125 x 125 images, its default)."""

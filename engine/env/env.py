@@ -50,7 +50,7 @@ def reset(spec: EnvSpec, params: EnvParams, level: Level, next_level: Array | in
     """Start an episode on `level`; the first auto-reset will take `levels[next_level % K]`."""
     del params  # the start state is the level itself
     state = initial_state(level, next_level)
-    return observe(spec, state.sim, state.level), state
+    return observe(spec, state.sim, state.level, state.timestep), state
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -136,7 +136,7 @@ def step(
     num_levels = levels.roles.shape[0]
     fresh = initial_state(jax.tree.map(lambda x: x[state.next_level % num_levels], levels), state.next_level + 1)
     new_state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, stepped)
-    obs = observe(spec, new_state.sim, new_state.level)
+    obs = observe(spec, new_state.sim, new_state.level, new_state.timestep)
 
     info = {
         "solved": (sparse > 0) & ~nan,

@@ -1,6 +1,7 @@
 """What the agent sees: Kinetix's entity observation (`EntityObservation`, for set/attention networks), its flat
-symbolic vector and its pixel image (`PixelObservation`, drawn by `engine.env.pixels`), built from the simulation
-and the level's task data (roles, densities, bindings).
+symbolic vector (and the same rows as a padded matrix), its pixel image (`PixelObservation`, drawn by
+`engine.env.pixels`) and its blind observation (the time alone), built from the simulation and the level's task
+data (roles, densities, bindings).
 
 Every feature is computed for all slots at once (no per-slot Python loops); the pair-to-matrix layouts of the
 attention mask are static numpy index tables. Layouts follow the Kinetix digest, section 7:
@@ -20,6 +21,9 @@ attention mask are static numpy index tables. Layouts follow the Kinetix digest,
 - Symbolic: polygon rows without walls and ceiling (slots 1..S-1 dropped), circle rows, the b -> a joint rows each
   followed by one-hot(b) and one-hot(a) over bodies, thruster rows each followed by one-hot(body), then
   gravity_y / 10; inactive rows zeroed; clipped to [-10, 10]; NaN -> 0.
+- Symbolic padded (Kinetix's SYMBOLIC_FLAT_PADDED): the same rows as a matrix, each zero-padded to the widest row
+  type, then its type's one-hot (polygon, circle, joint, thruster) and gravity_y / 10; clipped; NaN -> 0.
+- Blind (Kinetix's BLIND): the one-hot of the agent step, length max_timesteps + 1; nothing of the scene.
 
 Channel 1 uses the engine's collision filter (`SimState.pair_collides`: false exactly for jointed components) for
 every pair the engine enumerates; arena-arena pairs, which it does not enumerate, count as connected when they are
@@ -47,6 +51,7 @@ from impulse.engine.physics.state import SimState
 Array = jax.Array
 
 NUM_ROLES = 4
+NUM_ROW_TYPES = 4  # polygon, circle, joint, thruster: the padded symbolic observation's row-type one-hot
 SYMBOLIC_CLIP = 10.0
 BASE_SHAPE_FEATURES = 16
 
@@ -226,8 +231,9 @@ def entity_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Entity
     )
 
 
-def symbolic_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Array:
-    """Kinetix's SYMBOLIC_FLAT observation of one environment: a float32 vector of `symbolic_length(sizes)`."""
+def _symbolic_blocks(sim: SimState, level: Level, sizes: SceneSizes) -> tuple[Array, Array, Array, Array]:
+    """The symbolic rows by type, inactive rows zeroed: kept polygons, circles, b -> a joints (with one-hot(b) and
+    one-hot(a) over bodies) and thrusters (with one-hot(body)); unclipped."""
     layout = _layout(sizes)
     n, P, J = sizes.num_bodies, sizes.num_polygons, sizes.num_joints
     active = sim.bodies.active
@@ -241,19 +247,60 @@ def symbolic_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Arra
     joints = jnp.where(sim.joints.active[:, None], joints, 0.0)
     thrusters = jnp.concatenate([_thruster_rows(sim, level), jax.nn.one_hot(sim.thrusters.body_index, n)], axis=1)
     thrusters = jnp.where(sim.thrusters.active[:, None], thrusters, 0.0)
-    flat = jnp.concatenate(
-        [polygons.reshape(-1), circles.reshape(-1), joints.reshape(-1), thrusters.reshape(-1),
-         (sim.gravity[1:2] / 10.0).astype(jnp.float32)]
+    return polygons, circles, joints, thrusters
+
+
+def _clipped(features: Array) -> Array:
+    return jnp.nan_to_num(jnp.clip(features, -SYMBOLIC_CLIP, SYMBOLIC_CLIP))
+
+
+def symbolic_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Array:
+    """Kinetix's SYMBOLIC_FLAT observation of one environment: a float32 vector of `symbolic_length(sizes)`."""
+    blocks = _symbolic_blocks(sim, level, sizes)
+    gravity = (sim.gravity[1:2] / 10.0).astype(jnp.float32)
+    return _clipped(jnp.concatenate([block.reshape(-1) for block in blocks] + [gravity]))
+
+
+def symbolic_padded_shape(sizes: SceneSizes) -> tuple[int, int]:
+    """(rows, width) of the padded symbolic observation: one row per kept polygon, circle, joint and thruster;
+    the widest row type, then the row type's one-hot and gravity (Kinetix S (6, 41), M (10, 45), L (21, 59))."""
+    blocks = symbolic_rows(sizes)[:4]
+    return sum(rows for rows, _ in blocks), max(width for _, width in blocks) + NUM_ROW_TYPES + 1
+
+
+def symbolic_padded_observation(sim: SimState, level: Level, sizes: SceneSizes) -> Array:
+    """Kinetix's SYMBOLIC_FLAT_PADDED observation of one environment: the flat observation's rows as a
+    [rows, width] matrix (`symbolic_padded_shape`), each row right-padded with zeros to the widest type, followed
+    by the one-hot of its type (polygon, circle, joint, thruster) and gravity_y / 10; clipped, NaN -> 0."""
+    blocks = _symbolic_blocks(sim, level, sizes)
+    rows, width = symbolic_padded_shape(sizes)
+    features = width - NUM_ROW_TYPES - 1
+    padded = [jnp.pad(block, ((0, 0), (0, features - block.shape[1]))) for block in blocks]
+    row_type = np.repeat(np.arange(NUM_ROW_TYPES), [block.shape[0] for block in blocks])
+    gravity = jnp.full((rows, 1), sim.gravity[1] / 10.0, jnp.float32)
+    matrix = jnp.concatenate(
+        [jnp.concatenate(padded, axis=0), jax.nn.one_hot(row_type, NUM_ROW_TYPES, dtype=jnp.float32), gravity], axis=1
     )
-    return jnp.nan_to_num(jnp.clip(flat, -SYMBOLIC_CLIP, SYMBOLIC_CLIP))
+    return _clipped(matrix)
 
 
-def observe(spec: EnvSpec, sim: SimState, level: Level) -> EntityObservation | PixelObservation | Array:
-    """The observation `spec.observation` names."""
+def blind_observation(timestep: Array | int, max_timesteps: int) -> Array:
+    """Kinetix's BLIND observation: only the time, as the one-hot of the agent step (length max_timesteps + 1)."""
+    return jax.nn.one_hot(timestep, max_timesteps + 1, dtype=jnp.float32)
+
+
+def observe(
+    spec: EnvSpec, sim: SimState, level: Level, timestep: Array | int = 0
+) -> EntityObservation | PixelObservation | Array:
+    """The observation `spec.observation` names, of a scene at agent step `timestep` (only "blind" reads it)."""
     if spec.observation == "entity":
         return entity_observation(sim, level, spec.sizes)
     if spec.observation == "pixels":
         return pixel_observation(sim, level, spec.sizes, spec.pixel_downscale)
+    if spec.observation == "symbolic_padded":
+        return symbolic_padded_observation(sim, level, spec.sizes)
+    if spec.observation == "blind":
+        return blind_observation(timestep, spec.max_timesteps)
     return symbolic_observation(sim, level, spec.sizes)
 
 

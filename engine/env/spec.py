@@ -16,9 +16,9 @@ from impulse.engine.physics.params import SimParams
 from impulse.engine.physics.sizes import SIZE_S, SceneSizes, size_preset
 from impulse.engine.pytree import pytree_dataclass
 
-ObservationKind = Literal["entity", "symbolic", "pixels"]
+ObservationKind = Literal["entity", "symbolic", "symbolic_padded", "pixels", "blind"]
 ActionKind = Literal["multi_discrete", "continuous", "discrete"]
-OBSERVATION_KINDS = ("entity", "symbolic", "pixels")
+OBSERVATION_KINDS = ("entity", "symbolic", "symbolic_padded", "pixels", "blind")
 ACTION_KINDS = ("multi_discrete", "continuous", "discrete")
 
 

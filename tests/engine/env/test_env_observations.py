@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from impulse.engine.env.observation_types import (
@@ -12,7 +13,7 @@ from impulse.engine.env.observation_types import (
     POLYGON_FEATURES,
     THRUSTER_FEATURES,
 )
-from impulse.engine.env.observations import observation_shape, observe, symbolic_length
+from impulse.engine.env.observations import observation_shape, observe, symbolic_length, symbolic_padded_shape
 from impulse.engine.env.spec import EnvSpec
 from impulse.engine.levels.level import level_from_scene
 from impulse.engine.physics import (
@@ -30,9 +31,14 @@ from impulse.engine.physics import (
 )
 
 from tests.support.env_scenes import GREEN_BALL, SPEC, quiet_scene, rollout, start
+from tests.support.paths import REPO
 
 observe_jit = jax.jit(observe, static_argnums=0)
 GRAVITY_FEATURE = -0.981
+PADDED_SHAPES = {SIZE_S: (6, 41), SIZE_M: (10, 45), SIZE_L: (21, 59)}  # Kinetix digest 7.3
+KINETIX_OBSERVATIONS = REPO / "tests" / "fixtures" / "kinetix" / "observations.npz"
+"""Kinetix 3.0.2's own observations of every shared level's first state (benchmarks/_reference_observations.py)."""
+SHARED_LEVELS = REPO.parent / "shared" / "kinetix-levels"
 
 
 @pytest.mark.parametrize(("sizes", "length"), [(SIZE_S, 140), (SIZE_M, 247), (SIZE_L, 679)], ids=["s", "m", "l"])
@@ -57,6 +63,10 @@ def test_shapes(sizes, length):
     assert symbolic_length(sizes) == length
     flat = observation_shape(EnvSpec(sizes=sizes, observation="symbolic"))
     assert flat.shape == (length,) and flat.dtype == np.float32
+    padded = observation_shape(EnvSpec(sizes=sizes, observation="symbolic_padded"))
+    assert padded.shape == symbolic_padded_shape(sizes) == PADDED_SHAPES[sizes] and padded.dtype == np.float32
+    blind = observation_shape(EnvSpec(sizes=sizes, observation="blind", max_timesteps=40))
+    assert blind.shape == (41,) and blind.dtype == np.float32
 
 
 def _feature_scene():
@@ -183,3 +193,71 @@ def test_symbolic_layout():
     off = level.state.bodies.active.at[6].set(False)
     flat_off = np.asarray(observe_jit(spec, level.state.replace(bodies=level.state.bodies.replace(active=off)), level))
     assert np.all(flat_off[70:88] == 0.0) and np.all(flat_off[:70] == flat[:70])
+
+
+def test_padded_symbolic_rows_are_the_flat_rows_tagged_with_their_type():
+    level = _feature_scene()
+    flat = np.asarray(observe_jit(EnvSpec(sizes=SIZE_S, observation="symbolic"), level.state, level))
+    padded = np.asarray(observe_jit(EnvSpec(sizes=SIZE_S, observation="symbolic_padded"), level.state, level))
+    blocks = [(0, 2, 26, 0), (52, 2, 18, 1), (88, 1, 36, 2), (124, 1, 15, 3)]  # (offset, rows, width, type)
+    row = 0
+    for offset, rows, width, row_type in blocks:
+        for r in range(rows):
+            features = padded[row]
+            np.testing.assert_array_equal(features[:width], flat[offset + r * width: offset + (r + 1) * width])
+            assert np.all(features[width:36] == 0.0)
+            np.testing.assert_array_equal(features[36:40], np.eye(4)[row_type])
+            assert np.isclose(features[40], GRAVITY_FEATURE)
+            row += 1
+    assert row == padded.shape[0] == 6
+
+
+def test_padded_symbolic_and_blind_observations_match_kinetix_on_every_shared_level():
+    """Kinetix's SYMBOLIC_FLAT_PADDED, SYMBOLIC_FLAT and BLIND observations of each shared level's first state
+    (made by Kinetix's own observation classes) against ours of the same file."""
+    from impulse.engine.levels.kinetix_json import load_kinetix_level
+
+    if not SHARED_LEVELS.is_dir():
+        pytest.skip(f"Kinetix level files not found at {SHARED_LEVELS} (the shared folder beside the checkout)")
+    expected = np.load(KINETIX_OBSERVATIONS)
+    names = sorted({key.split("/", 1)[1] for key in expected.files})
+    assert len(names) == 42
+    for name in names:
+        loaded = load_kinetix_level(SHARED_LEVELS / f"{name}.json")
+        for kind, ours in (("symbolic_flat_padded", "symbolic_padded"), ("symbolic_flat", "symbolic"),
+                           ("blind", "blind")):
+            spec = EnvSpec(sizes=loaded.sizes, observation=ours, max_timesteps=256)
+            got = np.asarray(observe_jit(spec, loaded.state, loaded.level, 7))
+            want = expected[f"{kind}/{name}"]
+            assert got.shape == want.shape, (name, kind, got.shape, want.shape)
+            np.testing.assert_allclose(got, want, atol=1e-5, rtol=1e-5, err_msg=f"{name} {kind}")
+
+
+@pytest.mark.parametrize("observation", ["symbolic_padded", "blind"])
+def test_padded_and_blind_observations_in_the_env_and_the_flat_network(observation):
+    """Reset and step return the observation (blind: the one-hot of the agent step, 0 after a reset), and the
+    "flat" network acts on a batch of them."""
+    from impulse.engine.env import env
+    from impulse.engine.env.actions import action_space
+    from impulse.engine.env.spec import EnvParams
+    from impulse.learner.agent import make_agent
+    from impulse.learner.config import NetworkConfig
+
+    spec = EnvSpec(sizes=SPEC.sizes, observation=observation, max_timesteps=16)
+    level = quiet_scene()  # nothing ends an episode but the time limit
+    obs, state = env.reset(spec, EnvParams(), level)
+    assert obs.shape == observation_shape(spec).shape
+    if observation == "blind":
+        assert int(np.argmax(obs)) == 0 and obs.sum() == 1.0
+    levels = jax.tree.map(lambda x: x[None], level)
+    action = jnp.zeros(action_space(spec).shape, jnp.int32)
+    obs, state, *_ = env.step(spec, EnvParams(), state, action, levels)
+    if observation == "blind":
+        assert int(np.argmax(obs)) == 1 and obs.sum() == 1.0
+    agent = make_agent(NetworkConfig(kind="flat", width=8, depth=1), spec)
+    params = agent.init(jax.random.PRNGKey(0))
+    batch = jnp.stack([obs, obs, obs])
+    dist_params, value = agent.apply(params, batch)
+    assert value.shape == (3,) and dist_params.shape[0] == 3 and np.isfinite(np.asarray(value)).all()
+    with pytest.raises(ValueError, match='network.kind "entity" needs env.observation "entity"'):
+        make_agent(NetworkConfig(kind="entity"), spec)

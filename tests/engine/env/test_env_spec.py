@@ -20,7 +20,7 @@ def test_env_from_config():
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"frame_skip": 0}, {"max_timesteps": 0}, {"observation": "blind"}, {"action": "box"}, {"pixel_downscale": 3}],
+    [{"frame_skip": 0}, {"max_timesteps": 0}, {"observation": "rgb"}, {"action": "box"}, {"pixel_downscale": 3}],
 )
 def test_bad_spec_is_refused(kwargs):
     with pytest.raises(ValueError):
