@@ -6,7 +6,7 @@ project, and every subcommand prints JSON lines on stdout (progress on stderr).
 
     nets --levels PATH [PATH ...] --out DIR [--variants NAME ...] [--small] [--steps 0,10,40]
         For each network variant (entity transformer, its legacy-entity-id and full-attention forms, the
-        permutation-invariant MLP, flat MLPs for each action type): build it with Kinetix's
+        permutation-invariant MLP, flat MLPs for each action type, the pixel CNN): build it with Kinetix's
         make_network_from_config, initialise it and perturb every parameter (so biases and gate biases are not
         zero and a mapping that dropped them would show), save it both as Kinetix's training scripts do
         (save_model -> full_model.pbz2) and as its pretrained format (save_pretrained_checkpoint), then play the
@@ -75,6 +75,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "flat": {"observation_type": "symbolic_flat", "action_type": "multi_discrete"},
     "flat_discrete": {"observation_type": "symbolic_flat", "action_type": "discrete"},
     "flat_continuous": {"observation_type": "symbolic_flat", "action_type": "continuous"},
+    "pixels": {"observation_type": "pixels", "action_type": "multi_discrete", "cnn_mode": "impala_fast"},
 }
 PERTURBATION = 0.1
 
@@ -87,8 +88,8 @@ def model_config(variant: str, small: bool) -> dict[str, Any]:
 def build(config: dict[str, Any], env_params: Any, static: Any) -> tuple[Any, Any]:
     """Kinetix's env and network for a JSON-able config (enums filled in as its scripts do)."""
     action = ActionType.from_string(config["action_type"])
-    observation = {"symbolic_entity": ObservationType.SYMBOLIC_ENTITY,
-                   "symbolic_flat": ObservationType.SYMBOLIC_FLAT}[config["observation_type"]]
+    observation = {"symbolic_entity": ObservationType.SYMBOLIC_ENTITY, "symbolic_flat": ObservationType.SYMBOLIC_FLAT,
+                   "pixels": ObservationType.PIXELS}[config["observation_type"]]
     env = LogWrapper(make_kinetix_env(action, observation, None, env_params, static))
     full = {**config, "action_type": action, "observation_type": observation,
             "static_env_params": {"num_motor_bindings": static.num_motor_bindings,

@@ -15,7 +15,7 @@ Files read (`read_kinetix_checkpoint`):
   `config.json` whose "model" entry holds the settings the network was built with: what Kinetix's
   `load_pretrained_checkpoint` reads, the loader it offers for downloaded checkpoints such as the general agents.
 
-Mapping (`import_kinetix`): the three architectures Kinetix builds for symbolic observations.
+Mapping (`import_kinetix`): the three architectures Kinetix builds for symbolic observations, and its pixel CNN.
 - Entity transformer -> kind "transformer" with `summary_token="ones"` (Kinetix's constant dummy token),
   `sublayer_relu` (its ReLU before each gate), `shape_type_column` "type" or, for `legacy_entity_id`, "zero";
   flax's multi-head attention splits `transformer_size` features over the heads, ours counts them per head. Its
@@ -23,9 +23,12 @@ Mapping (`import_kinetix`): the three architectures Kinetix builds for symbolic 
 - Permutation-invariant MLP -> kind "entity" with `count_inactive_entities`; the per-head kernels become one
   Dense layer, and the circle/polygon type one-hot columns are swapped (Kinetix numbers circles first).
 - Flat MLP -> kind "flat".
+- Pixel network, `cnn_mode` "impala_fast" (two convolutions) -> kind "cnn"; the pixel downscale it was trained at
+  is read off the heads' input size.
 Refused: recurrent heads (GRU), actor and critic of different shapes, separate actor/critic embeddings, the
-transformer's FFN and multi-layer message blocks, aggregate modes other than "dummy_and_mean", pixel and
-padded-flat observations, hybrid actions, and checkpoints that carry observation-normalisation statistics.
+transformer's FFN and multi-layer message blocks, aggregate modes other than "dummy_and_mean", the resnet_18
+pixel network, padded-flat and blind observations, hybrid actions, and checkpoints that carry
+observation-normalisation statistics.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import bz2
 import dataclasses
 import io
 import json
+import math
 import pickle
 import re
 import struct
@@ -47,6 +51,7 @@ import numpy as np
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.observations import symbolic_length
+from impulse.engine.env.pixels import SCREEN_PIXELS
 from impulse.engine.env.spec import env_from_config
 from impulse.learner.config import NetworkConfig
 from impulse.learner.distributions import DiagGaussian, distribution_for
@@ -101,6 +106,8 @@ class ImportedPolicy:
     """Set when the parameters fix the size (flat observation lengths differ per size)."""
     settings: dict[str, Any]
     """The Kinetix model settings the mapping used, and for each whether it came from the checkpoint."""
+    pixel_downscale: int | None = None
+    """Set for pixel networks: the image size their heads were trained on fixes it."""
 
 
 # ---------------------------------------------------------------------------------------------------- reading
@@ -506,13 +513,41 @@ def _observation_type(settings: _Settings, params: Flat) -> str:
     else:
         inferred = "symbolic_flat"
     given = _enum_name(settings.get("observation_type", inferred), OBSERVATION_TYPES)
-    if given in ("pixels", "symbolic_flat_padded", "blind"):
-        raise KinetixImportError(f"observation_type={given}: only Kinetix's symbolic_entity and symbolic_flat "
-                                 "networks can be imported")
+    if given in ("symbolic_flat_padded", "blind"):
+        raise KinetixImportError(f"observation_type={given}: only Kinetix's symbolic_entity, symbolic_flat and "
+                                 "pixels networks can be imported")
     if given != inferred:
         raise KinetixImportError(f"the settings say observation_type={given} but the parameters are those of a "
                                  f"{inferred} network")
     return inferred
+
+
+PIXEL_CONVOLUTIONS = (("Conv_0", "conv_0", (8, 8, 3, 16)), ("Conv_1", "conv_1", (4, 4, 16, 32)))
+"""Kinetix's "impala_fast" pixel torso, layer by layer: (its name, ours, kernel shape)."""
+
+
+def _pixel_cnn(params: Flat, settings: _Settings, embedding: int) -> tuple[dict[str, Any], int]:
+    """Our "cnn" torso's parameters from Kinetix's impala_fast convolutions, and the pixel downscale the heads'
+    input size (`embedding`: the flattened image features plus gravity) was trained at."""
+    mode = settings.get("cnn_mode", "impala_fast")
+    if mode != "impala_fast":
+        raise KinetixImportError(f"cnn_mode={mode}: only Kinetix's impala_fast pixel network (two convolutions) "
+                                 "has an Impulse counterpart")
+    torso = {}
+    for theirs, ours, shape in PIXEL_CONVOLUTIONS:
+        layer = _dense(params, theirs)
+        if tuple(layer["kernel"].shape) != shape:
+            raise KinetixImportError(f"{theirs} has a {tuple(layer['kernel'].shape)} kernel, not impala_fast's "
+                                     f"{shape} (another cnn_mode, such as resnet_18?)")
+        torso[ours] = layer
+    for downscale in range(1, SCREEN_PIXELS + 1):
+        if SCREEN_PIXELS % downscale:
+            continue
+        side = math.ceil(math.ceil(SCREEN_PIXELS // downscale / 4) / 2)  # SAME padding, strides 4 then 2
+        if side * side * PIXEL_CONVOLUTIONS[-1][2][-1] + 1 == embedding:
+            return torso, downscale
+    raise KinetixImportError(f"the heads read {embedding} features, which matches no pixel downscale of the "
+                             f"{SCREEN_PIXELS} x {SCREEN_PIXELS} screen")
 
 
 def _action_kind(settings: _Settings, gaussian: bool, outputs: int) -> str:
@@ -555,8 +590,11 @@ def import_kinetix(checkpoint: KinetixCheckpoint, options: Mapping[str, Any] | N
     observation = _observation_type(settings, params)
     heads, width, depth, gaussian, outputs = _heads(params, settings)
     action = _action_kind(settings, gaussian, outputs)
-    size = None
-    if observation == "symbolic_flat":
+    size, downscale = None, None
+    if observation == "pixels":
+        torso, downscale = _pixel_cnn(params, settings, heads["actor_0" if depth else "actor_out"]["kernel"].shape[0])
+        network = {"kind": "cnn"}
+    elif observation == "symbolic_flat":
         torso = {"embed": _dense(params, "Dense_0")}
         length, embedding = torso["embed"]["kernel"].shape
         if length not in SIZE_OF_FLAT_LENGTH:
@@ -569,15 +607,15 @@ def import_kinetix(checkpoint: KinetixCheckpoint, options: Mapping[str, Any] | N
     else:
         torso, network = _transformer(params, settings)
     known = {k for k in params if k[0] in ("Dense_0", "Dense_1", "Dense_2", "Dense_3", "Transformer_0",
-                                           "MultiHeadDense_0", "GeneralActorCriticRNN_0")}
+                                           "MultiHeadDense_0", "GeneralActorCriticRNN_0", "Conv_0", "Conv_1")}
     if set(params) - known:
         extra = sorted("/".join(k) for k in set(params) - known)
         raise KinetixImportError(f"parameters the mapping does not know: {', '.join(extra[:5])}")
     config = NetworkConfig(width=width, depth=depth, activation=activation, **network)
     tree = {"params": {"torso": torso, "heads": heads}}
     tree = _as_float32(tree)
-    return ImportedPolicy(config, tree, "entity" if observation == "symbolic_entity" else "symbolic", action, size,
-                          settings.used)
+    ours = {"symbolic_entity": "entity", "symbolic_flat": "symbolic", "pixels": "pixels"}[observation]
+    return ImportedPolicy(config, tree, ours, action, size, settings.used, downscale)
 
 
 def _as_float32(tree: Any) -> Any:
@@ -617,10 +655,13 @@ def describe_settings(imported: ImportedPolicy) -> str:
 
 
 def env_overrides(imported: ImportedPolicy) -> dict[str, Any]:
-    """The env settings an imported policy needs: observation, action and, for flat networks, size."""
+    """The env settings an imported policy needs: observation, action and, for flat networks, size (for pixel
+    networks, the pixel downscale)."""
     out: dict[str, Any] = {"observation": imported.observation, "action": imported.action}
     if imported.size is not None:
         out["size"] = imported.size
+    if imported.pixel_downscale is not None:
+        out["pixel_downscale"] = imported.pixel_downscale
     return out
 
 
@@ -643,8 +684,7 @@ def parse_option(text: str) -> tuple[str, Any]:
 def policy_outputs(imported: ImportedPolicy, obs: Any) -> tuple[np.ndarray, np.ndarray]:
     """(per-dimension log-probabilities, or Gaussian means then log-stds; values) of the imported network on a
     batch of observations: the numbers to compare with Kinetix's own, which is how an import is checked."""
-    spec, _ = env_from_config(EnvConfig(observation=imported.observation, action=imported.action,
-                                        size=imported.size or "s"))
+    spec, _ = env_from_config(EnvConfig(**{"size": "s", **env_overrides(imported)}))
     distribution = distribution_for(action_space(spec))
     network = make_network(imported.network, distribution)
     check_against(imported, jax.eval_shape(network.init, jax.random.key(0), obs))

@@ -153,10 +153,11 @@ COMMANDS: tuple[Command, ...] = (
         "import a policy trained with Kinetix as a run directory",
         "Read a Kinetix 3.0.x checkpoint (full_model.pbz2, params.pbz2 or model.pbz2 from its training scripts, or a "
         "pretrained directory with params.safetensors and config.json), map its network exactly onto Impulse's "
-        "(entity transformer, permutation-invariant MLP or flat MLP; anything that cannot be reproduced exactly "
-        "is refused with the reason) and write RUN_DIR with config.toml and a checkpoint that `impulse eval "
-        "--checkpoint RUN_DIR` evaluates. Settings a .pbz2 does not record take Kinetix's defaults unless given "
-        "with --kinetix-config or --kinetix-option; the ones used are printed and kept in kinetix_import.json.",
+        "(entity transformer, permutation-invariant MLP, flat MLP or the impala_fast pixel CNN; anything that "
+        "cannot be reproduced exactly is refused with the reason) and write RUN_DIR with config.toml and a "
+        "checkpoint that `impulse eval --checkpoint RUN_DIR` evaluates. Settings a .pbz2 does not record take "
+        "Kinetix's defaults unless given with --kinetix-config or --kinetix-option; the ones used are printed and "
+        "kept in kinetix_import.json.",
         config=RunConfig,
         run=import_kinetix.run_import,
         arguments=import_kinetix.add_import_arguments,

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.config import EnvConfig
-from impulse.engine.env.observation_types import EntityObservation
+from impulse.engine.env.observation_types import EntityObservation, PixelObservation
 from impulse.engine.env.spec import env_from_config
 from impulse.learner.distributions import distribution_for
 from impulse.learner.kinetix_import import (
@@ -46,12 +46,16 @@ VARIANTS = {
     "flat": {},
     "flat_discrete": {},
     "flat_continuous": {},
+    "pixels": {},
 }
 
 
-def fixture_observation(outputs: dict[str, np.ndarray]) -> EntityObservation | jax.Array:
+def fixture_observation(outputs: dict[str, np.ndarray]) -> EntityObservation | PixelObservation | jax.Array:
     if "obs_flat" in outputs:
         return jnp.asarray(outputs["obs_flat"])
+    if "obs_image" in outputs:
+        return PixelObservation(image=jnp.asarray(outputs["obs_image"]),
+                                global_info=jnp.asarray(outputs["obs_global_info"]))
     return EntityObservation(**{f.name: jnp.asarray(outputs[f"obs_{f.name}"])
                                 for f in dataclasses.fields(EntityObservation)})
 
@@ -138,7 +142,11 @@ def _heads_key(*rest: str) -> tuple[str, ...]:
          "7 outputs"),
         ("flat", {("Dense_0", "kernel"): np.zeros((100, 8))}, {}, "100 features"),
         ("flat", None, {"activation": "gelu"}, "activation"),
-        ("flat", {("Conv_0", "kernel"): np.zeros((8, 8, 3, 16))}, {}, "pixels"),
+        ("pixels", {("Conv_0", "kernel"): np.zeros((7, 7, 3, 64))}, {}, "resnet_18"),
+        ("pixels", None, {"cnn_mode": "resnet_18"}, "cnn_mode=resnet_18"),
+        ("pixels", {_heads_key("DenseAndActivation_0", "Dense_0", "kernel"): np.zeros((1000, 8))}, {},
+         "1000 features, which matches no pixel downscale"),
+        ("flat", None, {"observation_type": "symbolic_flat_padded"}, "observation_type=symbolic_flat_padded"),
         ("transformer", None, {"num_heads": 8}, "num_heads=8"),
         ("entity", None, {"encoder_size": 64}, "encoder_size=64"),
         ("flat", None, {"actor_width": 128}, "another run"),
