@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 from impulse.engine.physics.geometry import cross, nonzero, rotate
-from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.params import CARRIED_IMPULSE_CAP, SimParams
 from impulse.engine.physics.slots import one_hot_rows, read_body, spread_to_bodies, sum_onto_bodies
 from impulse.engine.physics.state import Joints, SimState
 
@@ -133,14 +133,13 @@ def solve_joint(
     new_wa = new_wa + angular_impulse * iia
     new_wb = new_wb - angular_impulse * iib
 
-    # The accumulators feed next step's warm start. An impulse bigger than one that takes the pair across the
-    # whole velocity clamp can never be applied (the clamp discards it), so it is capped there; otherwise a
-    # constraint that cannot be met (bodies pinned by the position clamp) grows it geometrically into inf/NaN.
+    # The accumulators feed next step's warm start; capped (CARRIED_IMPULSE_CAP clamp crossings) only so that a
+    # constraint that cannot be met (bodies pinned by the position clamp) does not grow them into inf/NaN.
     acc = s.acc_impulse[j] + impulse
-    acc_cap = 2.0 * params.clip_velocity / nonzero(ima + imb)
+    acc_cap = CARRIED_IMPULSE_CAP * 2.0 * params.clip_velocity / nonzero(ima + imb)
     acc_norm = jnp.sqrt(acc[0] ** 2 + acc[1] ** 2)
     acc = acc * jnp.minimum(1.0, acc_cap / nonzero(acc_norm))
-    r_cap = 2.0 * params.clip_angular_velocity / nonzero(iia + iib)
+    r_cap = CARRIED_IMPULSE_CAP * 2.0 * params.clip_angular_velocity / nonzero(iia + iib)
     acc_r = jnp.clip(s.acc_r_impulse[j] + angular_impulse, -r_cap, r_cap)
 
     return JointSolverState(

@@ -34,6 +34,7 @@ from impulse.engine.physics.context import Impulses, StepContext
 from impulse.engine.physics.joint_solver import JointSolverState
 from impulse.engine.physics.lanes import Row, RowLayout, Vector, flatten, vectors
 from impulse.engine.physics.pairs import pair_tables
+from impulse.engine.physics.params import CARRIED_IMPULSE_CAP
 from impulse.engine.physics.sizes import SceneSizes
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as pallas_triton
@@ -313,10 +314,10 @@ def visit_joint(j: int, position: list[Vector], velocity: list[Vector], spin: li
     new_wb = new_wb - angular_impulse * iib
 
     total = _add(acc[j], impulse)
-    cap = 2.0 * p["clip_velocity"] / _nonzero(ima + imb)
+    cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_velocity"] / _nonzero(ima + imb)
     norm = jnp.sqrt(total[0] ** 2 + total[1] ** 2)
     total = _scale(jnp.minimum(1.0, cap / _nonzero(norm)), total)
-    r_cap = 2.0 * p["clip_angular_velocity"] / _nonzero(iia + iib)
+    r_cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_angular_velocity"] / _nonzero(iia + iib)
     total_r = jnp.clip(acc_r[j] + angular_impulse, -r_cap, r_cap)
 
     for body in range(num_bodies):

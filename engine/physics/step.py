@@ -34,7 +34,7 @@ from impulse.engine.physics.joint_solver import JointSolverState, joint_rows, so
 from impulse.engine.physics.narrowphase import detect_contacts
 from impulse.engine.physics.options import SolverOptions
 from impulse.engine.physics.pairs import pair_tables
-from impulse.engine.physics.params import SimParams
+from impulse.engine.physics.params import CARRIED_IMPULSE_CAP, SimParams
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.physics.slots import by_phase, in_slot_order, phase_bodies, point0_slots
 from impulse.engine.physics.solver_kernel import iterate_kernel
@@ -248,14 +248,15 @@ def integrate(state: SimState, solved: JointSolverState, params: SimParams) -> S
 def store_impulses(impulses: Impulses, context: StepContext) -> ContactCache:
     """What the next step's warm start reads: the accumulated impulses and which contacts touched.
 
-    What is carried is capped at the impulse that takes the contact across the whole velocity clamp: more can
-    never be applied, and letting it accumulate (bodies pressed together on the position clamp) grows it
-    geometrically into inf/NaN. Inactive in ordinary contact, where impulses are tiny."""
+    What is carried is capped at `CARRIED_IMPULSE_CAP` times the impulse that takes the contact across the whole
+    velocity clamp: letting it accumulate without bound (bodies pressed together on the position clamp) grows it
+    geometrically into inf/NaN. Inactive in ordinary contact."""
     normal, tangent = impulses
     rows, params = context.contact_rows, context.params
     if context.tables.num_contacts:
         reach = jnp.sqrt((rows.lever_a**2).sum(-1)) + jnp.sqrt((rows.lever_b**2).sum(-1))
-        cap = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
+        crossing = 2.0 * (params.clip_velocity + params.clip_angular_velocity * reach) * rows.normal_mass
+        cap = CARRIED_IMPULSE_CAP * crossing
         normal = jnp.minimum(normal, cap)
         tangent = jnp.clip(tangent, -rows.friction * normal, rows.friction * normal)
     return ContactCache(normal_impulse=normal, tangent_impulse=tangent, active=context.contacts.touching)

@@ -90,3 +90,40 @@ def test_welded_pair_reaching_the_clamp_box_stays_finite():
         f"max |rotation| before that: {np.abs(trace.rotation[:first_bad, [a, b]]).max():.3g} rad"
     )
     assert not non_finite_leaves(final)
+
+
+def test_a_motor_driven_weld_of_light_bodies_carries_its_whole_impulse(monkeypatch):
+    """Velocities are clamped only after the solve, so a weld between two small, light boxes swung hard by a motor
+    (as the feet of Kinetix's mjc_half_cheetah are) needs an angular impulse beyond one crossing of the velocity
+    clamp. Jax2D carries it whole; so must we (a cap of one crossing parted the half cheetah from Jax2D by 17 cm):
+    the carried-impulse cap (`CARRIED_IMPULSE_CAP`) leaves this run exactly as it is without any cap."""
+    import jax
+    import jax.numpy as jnp
+    from impulse.engine.physics import add_revolute_joint, joint_solver, step
+
+    from tests.support.physics_sim import OPTIONS, SIZES
+
+    state = arena_scene()
+    state, root = add_rectangle(state, (2.0, 3.0), 0.6, 0.2, fixed=True)
+    state, link = add_rectangle(state, (2.45, 3.0), 0.3, 0.1)
+    state, tip = add_rectangle(state, (2.75, 3.0), 0.3, 0.1)
+    state, _ = add_revolute_joint(state, root, link, (0.3, 0.0), (-0.15, 0.0), motor_on=True, motor_speed=10.0,
+                                  motor_power=10.0, has_joint_limits=True, min_rotation=-0.785, max_rotation=0.785)
+    state, weld = add_fixed_joint(state, link, tip, (0.15, 0.0), (-0.15, 0.0))
+    link, tip, weld = int(link), int(tip), int(weld)
+    inertia = np.asarray(state.bodies.inverse_inertia)
+    crossing = 2 * PARAMS.clip_angular_velocity / (inertia[link] + inertia[tip])
+    motor = np.where((np.arange(120) // 20) % 2 == 0, 1.0, -1.0)  # swing one way, then back, every 20 steps
+    actions = jnp.asarray(np.stack([motor, np.zeros(120), np.zeros(120), np.zeros(120)], axis=1), jnp.float32)
+
+    def rollout():
+        def body(s, a):
+            s = step(s, PARAMS, a, SIZES, OPTIONS)[0]
+            return s, (s.bodies.position, s.joints.acc_r_impulse[weld])
+        return jax.jit(lambda s: jax.lax.scan(body, s, actions)[1])(state)
+
+    positions, carried = (np.asarray(x) for x in rollout())
+    assert np.abs(carried).max() > 1.2 * crossing, "the scene no longer needs more than one crossing"
+    monkeypatch.setattr(joint_solver, "CARRIED_IMPULSE_CAP", float("inf"))
+    uncapped, _ = (np.asarray(x) for x in rollout())
+    np.testing.assert_array_equal(positions, uncapped)
