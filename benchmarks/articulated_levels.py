@@ -1,7 +1,7 @@
 """Articulated test levels: chains of bodies joined by motorised revolute joints, with no contact between the
 chain's own bodies (jointed bodies never collide), in the style of Kinetix's MuJoCo-like L levels (walkers,
 swimmers, hoppers). They exist to compare our joints and motors with Jax2D's on multi-joint chains
-(`impulse bench compat_jax2d --levels 'articulated/*'`, issue 29).
+(`impulse bench compat_jax2d --levels "$PWD/benchmarks/levels/articulated/*.json"`).
 
 Each level is written as a Kinetix level file into ``benchmarks/levels/articulated/`` (committed; rerun this
 script after changing it). What varies: the number of bodies (2 in S, 3 in M, 3 to 6 in L), boxes or wheels as
