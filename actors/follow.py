@@ -51,6 +51,44 @@ class FollowEvents(NamedTuple):
     """The learner's liveliness token came back after it had gone (a broken link, a restarted router or learner)."""
 
 
+class LearnerPresence:
+    """Whether the learner is there (its liveliness token) and whether it has finished the run (its latest status
+    says so and its token is gone: see the module docstring), for every process that follows the learner, with or
+    without its weights (the recorder)."""
+
+    def __init__(self, bus: Bus):
+        self.bus = bus
+        self._tokens = bus.watch_alive(bus.keys.alive_pattern(LEARNER))
+        self._statuses = bus.inbox(bus.keys.status_pattern(LEARNER), 4, drop_oldest=True)
+        self.present = False
+        self._away = False
+        self._says_finished = False
+
+    @property
+    def finished(self) -> bool:
+        """The learner's latest status says the run is finished and the learner has left."""
+        return self._says_finished and not self.present
+
+    def poll(self) -> bool:
+        """Note the learner's comings and goings and its word; whether it came back after it had gone."""
+        back = False
+        for _, alive in self._tokens.poll():
+            self.present = alive
+            if not alive:
+                self._away = True
+            elif self._away:
+                self._away = False
+                back = True
+        for received in self._statuses.poll():
+            try:
+                status = read_status(received, self.bus.keys).status
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, received.key, err.detail)
+                continue
+            self._says_finished = status.get("finished") is True
+        return back
+
+
 class LearnerFollower:
     """The learner's newest weights (`params`, `epoch`, `version`; None and -1 before the first) and its presence,
     as one process sees them (see the module docstring). Refused frames are counted by the bus's reject counter."""
@@ -61,23 +99,19 @@ class LearnerFollower:
         self._schema = weights_schema(params_template)
         keys = bus.keys
         self._weights = bus.inbox(keys.weights_policy, 1, drop_oldest=True, latest=True)
-        self._presence = bus.watch_alive(keys.alive_pattern(LEARNER))
-        self._statuses = bus.inbox(keys.status_pattern(LEARNER), 4, drop_oldest=True)
+        self.learner = LearnerPresence(bus)
         self.params: Any = None
         self.epoch = -1
         self.version = -1
         self.counts = {"weights_adopted": 0, "weights_by_query": 0, "weights_repeated": 0}
-        self.present = False
-        self._away = False
         self._returned = False  # the learner came back: weights of another epoch may be adopted
-        self._says_finished = False
         self._last_query = -float("inf")
         self._latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
 
     @property
     def learner_finished(self) -> bool:
         """Whether the learner's latest status says the run is finished and the learner has left."""
-        return self._says_finished and not self.present
+        return self.learner.finished
 
     def latency_ms(self) -> dict[str, float]:
         """Publish-to-adopted latency of the latest broadcasts: {"n", "p50", "max"} (empty before any)."""
@@ -89,7 +123,9 @@ class LearnerFollower:
     def poll(self) -> FollowEvents:
         """Note the learner's comings and goings and its word, then adopt the newest weights that arrived (asking
         for them while there are none yet)."""
-        learner_back = self._watch_learner()
+        learner_back = self.learner.poll()
+        if learner_back:
+            self._returned = True
         payloads = [received.payload for received in self._weights.poll()]
         queried = False
         if self.params is None and time.monotonic() - self._last_query >= WEIGHTS_QUERY_EVERY_S:
@@ -135,22 +171,3 @@ class LearnerFollower:
         if weights.published_at is not None:
             self._latency_ms.append(1000.0 * (time.time() - weights.published_at))
         return True
-
-    def _watch_learner(self) -> bool:
-        """Presence and status; whether the learner came back after it had gone."""
-        back = False
-        for _, alive in self._presence.poll():
-            self.present = alive
-            if not alive:
-                self._away = True
-            elif self._away:
-                self._away = False
-                self._returned = back = True
-        for received in self._statuses.poll():
-            try:
-                status = read_status(received, self.bus.keys).status
-            except Rejected as err:
-                self.bus.rejects.record(err.reason, received.key, err.detail)
-                continue
-            self._says_finished = status.get("finished") is True
-        return back

@@ -9,7 +9,10 @@ One cycle (driven by the shared run loop):
 3. run the jitted rollout of `ppo.num_steps` steps in `ppo.num_envs` environments on the next level batch;
 4. publish the batch (its behaviour version and the learner epoch of the weights that acted ride in the frame
    header) and the per-level results, and report steps/s and counts on the status line;
-5. with a monitor, offer the watched environments' frames to it (`monitor.stream`): the rollout recorded them on
+5. while a recorder listens (`learner.recorder`), publish the level batch it plays on `actor/played/<actor>`
+   (when it changes, and every PLAYED_LEVELS_EVERY_S for a fixed level set), so that recorded episodes come with
+   their levels;
+6. with a monitor, offer the watched environments' frames to it (`monitor.stream`): the rollout recorded them on
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
 
@@ -53,13 +56,14 @@ from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
 from impulse.bus.keys import ACTOR
-from impulse.bus.levels import encode_level_results
+from impulse.bus.levels import encode_level_batch, encode_level_results
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
 from impulse.bus.trajectories import encode_trajectory
 from impulse.curriculum.results import LevelResults
-from impulse.curriculum.wire import results_arrays
+from impulse.curriculum.state import LevelBatch
+from impulse.curriculum.wire import level_batch_arrays, results_arrays
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.memory import check_fits
 from impulse.engine.pytree import tree_arrays
@@ -72,6 +76,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("impulse.actor")
 
 ACTOR_ROLE = ACTOR
+PLAYED_LEVELS_EVERY_S = 10.0
+"""An unchanged level batch (a fixed level set) is published again this often while a recorder listens, so that
+a recorder started later hears it too."""
 
 class ActingAgent(Protocol):
     """What an actor needs of the agent (`learner.agent.Agent` fits): the environment it was built for, its policy
@@ -137,6 +144,9 @@ class Actor:
         keys = bus.keys
         self._traj = bus.publisher(keys.traj(self.name))
         self._results = bus.publisher(keys.levels_results(self.name))
+        self._played = bus.publisher(keys.levels_played(self.name))
+        self._played_ids: np.ndarray | None = None
+        self._played_at = -float("inf")
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
         self._status = StatusPublisher(bus, actors.status_every_s)
 
@@ -238,6 +248,18 @@ class Actor:
                                          layout=self._wire.format))
         self.counts["sent"] += 1
 
+    def _offer_played_levels(self, batch: LevelBatch) -> None:
+        """Publish the level batch about to be played, if a recorder listens and it has not heard it lately."""
+        if not self._played.matching_status.matching:
+            return
+        ids = np.asarray(jax.device_get(batch.levels.level_id))
+        now = time.monotonic()
+        if (self._played_ids is not None and np.array_equal(ids, self._played_ids)
+                and now - self._played_at < PLAYED_LEVELS_EVERY_S):
+            return
+        self._played.put(encode_level_batch(self.bus.stamp, level_batch_arrays(jax.device_get(batch))))
+        self._played_ids, self._played_at = ids, now
+
     def _publish_results(self, results: LevelResults) -> None:
         arrays = results_arrays(results)
         if arrays["episodes"].size:
@@ -320,6 +342,7 @@ class Actor:
         levels = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
         if levels is None:
             return None
+        self._offer_played_levels(levels)
         self.carry, steps, train_mask, stats, watched = self._rollout(self.params, self.carry, levels)
         batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask,
                            episodes=stats)

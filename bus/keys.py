@@ -21,6 +21,7 @@ share one credential): it tells actors apart, it does not authenticate one.
     <root>/curriculum/inject            level injection queryable (`impulse curriculum inject`, the studio)
     <root>/actor/traj/<actor>           trajectory batches
     <root>/actor/results/<actor>        per-level results
+    <root>/actor/played/<actor>         the level batch an actor plays next (only while a recorder listens)
     <root>/evaluator/results/<id>       evaluations of the learner's policy on level sets
     <root>/<role>/status/<id>           status lines (every process)
     <root>/<role>/alive/<id>            liveliness tokens (every process)
@@ -43,11 +44,13 @@ LEARNER = "learner"
 CURRICULUM = "curriculum"
 ACTOR = "actor"
 EVALUATOR = "evaluator"
+RECORDER = "recorder"
 OPERATOR = "operator"
-ROLES = (LEARNER, CURRICULUM, ACTOR, EVALUATOR, OPERATOR)
+ROLES = (LEARNER, CURRICULUM, ACTOR, EVALUATOR, RECORDER, OPERATOR)
 """The roles of a run's processes (the `<role>` chunk of their keys); the evaluator follows the learner's weights
-and scores them on level sets; the operator is any command-line tool, the launcher or a watcher. Across machines
-each role has credentials of its own (`bus.router`)."""
+and scores them on level sets; the recorder writes the actors' episodes to a dataset; the operator is any
+command-line tool, the launcher or a watcher. Across machines each role has credentials of its own
+(`bus.router`)."""
 
 STATUS = "status"
 ALIVE = "alive"
@@ -155,6 +158,15 @@ class Keys:
     def levels_results_all(self) -> str:
         """Pattern matching every actor's level results (the curriculum's subscription)."""
         return self.own(ACTOR, "results", "*")
+
+    def levels_played(self, actor: str) -> str:
+        """The level batch one actor plays next, published for a recorder."""
+        return self.own(ACTOR, "played", check_name(actor, "actor id"))
+
+    @property
+    def levels_played_all(self) -> str:
+        """Pattern matching every actor's played levels (the recorder's subscription)."""
+        return self.own(ACTOR, "played", "*")
 
     # -- the evaluator's ------------------------------------------------------------------------------------
 

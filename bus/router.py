@@ -43,7 +43,17 @@ from typing import Any
 
 import zenoh
 from impulse.bus.config import RouterConfig, is_loopback
-from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER, OPERATOR, PREFIX, ROLES, SCHEMA_MAJOR
+from impulse.bus.keys import (
+    ACTOR,
+    CURRICULUM,
+    EVALUATOR,
+    LEARNER,
+    OPERATOR,
+    PREFIX,
+    RECORDER,
+    ROLES,
+    SCHEMA_MAJOR,
+)
 
 log = logging.getLogger("impulse.router")
 
@@ -117,7 +127,8 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
     Each role may publish (put, reply, declare a queryable or a liveliness token) only under its own prefix
     `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. `ingress` rules
     say what a role may send into the router, `egress` what the router may deliver to it: trajectories reach only
-    the learner, level results only the curriculum, the learner's weights, credits and status reach actors (and
+    the learner and the recorder (which also hears the levels the actors play), level results only the curriculum,
+    the learner's weights, credits and status reach actors (and
     its weights and status the evaluator, whose evaluations reach the learner, and the curriculum service, which
     scores candidate levels with them in batch-scored SFL), and every process may hear status lines. Keys cover
     every run; the advanced publisher's cache for late joiners lives under `learner/weights/policy/@adv/**`,
@@ -145,6 +156,8 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("actor-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
         _allow("evaluator-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
         _allow("evaluator-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
+        _allow("recorder-hears", "egress", ["put"], [f"{run}/{ACTOR}/traj/*", f"{run}/{ACTOR}/played/*",
+                                                     f"{run}/{LEARNER}/**"]),
         _allow("curriculum-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
         _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
         _allow("curriculum-hears-learner", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
@@ -158,6 +171,7 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         CURRICULUM: ["curriculum-asks", "curriculum-hears", "curriculum-hears-learner"],
         ACTOR: ["actor-asks", "actor-hears"],
         EVALUATOR: ["evaluator-asks", "evaluator-hears"],
+        RECORDER: ["recorder-hears"],
         OPERATOR: ["operator-asks"],
     }
     subjects, policies = [], []

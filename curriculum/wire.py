@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
-from impulse.bus.codec import Kind, Message
+from impulse.bus.codec import Kind, Message, Rejected
 from impulse.bus.schema import ArraySpec, Schema, check
 from impulse.curriculum.results import LevelResults, results_from_host, results_to_host
 from impulse.curriculum.state import LevelBatch
@@ -83,3 +83,20 @@ def level_batch_from_message(message: Message, schema: Schema, template: LevelBa
     """The batch a LEVELS frame carries, after the schema check (raises `bus.codec.Rejected` if it fails)."""
     check(message, schema)
     return tree_from_arrays(message.arrays, template)
+
+
+def played_levels_schema(sizes: SceneSizes) -> Schema:
+    """Any number K of levels of `sizes`, with finite scenes: the batch an actor says it plays next
+    (`actor/played/<actor>`, heard by a recorder), whose K depends on the actor's level source."""
+    example = jax.tree.map(lambda leaf: np.zeros(leaf.shape, leaf.dtype), level_batch_template(sizes, 1))
+    return Schema.from_example(Kind.LEVELS, tree_arrays(example), leading=("K",), finite=True)
+
+
+def played_levels_from_message(message: Message, schema: Schema, max_levels: int) -> dict[str, np.ndarray]:
+    """The levels of a played-levels frame as named leaves ([K, ...], named as `tree_arrays` names a `Level`),
+    after the schema check; raises `bus.codec.Rejected` if it fails or K exceeds `max_levels`."""
+    dims = check(message, schema)
+    if dims.get("K", 0) > max_levels:
+        raise Rejected("bad_shape", f"{dims['K']} levels in one batch, more than the {max_levels} expected")
+    prefix = "levels/"
+    return {name[len(prefix):]: array for name, array in message.arrays.items() if name.startswith(prefix)}

@@ -75,6 +75,14 @@ def apply_overrides(instance: T, overrides: Iterable[str], source: str = "overri
     return _build(cls, tree, "", base=instance)
 
 
+def config_from_dict(cls: type[T], data: dict[str, Any], source: str) -> T:
+    """A `cls` instance from TOML-shaped data (as `config_to_dict` or a dataset's attributes hold a section),
+    checked as a TOML file is; `source` names where the data came from in errors."""
+    tree: dict[str, Any] = {}
+    _merge(cls, cls, tree, data, "", source=source)
+    return _build(cls, tree, "", base=None)
+
+
 def load_run_config(cls: type[T], run_dir: Path | str, overrides: Iterable[str] = ()) -> T:
     """The config a run directory was started with (its config.toml), then the overrides: how a run is resumed
     and how `impulse launch` hands its config to the processes it starts."""

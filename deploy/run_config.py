@@ -14,12 +14,14 @@ from impulse.curriculum.config import CurriculumConfig
 from impulse.engine.config_checks import check_range
 from impulse.engine.env.config import EnvConfig
 from impulse.learner.config import (
+    BCConfig,
     CheckpointConfig,
     EvalConfig,
     EvaluatorConfig,
     LearnerConfig,
     NetworkConfig,
     PPOConfig,
+    RecorderConfig,
 )
 from impulse.monitor.config import MonitorConfig
 
@@ -52,6 +54,10 @@ class RunConfig:
     learner: LearnerConfig = field(default_factory=LearnerConfig)
     evaluator: EvaluatorConfig = field(default_factory=EvaluatorConfig)
     """The evaluator process `impulse launch` starts when `evaluator.levels` is set."""
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    """The recorder process `impulse launch` starts when `recorder.path` is set."""
+    bc: BCConfig = field(default_factory=BCConfig)
+    """Behaviour cloning from a recorded dataset (`impulse train-bc`)."""
     bus: BusConfig = field(default_factory=BusConfig)
     router: RouterConfig = field(default_factory=RouterConfig)
     """`impulse router`, for runs across machines."""

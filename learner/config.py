@@ -220,6 +220,57 @@ class EvaluatorConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    """The recorder process of a distributed run: it hears the actors' trajectories and the levels they played and
+    writes whole episodes to an on-disk dataset (`learner.recorder`, `learner.dataset`), for behaviour cloning
+    (`impulse train-bc`) and offline analysis."""
+
+    path: str = ""
+    """The dataset folder (created, or appended to when it holds a dataset of the same environment); "{run_dir}"
+    is replaced by the run directory. Empty: no recorder."""
+    shard_steps: int = 16384
+    """Steps per shard: episodes are written in shards of about this many steps, each complete on disk or not at
+    all."""
+    flush_s: float = 60.0
+    """Write the episodes waiting for a shard at least this often, however few they are (a kill loses at most
+    this much)."""
+    max_gigabytes: float = 20.0
+    """Disk the dataset may use; when a shard would pass it, `when_full` says what happens."""
+    when_full: Literal["stop", "drop_oldest"] = "stop"
+    """"stop": record nothing more (said on the status line and counted); "drop_oldest": delete the oldest shards
+    to make room."""
+
+    def __post_init__(self) -> None:
+        check_range("recorder.shard_steps", self.shard_steps, at_least=1)
+        check_range("recorder.flush_s", self.flush_s, at_least=0)
+        check_range("recorder.max_gigabytes", self.max_gigabytes, at_least=0)
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    """Behaviour cloning (`impulse train-bc`): the policy learns to choose the actions of a recorded dataset."""
+
+    epochs: int = 20
+    """Passes over the selected steps."""
+    batch_size: int = 1024
+    """Steps per gradient step."""
+    learning_rate: float = 3e-4
+    """Adam step size."""
+    solved_only: bool = True
+    """Learn only from episodes that ended solved."""
+    min_return: float = -1e9
+    """... and only from episodes whose return is at least this."""
+    validation_fraction: float = 0.1
+    """Episodes held out to measure the loss on data not trained on (chosen by the seed)."""
+
+    def __post_init__(self) -> None:
+        check_range("bc.epochs", self.epochs, at_least=1)
+        check_range("bc.batch_size", self.batch_size, at_least=1)
+        check_range("bc.learning_rate", self.learning_rate, above=0)
+        check_range("bc.validation_fraction", self.validation_fraction, at_least=0, below=1)
+
+
+@dataclass(frozen=True)
 class LearnerConfig:
     """The learner service of a distributed run."""
 

@@ -20,9 +20,11 @@ from impulse.deploy.commands import (
     import_kinetix,
     launch,
     levels,
+    recorder,
     services,
     studio,
     tensorboard,
+    train_bc,
     view,
 )
 from impulse.deploy.commands.router import add_router_arguments, run_router_command
@@ -66,6 +68,17 @@ COMMANDS: tuple[Command, ...] = (
         arguments=add_train_arguments,
     ),
     Command(
+        "train-bc",
+        "clone a policy from a recorded dataset (behaviour cloning)",
+        "Behaviour cloning: the policy learns to take the actions of a dataset the recorder wrote (--dataset PATH), "
+        "by maximum likelihood, from the episodes [bc] selects (solved only by default). The environment is the "
+        "dataset's; the network the one that recorded it unless named. Writes a run directory (checkpoint, "
+        "metrics.jsonl, eval.json) that `impulse eval` and `impulse train --init-from` read.",
+        config=RunConfig,
+        run=train_bc.run_train_bc,
+        arguments=train_bc.add_train_bc_arguments,
+    ),
+    Command(
         "launch",
         "run learner, curriculum and actors as local processes",
         "Local multi-process run: one learner, actors.num_actors actors and, when env.levels is random, the "
@@ -106,6 +119,17 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=evaluator.run_evaluator,
         arguments=evaluator.add_evaluator_arguments,
+    ),
+    Command(
+        "recorder",
+        "run the recorder process alone (multi-host)",
+        "The recorder: hears the actors' trajectories and the levels they play, and writes whole episodes to a "
+        "zarr dataset (recorder.path or --out; shards written whole, so a kill loses no finished shard; "
+        "recorder.max_gigabytes bounds it). `impulse launch` starts it when recorder.path is set; "
+        "`impulse train-bc --dataset PATH` learns from it.",
+        config=RunConfig,
+        run=recorder.run_recorder,
+        arguments=recorder.add_recorder_arguments,
     ),
     Command(
         "curriculum",

@@ -54,6 +54,7 @@ LEARNER = "learner"
 CURRICULUM = "curriculum"
 VIEWER = "viewer"
 EVALUATOR = "evaluator"
+RECORDER = "recorder"
 POLL_S = 0.2
 ACTOR_STOP_TIMEOUT_S = 20.0
 LEARNER_STOP_TIMEOUT_S = 180.0
@@ -125,18 +126,23 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     if config.evaluator.levels:
         children.append(Child(EVALUATOR, lambda restart: _service_argv("evaluator", run_dir),
                               run_dir / "logs" / "evaluator.log"))
+    if config.recorder.path:  # before the actors, so that it hears their first batches
+        children.append(Child(RECORDER, lambda restart: _service_argv("recorder", run_dir),
+                              run_dir / "logs" / "recorder.log"))
     for index in range(config.actors.num_actors):
         children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
                                                                                         str(i)),
                               run_dir / "logs" / f"actor-{index}.log"))
-    # Every process but the viewer runs JAX programs sized by the batch; on a CPU they share the host's memory.
-    sharing = sum(child.name != VIEWER for child in children)
+    # Every process but the viewer and the recorder runs JAX programs sized by the batch; on a CPU they share the
+    # host's memory.
+    sharing = sum(child.name not in (VIEWER, RECORDER) for child in children)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", HOST_PROCESSES_ENV: str(sharing)}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
     log.info("run %s in %s: learner, %s%s%d actors; logs in %s", config.name, run_dir,
              f"curriculum ({config.curriculum.method}), " if config.uses_curriculum_service else "",
              f"evaluator ({config.evaluator.levels}), " if config.evaluator.levels else "",
+             f"recorder ({config.recorder.path}), " if config.recorder.path else "",
              config.actors.num_actors, run_dir / "logs")
     with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
         statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
@@ -196,8 +202,10 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                 time.sleep(POLL_S)
             interrupted = stop.stop
             # The actors and the evaluator first: they follow the learner.
-            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER)]
+            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER, RECORDER)]
             supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
+            if config.recorder.path:
+                supervisor.stop([RECORDER], ACTOR_STOP_TIMEOUT_S)  # after the actors: it writes what it heard
             if config.uses_curriculum_service:
                 supervisor.stop([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
             if not finished:

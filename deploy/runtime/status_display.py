@@ -85,6 +85,17 @@ def evaluator_line(status: dict[str, Any] | None) -> str:
             f"{status.get('skipped', 0)} points skipped")
 
 
+def recorder_line(status: dict[str, Any] | None) -> str:
+    """The recorder's line: what it has written, what waits for the next shard, what it had to leave out."""
+    if status is None:
+        return STARTING
+    full = " | FULL: recording stopped" if status.get("full") else ""
+    return (f"{status.get('episodes_written', 0):,} episodes ({status.get('steps_written', 0):,} steps) in "
+            f"{status.get('shards_written', 0)} shards, {status.get('bytes_used', 0) / 1e6:.1f} MB | waiting "
+            f"{status.get('pending_steps', 0):,} steps | cut {status.get('episodes_cut', 0)} | rejected "
+            f"{_total(status.get('rejected'))}{full}")
+
+
 def streaming_part(monitor: dict[str, Any] | None) -> str:
     """What an actor streams to Rerun, for its status line ("" when monitoring is off)."""
     if not monitor:
@@ -117,7 +128,7 @@ def _refill_part(status: dict[str, Any]) -> str:
 
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
            curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
-           columns: int | None = None) -> list[str]:
+           recorder_name: str = "recorder", columns: int | None = None) -> list[str]:
     """The display's lines: every child with its process state, then its latest status (the line of a child that
     has exited ends with its error line), each cut to `columns` (default: the terminal's width) so that a redraw
     never wraps."""
@@ -143,6 +154,8 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
                 body = f"Rerun viewer (its address is logged above and in {child.log_path})"
             elif child.name == evaluator_name:
                 body = evaluator_line(status)
+            elif child.name == recorder_name:
+                body = recorder_line(status)
             else:
                 body = actor_line(status, lags.get(child.name) if isinstance(lags, dict) else None)
         except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types

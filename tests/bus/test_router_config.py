@@ -37,7 +37,7 @@ def test_make_test_certs_leaves_no_authority_key_and_a_private_directory(credent
     assert not (credentials / "ca.key").exists()
     assert credentials.stat().st_mode & 0o777 == 0o700
     users = dict(line.split(":") for line in (credentials / "users.txt").read_text().split())
-    assert set(users) == {"router", "learner", "curriculum", "actor", "evaluator", "operator"}
+    assert set(users) == {"router", "learner", "curriculum", "actor", "evaluator", "recorder", "operator"}
     assert users["router"] == (credentials / "router.password").read_text().strip()
 
 

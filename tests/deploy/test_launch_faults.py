@@ -4,13 +4,19 @@ replayed old weights frame, a weights frame with a flipped bit, and a forged "fi
 keep training, the actors' policy versions must never go back, nobody may stop early, every refusal must reach
 metrics.jsonl, and it must still reach an 80% solve rate. Its processes have monitoring on with no Rerun viewer
 running: they count what they could not stream and neither stall nor keep it. Processes killed at random are
-test_fault_injection.py's."""
+test_fault_injection.py's.
+
+A recorder writes the run's episodes to a dataset meanwhile; it is killed with SIGKILL midway and restarted by the
+launcher, and what it wrote stays whole: every episode's rewards add up to its recorded return, every level it
+played is there, and the attacks' frames were refused. Behaviour cloning (`impulse train-bc`) of the solved
+episodes then gives a policy that solves the easy car too."""
 
 from __future__ import annotations
 
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -27,6 +33,7 @@ from impulse.engine.env.spec import env_from_config
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.checkpoint import Checkpointer
+from impulse.learner.dataset import open_dataset
 from impulse.learner.service import batch_template
 from impulse.monitor.runs import SHARED_COLUMNS
 from rerun.chunk import RrdReader
@@ -38,6 +45,7 @@ from tests.support.launch_procs import (
     free_port,
     last_update,
     metrics,
+    service_pids,
     start_launch,
     stop_launch,
     tail,
@@ -189,7 +197,8 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     # Monitoring on with no viewer running: the processes must neither stall nor keep what they cannot send.
     launch, log = start_launch(run_dir, port, f"total_env_steps={UPDATES * STEPS_PER_UPDATE}",
                                f"checkpoint.every_updates={EVERY}", "monitor.enabled=true",
-                               f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy")
+                               f"monitor.url=rerun+http://127.0.0.1:{free_port()}/proxy",
+                               "recorder.path={run_dir}/dataset", "recorder.flush_s=2")
     watcher = StatusWatcher(run_dir.name, port)
     versions = VersionWatch(watcher)
     try:
@@ -203,6 +212,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         malformed = MalformedTrajectories(watcher, frames)
         inject_foreign_weights_and_credit(watcher)
         wait_for(malformed.all_counted, 60, "the learner to count every bad trajectory by its reason", launch, log)
+        wait_for(lambda: (malformed.publisher.put(frames["bad_shape"]), time.sleep(0.5),
+                          refusals(watcher.poll().get("recorder", {})).get("bad_shape", 0) >= 1)[-1], 30,
+                 "the recorder to refuse bad trajectories too", launch, log)
 
         # A flood of frames overflows the learner's trajectory inbox: the frames it cannot hold are counted.
         flood = watcher.bus.publisher(watcher.bus.keys.traj("actor-8"))
@@ -226,6 +238,15 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         wait_for(lambda: (versions.poll(), last_update(run_dir) >= after_injection + 2)[1], 60,
                  "training to go on", launch, log)
         assert "ended" not in log.read_text(), "an actor stopped on the forged status"
+
+        # The recorder killed with SIGKILL once it has written shards: the launcher starts it again.
+        wait_for(lambda: any((run_dir / "dataset" / "shards").glob("0*")), 60, "the recorder's first shard", launch,
+                 log)
+        [recorder] = service_pids(run_dir, "recorder")
+        os.kill(recorder, signal.SIGKILL)
+        recorder_log = run_dir / "logs" / "recorder.log"
+        wait_for(lambda: recorder_log.read_text().count("recorder up:") == 2, 60, "the recorder's restart", launch,
+                 log)
 
         assert launch.wait(timeout=600) == 0, tail(log)
     finally:
@@ -262,6 +283,36 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
                                timeout=300, env={**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache")})
     assert evaluated.returncode == 0 and "s_easy_car_right" in evaluated.stdout, evaluated.stderr
     check_eval_recording(recorded, scores)
+    check_dataset_and_clone_it(run_dir, tmp_path)
+
+
+def check_dataset_and_clone_it(run_dir: Path, tmp_path: Path) -> None:
+    """The recorder's dataset after its kill: whole, with its levels, written by both incarnations; then a policy
+    cloned from its solved episodes solves the level."""
+    recorder_log = (run_dir / "logs" / "recorder.log").read_text()
+    assert recorder_log.count("recorder up:") == 2, tail(run_dir / "logs" / "recorder.log")
+    assert "recorder done:" in recorder_log.rsplit("recorder up:", 1)[1]  # the second stopped cleanly
+    dataset = open_dataset(run_dir / "dataset")
+    index = dataset.index()
+    steps = dataset.steps()
+    starts = np.concatenate([[0], np.cumsum(index.length)[:-1]])
+    np.testing.assert_allclose(np.add.reduceat(steps["reward"], starts), index.episode_return, atol=1e-4)
+    assert index.has_level.all() and set(dataset.levels()) == set(index.level_id.tolist())
+    assert set(index.actor.tolist()) == {0, 1}
+    assert index.episodes >= 100 and index.solved.sum() >= 50, (index.episodes, index.solved.sum())
+    assert not any((run_dir / "dataset" / ".partial").glob("*"))
+
+    cloned = tmp_path / "cloned"
+    result = subprocess.run([sys.executable, "-m", "impulse.deploy.cli", "train-bc", "--dataset",
+                             str(run_dir / "dataset"), f"run_dir={cloned}", "bc.epochs=10", "bc.batch_size=256"],
+                            capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "IMPULSE_CACHE_DIR": str(REPO / ".cache")})
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = [json.loads(line) for line in (cloned / "metrics.jsonl").read_text().splitlines()]
+    assert [row["epoch"] for row in rows] == list(range(1, 11))
+    assert rows[-1]["bc/held_out_loss"] < rows[0]["bc/held_out_loss"], rows
+    clone_scores = json.loads((cloned / "eval.json").read_text())
+    assert clone_scores["s_easy_car_right"]["solve_rate"] >= 0.8, clone_scores
 
 
 def check_eval_recording(path, scores: dict) -> None:

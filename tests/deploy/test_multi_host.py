@@ -174,7 +174,8 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
 
         roles = ("actor", "curriculum", "operator", "learner")
         sessions = {role: cluster.client(role) for role in roles}
-        rogues = {role: cluster.client(role) for role in ("actor", "curriculum", "operator", "evaluator")}
+        rogues = {role: cluster.client(role) for role in ("actor", "curriculum", "operator", "evaluator",
+                                                          "recorder")}
         probe = sessions["actor"]
         try:
             weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
@@ -182,6 +183,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             learner_status = sessions["operator"].declare_subscriber(keys.status("learner", "learner"),
                                                                      zenoh.handlers.FifoChannel(64))
             trajectories = rogues["actor"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
+            recorded = rogues["recorder"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
             # The curriculum role answers level and knob queries (a stand-in: this run has no curriculum service);
             # a second queryable of each, under actor credentials, tries to.
             asked: dict[str, list[str]] = {"knobs": [], "inject": []}
@@ -231,6 +233,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             heard_credits = collect(credits, Kind.CREDIT)
             heard_status = collect(learner_status, Kind.METRICS)
             stolen = trajectories.try_recv()
+            heard_by_recorder = collect(recorded, Kind.TRAJECTORY)
         finally:
             for session in (*sessions.values(), *rogues.values()):
                 session.close()
@@ -248,6 +251,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         assert heard_status and all(m is not None and m.meta.get("finished") is False for m in heard_status), (
             "only the learner's own statuses arrive, none of them forged")
         assert stolen is None  # actor credentials do not read trajectories, though the actor keeps sending them
+        assert any(m is not None for m in heard_by_recorder)  # recorder credentials do
         actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
         assert actor["policy_version"] < FORGED_VERSION and sum(actor["rejected"].values()) == 0, actor
         assert actor["weights_adopted"] >= 2

@@ -51,7 +51,8 @@ def start_launch(run_dir: Path, port: int, *overrides: str) -> tuple[subprocess.
     return process, log_path
 
 
-def stop_launch(launch: subprocess.Popen, run_dir: Path, roles: tuple[str, ...] = ("learner", "actor", "curriculum"),
+def stop_launch(launch: subprocess.Popen, run_dir: Path,
+                roles: tuple[str, ...] = ("learner", "actor", "curriculum", "evaluator", "recorder"),
                 grace_s: float = 120.0) -> None:
     """Clean up after a launch test, whatever happened: SIGTERM the launcher (killing it after `grace_s`), then
     SIGKILL any service process of the run still alive."""

@@ -22,7 +22,7 @@ hosts=(localhost 127.0.0.1)
 for host in "$@"; do
     [[ " ${hosts[*]} " == *" $host "* ]] || hosts+=("$host")
 done
-roles=(learner curriculum actor evaluator operator)
+roles=(learner curriculum actor evaluator recorder operator)
 days=365
 mkdir -p "$dir"
 # Only this user may list or read the directory: it holds every role's private keys and passwords.

@@ -1,0 +1,77 @@
+"""`impulse recorder`: the recorder process alone (`learner.recorder`), against a running run on this machine or
+across machines (`--connect ENDPOINT`, with the recorder's own credentials); `impulse launch` starts it with the run
+when `recorder.path` is set. Give the run's config (`--config` and the same overrides as the run, or `--run
+RUN_DIR` where the run directory is visible) and where to write (`recorder.path=...` or `--out PATH`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.run_dirs import open_run_for
+
+log = logging.getLogger("impulse.service")
+
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
+
+def add_recorder_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
+                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
+                        "overrides still apply")
+    parser.add_argument("--out", type=Path, metavar="PATH",
+                        help="the dataset folder (instead of recorder.path)")
+    parser.add_argument("--connect", metavar="ENDPOINT",
+                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tls/hostA.example.org:7447")
+
+
+def dataset_path(config: RunConfig, run_dir: Path) -> Path | None:
+    """Where the run's recorder writes: `recorder.path` with "{run_dir}" filled in; None when it is empty."""
+    if not config.recorder.path:
+        return None
+    return Path(config.recorder.path.replace("{run_dir}", str(run_dir)))
+
+
+def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
+    opened = open_run_for("recorder", config, run_dir=args.run, toml=getattr(args, "config", None),
+                          overrides=args.overrides, connect=args.connect)
+    if opened is None:
+        return EXIT_USAGE
+    config, run_dir = opened
+    path = args.out or dataset_path(config, run_dir)
+    if path is None:
+        print("impulse recorder: where should it write? set recorder.path=PATH (or pass --out PATH)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    from impulse.bus.session import Bus
+    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+    from impulse.engine.env.spec import env_from_config
+    from impulse.learner.agent import make_agent
+    from impulse.learner.dataset import DatasetError, DatasetWriter
+    from impulse.learner.recorder import RECORDER_ID, RECORDER_ROLE, RecorderService
+    from impulse.learner.service import batch_template
+
+    spec, env_params = env_from_config(config.env)
+    template = batch_template(make_agent(config.network, spec), env_params, config.ppo.num_envs, config.ppo.num_steps)
+    try:
+        writer = DatasetWriter(path, config.env, config.network, max_bytes=int(config.recorder.max_gigabytes * 1e9),
+                               when_full=config.recorder.when_full)
+    except (DatasetError, OSError) as err:
+        print(f"impulse recorder: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    with Bus(config.bus, config.name, RECORDER_ROLE, RECORDER_ID) as bus:
+        service = RecorderService(config.recorder, bus=bus, writer=writer, template=template, sizes=spec.sizes,
+                                  wire_compact=config.actors.wire_compact,
+                                  status_every_s=config.actors.status_every_s)
+        log.info("recorder up: run %s, writing whole episodes to %s (%d shards there already, %.1f MB of %.1f GB)",
+                 config.name, path, writer.next_shard, writer.bytes_used / 1e6, writer.max_bytes / 1e9)
+        run_loop(service, LoopOptions())
+    counts = writer.counts
+    log.info("recorder done: %d episodes (%d steps) in %d shards this time; %d episodes cut, %d without their level",
+             counts["episodes_written"], counts["steps_written"], counts["shards_written"],
+             service.assembler.counts["episodes_cut"], service.counts["episodes_without_level"])
+    return 0
