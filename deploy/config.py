@@ -202,12 +202,14 @@ def _unknown_key_message(root: type, cls: type, dotted: str, source: str) -> str
     for path in paths:
         leaves.setdefault(path.rpartition(".")[2], []).append(path)
     suggestions = [prefix + k for k in difflib.get_close_matches(name, level_keys, n=3, cutoff=0.6)]
-    # Whole-path matching catches a key in the wrong section or a mistyped separator; paths in the key's own
-    # section are left out of it, since their shared prefix alone makes them look close.
-    elsewhere = [p for p in paths if not (prefix and p.startswith(prefix)) and p + "." != prefix]
-    suggestions += difflib.get_close_matches(dotted, elsewhere, n=3, cutoff=0.75)
-    for leaf in difflib.get_close_matches(name, list(leaves), n=3, cutoff=0.8):
-        suggestions += leaves[leaf]
+    if not suggestions:
+        # Whole-path matching catches a key in the wrong section or a mistyped separator; paths in the key's own
+        # section are left out of it, since their shared prefix alone makes them look close. Only when the key's
+        # own section has nothing close: `ppo.learning_rat` means `ppo.learning_rate`, not `bc.learning_rate`.
+        elsewhere = [p for p in paths if not (prefix and p.startswith(prefix)) and p + "." != prefix]
+        suggestions += difflib.get_close_matches(dotted, elsewhere, n=3, cutoff=0.75)
+        for leaf in difflib.get_close_matches(name, list(leaves), n=3, cutoff=0.8):
+            suggestions += leaves[leaf]
     suggestions = list(dict.fromkeys(suggestions))[:5]
     message = f"unknown config key '{dotted}' ({source})"
     if suggestions:

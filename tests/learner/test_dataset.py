@@ -151,10 +151,13 @@ def test_a_writer_killed_at_random_moments_leaves_only_whole_shards(tmp_path):
         writer = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, env=env,
                                   cwd=REPO)
         assert writer.stdout.readline().strip() == b"ready"
-        if attempt % 2:  # at a random moment
-            time.sleep(rng.uniform(0.2, 1.5))
+        deadline = time.monotonic() + 60
+        if attempt % 2:  # at a random moment after it has written a shard
+            before = len(list((path / "shards").glob("0*")))
+            while len(list((path / "shards").glob("0*"))) == before and time.monotonic() < deadline:
+                time.sleep(0.01)
+            time.sleep(rng.uniform(0, 0.5))
         else:  # while a shard is being written
-            deadline = time.monotonic() + 30
             while not any((path / ".partial").glob("*")) and time.monotonic() < deadline:
                 time.sleep(0.001)
             time.sleep(rng.uniform(0, 0.02))
@@ -166,7 +169,7 @@ def test_a_writer_killed_at_random_moments_leaves_only_whole_shards(tmp_path):
         shards = sorted(entry.name for entry in (path / "shards").iterdir() if entry.is_dir())
         assert shards == [f"{n:08d}" for n in range(len(shards))]
         np.testing.assert_array_equal(numbers, np.arange(400 * len(shards)))
-    assert len(shards) >= 3, "the writers were killed before they wrote anything"
+    assert len(shards) >= 3, "the writers wrote fewer shards than they were given time for"
     assert killed_mid_write >= 1, "no kill landed while a shard was being written"
     DatasetWriter(path, ENV, NETWORK, max_bytes=10**10)  # a restart removes what the last one left unfinished
     assert not any((path / ".partial").glob("*"))
