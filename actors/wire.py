@@ -193,6 +193,10 @@ class TrajectoryWire:
         """The frame format number (`bus.trajectories`): a frame of another is refused as "bad_version"."""
         self.fields = {name: _field(name, spec.dtype, tuple(int(d) for d in spec.shape), sizes)
                        for name, spec in self.schema.arrays.items()} if compact else {}
+        self.max_frame_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape)
+                                       for spec in self.schema.arrays.values()) + (1 << 20)
+        """The largest frame a receiver reads: twice the padded arrays, plus room for the header and table (a
+        larger one is refused before it is parsed)."""
 
     # -- sending ------------------------------------------------------------------------------------------
 

@@ -82,7 +82,7 @@ def cloning_data(dataset: Dataset, selected: np.ndarray, agent: Agent) -> Clonin
         return CloningData(None, jnp.zeros((0,), jnp.int32))
     template = {"obs": observation_shape(agent.spec)}
     obs_arrays = {name: array for name, array in steps.items() if name.startswith("obs")}
-    wanted = {"obs" + ("/" + name if name else ""): leaf for name, leaf in _named_shapes(template["obs"]).items()}
+    wanted = _named_shapes(template)  # "obs/..." as the dataset names them ("obs" for a single array)
     problems = [f"{name}: the dataset has {obs_arrays[name].shape[1:] if name in obs_arrays else 'nothing'}, "
                 f"the network reads {tuple(leaf.shape)}" for name, leaf in wanted.items()
                 if name not in obs_arrays or obs_arrays[name].shape[1:] != tuple(leaf.shape)]

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+from impulse.engine.levels.level import level_id_values
 
 log = logging.getLogger(__name__)
 
@@ -208,16 +209,10 @@ class Dataset:
             arrays = _read_arrays(self._shard(position), LEVELS)
             if not arrays:
                 continue
-            ids = level_ids_of(arrays)
+            ids = level_id_values(arrays["level_id"])
             for row, level_id in enumerate(ids):
                 found.setdefault(int(level_id), {name: array[row] for name, array in arrays.items()})
         return found
-
-
-def level_ids_of(level_arrays: Mapping[str, np.ndarray]) -> np.ndarray:
-    """The uint64 ids of a batch of levels given as named leaves."""
-    words = np.asarray(level_arrays["level_id"], np.uint64)
-    return (words[..., 0] << np.uint64(32)) | words[..., 1]
 
 
 def _read_attrs(path: Path) -> dict[str, Any]:

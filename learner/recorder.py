@@ -22,7 +22,6 @@ the run, writing what it holds first.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -44,7 +43,7 @@ from impulse.engine.levels.level import level_id_values
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.config import RecorderConfig
-from impulse.learner.dataset import DatasetWriter, Episode, level_ids_of
+from impulse.learner.dataset import DatasetWriter, Episode
 
 log = logging.getLogger("impulse.recorder")
 
@@ -149,8 +148,6 @@ class RecorderService:
         self.writer = writer
         self.ident = ident
         self._wire = TrajectoryWire(template, sizes, compact=wire_compact)
-        self._max_frame_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape)
-                                        for spec in self._wire.schema.arrays.values()) + (1 << 20)
         self._levels_schema = played_levels_schema(sizes)
         keys = bus.keys
         self._trajectories = bus.inbox(keys.traj_all, 64)
@@ -172,7 +169,7 @@ class RecorderService:
                 self.bus.rejects.record(err.reason, source, err.detail)
                 continue
             self.counts["level_batches"] += 1
-            for row, level_id in enumerate(level_ids_of(levels)):
+            for row, level_id in enumerate(level_id_values(levels["level_id"])):
                 self.levels[int(level_id)] = {name: array[row] for name, array in levels.items()}
                 self.levels.move_to_end(int(level_id))
             while len(self.levels) > LEVELS_KEPT:
@@ -184,7 +181,7 @@ class RecorderService:
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it
             try:
                 message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
-                                                         self._max_frame_bytes, self._wire.format)
+                                                         self._wire.max_frame_bytes, self._wire.format)
                 batch = self._wire.checked(message)
             except Rejected as err:
                 self.bus.rejects.record(err.reason, source, err.detail)

