@@ -100,6 +100,12 @@ def actor_name(index: int) -> str:
     return f"actor-{index}"
 
 
+def actor_index(name: str) -> int | None:
+    """The number in an actor's name (`actor_name`), None for a name not made by it."""
+    prefix, _, number = name.rpartition("-")
+    return int(number) if prefix == "actor" and number.isdigit() else None
+
+
 class Actor:
     """One actor process's state and its run-loop `cycle`."""
 

@@ -78,4 +78,4 @@ class RunConfig:
     @property
     def num_updates(self) -> int:
         """Updates the run makes (`PPOConfig.updates_for`)."""
-        return self.ppo.updates_for(self.total_env_steps)
+        return self.ppo.updates_for(self.total_env_steps, self.learner.hosts)

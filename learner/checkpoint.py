@@ -128,11 +128,18 @@ class Checkpointer:
                     keep_checkpoints_without_metrics=False,
                 )
             )
+        several_processes = jax.process_count() > 1
+        if several_processes:
+            self.directory.mkdir(parents=True, exist_ok=True)  # orbax creates it only for a group of one
         options = ocp.CheckpointManagerOptions(
             preservation_policy=preservation_policy.AnyPreservationPolicy(policies),
             cleanup_tmp_directories=True,
             enable_async_checkpointing=True,
-            create=True,
+            create=not several_processes,
+            # A learner on several hosts (`learner.hosts`) checkpoints from its leader alone, host copies of the
+            # state every process holds: orbax must not wait for the others at its barriers.
+            multiprocessing_options=ocp.options.MultiprocessingOptions(primary_host=0, active_processes={0})
+            if several_processes else ocp.options.MultiprocessingOptions(),
         )
         self._manager = ocp.CheckpointManager(self.directory, options=options)
         # Items are read with their handlers directly: the manager's composite restore of some items only warns

@@ -66,9 +66,10 @@ class PPOConfig:
         """Environment steps in one batch, which is one update: num_envs x num_steps."""
         return self.num_envs * self.num_steps
 
-    def updates_for(self, total_env_steps: int) -> int:
-        """Updates a run of `total_env_steps` makes: whole batches, rounded up, at least one."""
-        return max(1, math.ceil(total_env_steps / self.steps_per_update))
+    def updates_for(self, total_env_steps: int, hosts: int = 1) -> int:
+        """Updates a run of `total_env_steps` makes: whole batches, rounded up, at least one. A learner on `hosts`
+        processes trains on one batch of each per update (`learner.hosts`)."""
+        return max(1, math.ceil(total_env_steps / (self.steps_per_update * hosts)))
 
     def __post_init__(self) -> None:
         for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs"):
@@ -283,9 +284,17 @@ class LearnerConfig:
     """GPUs the PPO update is sharded over, data parallel (`learner.sharding`), as positions among the GPUs the
     process may see; the learner sees only these. Empty: the first device only. On a machine without GPUs, the
     first len(devices) devices (several only when XLA simulates them)."""
+    hosts: int = 1
+    """Learner processes, one per host, the PPO update is data parallel over (`learner.hosts`): each trains on its
+    share of the actors' batches, the gradients are summed across them, and the parameters stay identical. Each
+    process is started with its own `--host-index` (0, the leader, speaks for the group); 1: one process."""
+    coordinator: str = ""
+    """host:port where the leader (`--host-index 0`) listens for the other learner processes when learner.hosts >
+    1; every learner process must reach it."""
 
     def __post_init__(self) -> None:
         check_device_list("learner.devices", self.devices)
+        check_range("learner.hosts", self.hosts, at_least=1)
         check_range("learner.publish_every", self.publish_every, at_least=1)
         check_range("learner.slow_down_s", self.slow_down_s, at_least=0)
 

@@ -18,6 +18,11 @@ incarnations of a run share an epoch even when one dies before its first checkpo
 (epoch, version), which actors adopt only in increasing order, and trajectories carry the epoch of the weights
 that acted.
 
+On several hosts (`learner.hosts`, module `learner.hosts`) one learner process runs per host, each with its own
+share of the actors; they agree on every update and run it together on the batches each holds. The leader
+(process 0) is the learner the rest of the run sees: weights, status under the name `learner`, checkpoints,
+metrics. The others acknowledge their actors and take part in the update.
+
 Drops. Everything the learner drops or refuses is counted, and so is what the actors and the curriculum report in
 their status lines (`bus.status.DropTotals`): every metrics row carries the running totals (`drops/...`,
 `rejected/...`), and the checkpoint counters keep them across a restart.
@@ -25,6 +30,7 @@ their status lines (`bus.status.DropTotals`): every metrics row carries the runn
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import Counter, deque
@@ -33,6 +39,7 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
+from impulse.actors.process import actor_index
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
 from impulse.actors.wire import TrajectoryWire, weights_hash
@@ -53,6 +60,7 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
+from impulse.learner.hosts import ONE_HOST, HostGroup, broadcast_from_leader, global_batch, local_copy
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
@@ -123,51 +131,55 @@ class LearnerService:
 
     def __init__(self, ppo: PPOConfig, learner: LearnerConfig, checkpoint: CheckpointConfig, *, seed: int,
                  num_updates: int, batches_in_flight: int, status_every_s: float, run_dir: Path, config_toml: str,
-                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, wire_compact: bool = False):
+                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, wire_compact: bool = False,
+                 group: HostGroup = ONE_HOST):
         """`num_updates`: the run's length; `batches_in_flight`: the most the actors may have sent unacknowledged
         (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints;
-        `wire_compact`: the actors send the compact trajectory format (`actors.wire_compact`)."""
+        `wire_compact`: the actors send the compact trajectory format (`actors.wire_compact`); `group`: this
+        process's place among the learner's hosts (`learner.hosts.join_hosts`), one process by default."""
         self.ppo, self.learner = ppo, learner
         self.config_toml = config_toml
         self.bus = bus
-        self.steps_per_batch = ppo.steps_per_update
+        self.group = group
+        self.steps_per_batch = ppo.steps_per_update * group.count
         self.num_updates = num_updates
         optimizer = make_optimizer(ppo, self.num_updates)
         try:
             self.parallel = DataParallel(learner_devices(len(learner.devices)))
-            check_divisible(ppo, self.parallel.size)
+            check_divisible(ppo, self.parallel.size // group.count)
         except DeviceError as err:
             raise LearnerError(str(err)) from err
         params = agent.init(jax.random.PRNGKey(seed))
         self.train = TrainState(params, optimizer.init(params), np.asarray(0, np.int32))
-        self.checkpoints = Checkpointer(run_dir / checkpoint.directory, checkpoint)
+        # Only the leader keeps checkpoints; it restores a resumed run and hands the state to the others.
+        self.checkpoints = Checkpointer(run_dir / checkpoint.directory, checkpoint) if group.is_leader else None
         self.update = 0
         self.env_steps = 0
         self.epoch = 0
         self.counts: Counter[str] = Counter()
         self.peer_drops = DropTotals()
         self._rejected_before: Counter[str] = Counter()  # the learner's refusals before its restart
-        if self.checkpoints.latest_step() is not None:
-            if not resume:
-                self.checkpoints.close()
-                raise LearnerError(existing_run(run_dir))
-            self._restore()
-        elif resume and self.checkpoints.set_aside():
-            self.checkpoints.close()
-            raise LearnerError(f"cannot resume: {self.checkpoints.nothing_usable()}")
-        elif resume:
-            log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
-        self.epoch = claim_epoch(run_dir, self.epoch)
+        if self.checkpoints is not None:
+            self._open_checkpoints(run_dir, resume)
+        self.train, self.update, self.env_steps, self.epoch = broadcast_from_leader(
+            (self.train, self.update, self.env_steps, self.epoch), group)
+        self.update, self.env_steps, self.epoch = int(self.update), int(self.env_steps), int(self.epoch)
         self.updates_at_start = self.update
         self.train = self.parallel.replicate(self.train)
 
+        # The update sees the group's batch: every process's environments side by side.
+        group_ppo = dataclasses.replace(ppo, num_envs=ppo.num_envs * group.count)
         self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
+        self._group_template = batch_template(agent, env_params, group_ppo.num_envs, ppo.num_steps)
         self._update = self.parallel.jit_update(
             lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,
-                                                 distribution=agent.distribution, optimizer=optimizer, config=ppo,
-                                                 minibatch_sharding=self.parallel.minibatches),
-            self._template,
+                                                 distribution=agent.distribution, optimizer=optimizer,
+                                                 config=group_ppo, minibatch_sharding=self.parallel.minibatches),
+            self._group_template,
         )
+        self._held: tuple[str, Message, TrajectoryBatch] | None = None  # taken, waiting for the group to agree
+        self.group_stopped = False
+        self._stopping = False
         self._wire = TrajectoryWire(self._template, agent.spec.sizes, compact=wire_compact)
         self._schema = self._wire.schema
         self.key = jax.random.PRNGKey(seed + 7 + self.epoch)
@@ -178,8 +190,9 @@ class LearnerService:
         self._inbox_dropped_before = self.counts["dropped_inbox_full"]
         self._ready: deque[Queued] = deque()
         self._ready_limit = capacity
-        self._weights_publisher = bus.latest_publisher(keys.weights_policy)
-        self._weights_queries = bus.queryable(keys.weights_latest, 16)
+        # Only the leader publishes weights: the learner's other processes hold the same ones.
+        self._weights_publisher = bus.latest_publisher(keys.weights_policy) if group.is_leader else None
+        self._weights_queries = bus.queryable(keys.weights_latest, 16) if group.is_leader else None
         self._alive = bus.watch_alive(keys.alive_pattern(ACTOR))
         self._peer_statuses = {role: bus.inbox(keys.status_pattern(role), 256, drop_oldest=True)
                                for role in (ACTOR, CURRICULUM, EVALUATOR)}
@@ -195,11 +208,28 @@ class LearnerService:
         self.lags: Counter[int] = Counter()
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
-        self._weights_hash = weights_hash(self.train.params)
+        self._weights_hash = weights_hash(local_copy(self.train.params))
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
 
+    def _open_checkpoints(self, run_dir: Path, resume: bool) -> None:
+        """Refuse a run directory that holds checkpoints unless resuming; restore the newest usable one; claim this
+        start's learner epoch."""
+        assert self.checkpoints is not None
+        if self.checkpoints.latest_step() is not None:
+            if not resume:
+                self.checkpoints.close()
+                raise LearnerError(existing_run(run_dir))
+            self._restore()
+        elif resume and self.checkpoints.set_aside():
+            self.checkpoints.close()
+            raise LearnerError(f"cannot resume: {self.checkpoints.nothing_usable()}")
+        elif resume:
+            log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
+        self.epoch = claim_epoch(run_dir, self.epoch)
+
     def _restore(self) -> None:
+        assert self.checkpoints is not None
         try:
             restored = self.checkpoints.restore({TRAIN: self.train})
         except CheckpointError as err:
@@ -218,18 +248,22 @@ class LearnerService:
 
     @property
     def version(self) -> int:
-        return int(self.train.policy_version)
+        return int(local_copy(self.train.policy_version))
 
     # -- weights ------------------------------------------------------------------------------------------
 
     def _publish_weights(self) -> None:
-        params = self.train.params
         self.bus.stamp.acting_for(self.epoch, self.version)
+        if self._weights_publisher is None:
+            return
+        params = local_copy(self.train.params)
         self._weights_frame = encode_weights(self.bus.stamp, tree_arrays(params), self._weights_hash)
         self._weights_publisher.put(self._weights_frame)
         self.counts["weights_published"] += 1
 
     def _answer_queries(self) -> None:
+        if self._weights_queries is None:
+            return
         for query in self._weights_queries.poll():
             query.reply(self._weights_frame)
 
@@ -267,6 +301,8 @@ class LearnerService:
     def _ingest(self) -> None:
         for received in self._inbox.poll():
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
+            if self.group.several and not self._serves(source):
+                continue  # another learner process's actor
             try:
                 message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
                                                          self._wire.max_frame_bytes, self._wire.format)
@@ -289,6 +325,11 @@ class LearnerService:
                 self._acknowledge(dropped.actor, dropped.incarnation, dropped.message.seq)
             self._ready.append(Queued(source, incarnation, message, batch))
         self.counts["dropped_inbox_full"] = self._inbox_dropped_before + self._inbox.dropped
+
+    def _serves(self, actor: str) -> bool:
+        """Whether this learner process trains on `actor`'s batches (its share of the actors, `HostGroup`)."""
+        index = actor_index(actor)
+        return index is not None and self.group.serves_actor(index)
 
     def _hear_peers(self) -> None:
         """The actors' and the curriculum's status lines, for their drop counters."""
@@ -358,7 +399,8 @@ class LearnerService:
         rate = self._rate()
         return {
             "role": LEARNER_ROLE,
-            "name": LEARNER_ID,
+            "name": self.group.name(LEARNER_ID),
+            "host": f"{self.group.index}/{self.group.count}",
             "epoch": self.epoch,
             "policy_version": self.version,
             "update": self.update,
@@ -388,17 +430,21 @@ class LearnerService:
         self._hear_evaluations()
         self._ingest()
         self._refresh_acks()
-        taken = self._take()
-        if taken is None:
+        if self._held is None:
+            self._held = self._take()
+        if not self._group_ready():
             return None
-        actor, _, batch = taken
+        assert self._held is not None
+        _, _, batch = self._held
+        self._held = None
         self.key, update_key = jax.random.split(self.key)
-        self.train, losses = self._update(self.train, self.parallel.place_batch(batch), update_key)
+        placed = self._place(batch)
+        self.train, losses = self._update(self.train, placed, update_key)
         self.update += 1
         self.env_steps += self.steps_per_batch
         if self.update % self.learner.publish_every == 0:
             self._publish_weights()
-        metrics = {k: float(v) for k, v in jax.device_get({**losses, **episode_metrics(batch.episodes)}).items()}
+        metrics = {k: float(v) for k, v in local_copy({**losses, **episode_metrics(placed.episodes)}).items()}
         metrics.update(
             actor=float(batch.actor_id),
             steps_per_s=self._rate() * self.steps_per_batch,
@@ -412,16 +458,40 @@ class LearnerService:
         self._recent.append(time.monotonic())
         return CycleReport(env_steps=self.steps_per_batch, updates=1, metrics=metrics)
 
+    def _group_ready(self) -> bool:
+        """Whether to update now: this process holds a batch and, on several hosts, so does every other (they
+        agree once per cycle). A process that is stopping says so instead; then the whole group stops."""
+        if not self.group.several:
+            return self._held is not None
+        agreed = self.group.agree(have_batch=self._held is not None, stopping=self._stopping)
+        if agreed["stopping"].any():
+            self.group_stopped = True
+            return False
+        return bool(agreed["have_batch"].all())
+
+    def _place(self, batch: TrajectoryBatch) -> TrajectoryBatch:
+        """The batch the update runs on: this one on the learner's devices, or on several hosts the group's,
+        of which this one is this process's part."""
+        if not self.group.several:
+            return self.parallel.place_batch(batch)
+        return global_batch(jax.device_get(batch), self.parallel.batch_shardings(self._group_template), self.group)
+
+    def request_stop(self) -> None:
+        """A signal arrived (the run loop's stop flag): on several hosts, the next agreement tells the group."""
+        self._stopping = True
+
     def note_window(self, window: dict[str, float]) -> None:
         """The run loop's window summary, for the status line."""
         self._last_metrics["window_solve_rate"] = window.get("solve_rate")
 
     def save(self, summary: dict[str, float]) -> None:
         self.note_window(summary)
+        if self.checkpoints is None:
+            return
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
                     "policy_version": self.version, "drop_counts": dict(self.counts),
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
-        self.checkpoints.save(self.update, {TRAIN: self.train}, counters, self.config_toml,
+        self.checkpoints.save(self.update, {TRAIN: local_copy(self.train)}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 
     def start(self) -> None:
@@ -433,7 +503,7 @@ class LearnerService:
         warn_if_gpu_sized(ppo.num_envs, ppo.num_steps)
         log.info("compiling the update (%s envs x %s steps) ...", ppo.num_envs, ppo.num_steps)
         started = time.perf_counter()
-        compiled = self._update.lower(self.train, self._template, self.key).compile()
+        compiled = self._update.lower(self.train, self._group_template, self.key).compile()
         log.info("compiled the update in %.1f s", time.perf_counter() - started)
         check_fits(compiled, "the learner's update", ppo.num_envs, ppo.num_steps)
 
@@ -446,6 +516,11 @@ class LearnerService:
 
     def close(self) -> None:
         """Wait for checkpoints, and tell whoever watches (actors on other hosts, which no launcher stops) whether
-        the run is finished."""
-        self.checkpoints.close()
+        the run is finished. On several hosts, a process that stops before the run is finished (a signal, an
+        error) first tells the others, which are waiting for it in their next agreement."""
+        if self.group.several and not self.group_stopped and not self.finished():
+            self._stopping = True
+            self._group_ready()
+        if self.checkpoints is not None:
+            self.checkpoints.close()
         self._status.publish(self.status())

@@ -8,8 +8,9 @@ becomes a sum across devices (an all-reduce) before the one optimizer step every
 sharded update therefore computes the same function as the single-device one: the same parameters up to float
 summation order (tests/learner/test_sharded_update.py checks 2 and 4 simulated devices).
 
-Several hosts would extend the mesh over every process's devices after `jax.distributed.initialize`; that is
-described in docs/multi-host.md and not tested here.
+On several hosts (the `learner.hosts` setting, module `learner.hosts`) the mesh spans every learner process's
+devices, process after process, and each process places its own environments (`learner.hosts.global_batch`); the
+update is the same program.
 """
 
 from __future__ import annotations
@@ -32,14 +33,16 @@ class DeviceError(ValueError):
 
 
 def learner_devices(count: int) -> list[jax.Device]:
-    """The first `count` local devices (at least one). `deploy.runtime.devices.restrict_gpus` has already narrowed the
-    GPUs a process sees to the configured ones, so on a GPU machine these are exactly them, in order."""
+    """The first `count` local devices (at least one) of every learner process, process after process (one
+    process unless the learner runs on several hosts). `deploy.runtime.devices.restrict_gpus` has already narrowed
+    the GPUs a process sees to the configured ones, so on a GPU machine these are exactly them, in order."""
     devices = jax.local_devices()
     count = max(count, 1)
     if count > len(devices):
         raise DeviceError(f"learner.devices asks for {count} devices but this process sees {len(devices)} "
                           f"({', '.join(str(d) for d in devices)})")
-    return devices[:count]
+    by_process = [[d for d in jax.devices() if d.process_index == p][:count] for p in range(jax.process_count())]
+    return [device for devices in by_process for device in devices]
 
 
 def check_divisible(ppo: PPOConfig, num_devices: int) -> None:

@@ -91,6 +91,12 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
               f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
         return EXIT_USAGE
+    if config.learner.hosts > 1:
+        print(f"impulse launch: learner.hosts={config.learner.hosts} is a learner on several machines, which "
+              "`impulse launch` (one machine) does not start: start each learner process with `impulse learner "
+              "--host-index N`, or use deploy/cluster/slurm/impulse.sbatch (docs/multi-host.md, \"A learner on "
+              "several hosts\")", file=sys.stderr)
+        return EXIT_USAGE
     expected_lag = config.actors.num_actors * config.actors.credits
     if expected_lag > config.ppo.max_policy_lag:
         log.warning("%d actors x %d credits can put batches %d policy versions behind the learner, more than "

@@ -45,6 +45,9 @@ def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
                         help="continue from the newest checkpoint in the run directory (fresh if there is none)")
     parser.add_argument("--hub", action="store_true",
                         help="also be the bus hub (listen on bus.hub) when no `impulse launch` provides one")
+    parser.add_argument("--host-index", type=int, metavar="N",
+                        help="with learner.hosts > 1: this process's place in the learner's group, 0 (the leader, "
+                        "which checkpoints and publishes) to hosts-1; under SLURM, SLURM_PROCID by default")
 
 
 def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
@@ -75,6 +78,13 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse learner: {err}", file=sys.stderr)
         return EXIT_USAGE
     enable_compile_cache()
+    from impulse.learner.hosts import HostsError, join_hosts, local_copy
+
+    try:  # first: JAX must not have started before the group is joined
+        group = join_hosts(config.learner.hosts, config.learner.coordinator, args.host_index)
+    except HostsError as err:
+        print(f"impulse learner: {err}", file=sys.stderr)
+        return EXIT_USAGE
     from impulse.bus.session import Bus
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
@@ -84,20 +94,22 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
 
     # A new run made here (not a launcher's, not resumed) is taken back if it is refused before it trains.
-    created = create_run_dir(run_dir) and args.run is None and not args.resume
-    if args.run is None:
+    created = create_run_dir(run_dir) and args.run is None and not args.resume and group.is_leader
+    if args.run is None and group.is_leader:
         write_resolved_config(config, run_dir)
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    with Bus(config.bus, config.name, LEARNER_ROLE, LEARNER_ID, listen=args.hub) as bus, \
-            open_monitor(config) or nullcontext() as monitor:
+    # The learner's other processes on several hosts write nothing of the run's: the leader does.
+    leads = group.is_leader
+    with Bus(config.bus, config.name, LEARNER_ROLE, group.name(LEARNER_ID), listen=args.hub) as bus, \
+            (open_monitor(config) if leads else None) or nullcontext() as monitor:
         try:
             service = LearnerService(
                 config.ppo, config.learner, config.checkpoint, seed=config.seed, num_updates=config.num_updates,
                 batches_in_flight=config.actors.num_actors * config.actors.credits,
                 status_every_s=config.actors.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
                 bus=bus, agent=agent, env_params=env_params, resume=args.resume,
-                wire_compact=config.actors.wire_compact)
+                wire_compact=config.actors.wire_compact, group=group)
         except LearnerError as err:
             print(f"impulse learner: {err}", file=sys.stderr)
             _remove_refused_run(created, run_dir, config)
@@ -105,18 +117,23 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         log.info("learner up: run %s, epoch %d, policy version %d, %d of %d updates done", config.name,
                  service.epoch, service.version, service.update, service.num_updates)
         try:
-            run_loop(service, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
+            run_loop(service, LoopOptions(metrics_path=run_dir / "metrics.jsonl" if leads else None,
                                           checkpoint_every=config.checkpoint.every_updates,
                                           window_size=config.checkpoint.every_updates,
-                                          on_cycle=_learner_on_cycle(service, monitor), scalar_sinks=sinks))
+                                          should_stop=lambda: service.group_stopped,
+                                          on_cycle=_learner_on_cycle(service, monitor),
+                                          scalar_sinks=sinks if leads else None))
         except DoesNotFit as err:
             print(f"impulse learner: {err}", file=sys.stderr)
             _remove_refused_run(created, run_dir, config)
             return EXIT_CANNOT_RUN
         finished = service.finished()
         params = service.train.params
-    if finished:
-        final_evaluation(config, agent, env_params, params, run_dir)
+    if not leads:
+        log.info("learner process %d of %d %s at update %d of %d; the leader checkpoints", group.index, group.count,
+                 "done" if finished else "stopped", service.update, service.num_updates)
+    elif finished:
+        final_evaluation(config, agent, env_params, local_copy(params), run_dir)
         log.info("learner done: %d updates, %s env steps", service.update, f"{service.env_steps:,}")
     elif service.update > service.updates_at_start:
         log.info("learner stopped at update %d of %d, checkpointed; --resume continues from there", service.update,

@@ -85,6 +85,19 @@ def test_a_curriculum_on_a_fixed_level_set_is_a_usage_error(tmp_path: Path, caps
     assert "curriculum.method=plr needs env.levels=random" in capsys.readouterr().err
 
 
+def test_a_learner_on_several_hosts_needs_its_place_and_a_coordinator(tmp_path: Path, capsys, monkeypatch) -> None:
+    monkeypatch.delenv("SLURM_PROCID", raising=False)
+    group = [f"run_dir={tmp_path / 'run'}", "learner.hosts=2"]
+    assert main(["launch", *group]) == 2
+    assert "learner.hosts=2 is a learner on several machines" in capsys.readouterr().err
+    assert main(["learner", *group, "learner.coordinator=127.0.0.1:1"]) == 2
+    assert "give this process its place in the group with --host-index N" in capsys.readouterr().err
+    assert main(["learner", "--host-index", "2", *group, "learner.coordinator=127.0.0.1:1"]) == 2
+    assert "--host-index 2 is outside the group of learner.hosts = 2 (0 to 1)" in capsys.readouterr().err
+    assert main(["learner", "--host-index", "1", *group]) == 2
+    assert "learner.hosts = 2 needs learner.coordinator" in capsys.readouterr().err
+
+
 def test_eval_video_takes_gif_webp_or_mp4(tmp_path: Path, capsys) -> None:
     assert main(["eval", "--checkpoint", str(REPO / "pretrained" / "general-s"), "--video", str(tmp_path / "a.avi")]) \
         == 2

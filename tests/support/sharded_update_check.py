@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,16 +49,25 @@ def random_batch(agent, params, seed: int):
     return make_batch(steps, jax.tree.map(lambda x: x[NUM_STEPS], obs), 3, train_mask=train_mask)
 
 
-def main() -> None:
-    counts = [int(arg) for arg in sys.argv[1:]]
-    # A small MLP keeps the compiles short; XLA partitions any network the same way.
+class UpdateCase(NamedTuple):
+    """One PPO update to compare: the batch, the starting parameters, the update and a fresh state to start from."""
+
+    params: Any
+    batch: Any
+    key: jax.Array
+    update: Callable[..., Any]
+    """(state, batch, key, minibatch_sharding=None) -> (state, metrics)"""
+    fresh_state: Callable[[], TrainState]
+
+
+def update_case() -> UpdateCase:
+    """The update both checks compare: a small MLP (short compiles; XLA partitions any network the same way) on a
+    random batch of NUM_ENVS x NUM_STEPS."""
     agent = make_agent(NetworkConfig(kind="flat", width=16, depth=2, flat_embedding_size=16),
                        EnvSpec(observation="symbolic"))
     ppo = PPOConfig(num_envs=NUM_ENVS, num_steps=NUM_STEPS, num_minibatches=2, update_epochs=2, learning_rate=3e-4)
     optimizer = make_optimizer(ppo, 10)
     params = jax.device_get(agent.init(jax.random.key(0)))  # on the host: every state below is a fresh copy
-    batch = random_batch(agent, params, seed=1)
-    key = jax.random.key(5)
 
     def update(state, batch, key, minibatch_sharding=None):
         return ppo_update(state, batch, key, apply_fn=agent.apply, distribution=agent.distribution,
@@ -65,6 +76,12 @@ def main() -> None:
     def fresh_state():
         return TrainState(params, optimizer.init(params), jnp.asarray(3, jnp.int32))
 
+    return UpdateCase(params, random_batch(agent, params, seed=1), jax.random.key(5), update, fresh_state)
+
+
+def main() -> None:
+    counts = [int(arg) for arg in sys.argv[1:]]
+    params, batch, key, update, fresh_state = update_case()
     reference, reference_metrics = jax.device_get(jax.jit(update)(fresh_state(), batch, key))
     moved = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree.leaves(reference.params),
                                                               jax.tree.leaves(params)))
