@@ -491,7 +491,8 @@ class LearnerService:
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
                     "policy_version": self.version, "drop_counts": dict(self.counts),
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
-        self.checkpoints.save(self.update, {TRAIN: local_copy(self.train)}, counters, self.config_toml,
+        train = local_copy(self.train) if self.group.several else self.train
+        self.checkpoints.save(self.update, {TRAIN: train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 
     def start(self) -> None:
