@@ -7,8 +7,8 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    person retunes it while it runs with `impulse curriculum set` (a bad value refused, a good one taking effect
    at the next sample), reads it back with `get`, sends a level into its buffer with `inject` and looks at the
    buffer with `inspect`; and `impulse studio --run RUN_DIR`, as its own process, shows that buffer and its knobs,
-   changes a knob and sends a level in over HTTP (the page's own requests; tests/studio/test_browser.py drives the
-   page itself in a browser);
+   changes a knob and sends a level in over HTTP (the page's own requests), and its Curriculum page, in a headless
+   chromium, shows the running service's buffer with thumbnails and changes a knob that the service then holds;
 3. Ctrl-C stops the run in order: the learner's final checkpoint holds its last update and the curriculum
    service checkpoints its buffer;
 4. `--record` without `--view`: every process streams to one Rerun recording (the run's name as its id) through
@@ -40,6 +40,7 @@ from impulse.engine.env.spec import EnvSpec
 from impulse.learner.checkpoint import Checkpointer
 from rerun.chunk import RrdReader
 
+from tests.support.browser import browser_page, missing_browser
 from tests.support.launch_procs import (
     REPO,
     SMALL_BATCH,
@@ -174,6 +175,8 @@ def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
         got = curriculum_cli(run_dir, "get")  # the service's own answer
         assert got.returncode == 0 and "sfl_ratio = 0.5" in got.stdout, got
 
+        check_curriculum_page(base, run_dir)
+
         thrust = REPO / "engine" / "levels" / "handmade" / "s_easy_thrust_right.json"
         status, reply = studio_request(base, "/api/inject", {"level": json.loads(thrust.read_text())})
         assert status == 200 and reply["ok"] and "slot" in reply, reply
@@ -184,6 +187,29 @@ def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
             studio.wait(timeout=20)
         except subprocess.TimeoutExpired:
             studio.kill()
+
+
+def check_curriculum_page(base: str, run_dir) -> None:
+    """The studio's Curriculum page in a real browser, against the launched run's service: the buffer table with a
+    thumbnail per level, and a knob changed from the page, which the service then reports."""
+    reason = missing_browser()
+    if reason is not None:
+        print(f"the Curriculum page was not driven in a browser: {reason}")
+        return
+    with browser_page(base) as page:
+        page.wait_for_function("!document.getElementById('tab-curriculum').hidden")
+        page.click("#tab-curriculum")
+        page.wait_for_function("document.querySelectorAll('#curriculum-table tbody tr').length > 0")
+        page.wait_for_function("[...document.querySelectorAll('#curriculum-table img')]"
+                               ".every(i => i.complete && i.naturalWidth > 0)")
+        rows = page.locator("#curriculum-table tbody tr").count()
+        assert page.locator("#curriculum-table img").count() >= rows
+        assert page.locator("#knob-sfl_ratio").input_value() == "0.5"
+        page.fill("#knob-sfl_ratio", "0.75")
+        page.click("#curriculum-apply")
+        page.wait_for_function("document.getElementById('message').textContent.startsWith('changed sfl_ratio')")
+    got = curriculum_cli(run_dir, "get")  # the service's own answer
+    assert got.returncode == 0 and "sfl_ratio = 0.75" in got.stdout, got
 
 
 def check_recording(path, run: str) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import threading
 import time
@@ -27,12 +26,10 @@ import pytest
 from impulse.bus.session import Bus
 from impulse.engine.levels.level import level_id_values
 
+from tests.support.browser import browser_page, missing_browser
+
 pytestmark = pytest.mark.heavy
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-TIMEOUT_MS = 60_000  # a first compilation of the S environment on a busy 2-core machine
 RUN = "studio-console"
 AGENT = Path(__file__).resolve().parents[2] / "pretrained" / "general-s"
 """The shipped agent, which the Play page offers to watch."""
@@ -85,20 +82,11 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub):
 
 @pytest.fixture(scope="module")
 def page(server):
-    if not Path(CHROMIUM).exists() or shutil.which(CHROMIUM) is None:
-        pytest.skip(f"no {CHROMIUM}: install Debian's chromium (apt-get install chromium) to run the browser tests")
-    sync_api = pytest.importorskip("playwright.sync_api",
-                                   reason="playwright is not installed (pip install -e '.[dev]')")
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1180, "height": 760})
-        page.set_default_timeout(TIMEOUT_MS)
-        errors: list[str] = []
-        page.on("pageerror", lambda error: errors.append(str(error)))
-        page.goto(server[0])
+    reason = missing_browser()
+    if reason is not None:
+        pytest.skip(reason)
+    with browser_page(server[0]) as page:
         yield page
-        browser.close()
-        assert errors == [], f"the page raised: {errors}"
 
 
 @pytest.fixture(scope="module")
