@@ -54,7 +54,8 @@ class FollowEvents(NamedTuple):
 class LearnerPresence:
     """Whether the learner is there (its liveliness token) and whether it has finished the run (its latest status
     says so and its token is gone: see the module docstring), for every process that follows the learner, with or
-    without its weights (the recorder)."""
+    without its weights (the recorder). A learner on several hosts is its leader, named `learner`; the tokens and
+    statuses of its other processes are not the learner's."""
 
     def __init__(self, bus: Bus):
         self.bus = bus
@@ -72,7 +73,9 @@ class LearnerPresence:
     def poll(self) -> bool:
         """Note the learner's comings and goings and its word; whether it came back after it had gone."""
         back = False
-        for _, alive in self._tokens.poll():
+        for key, alive in self._tokens.poll():
+            if self.bus.keys.parse_alive(key)[1] != LEARNER:
+                continue  # another process of a learner on several hosts (`learner-1`, ...): the leader speaks
             self.present = alive
             if not alive:
                 self._away = True
@@ -84,6 +87,8 @@ class LearnerPresence:
                 status = read_status(received, self.bus.keys).status
             except Rejected as err:
                 self.bus.rejects.record(err.reason, received.key, err.detail)
+                continue
+            if status.get("name", LEARNER) != LEARNER:
                 continue
             self._says_finished = status.get("finished") is True
         return back
