@@ -7,7 +7,7 @@ every rollout) every `--period` seconds, starting at a random phase, and times t
 requests answered per second, latency p50/p90/p99/max, requests that got no answer in time, and the service's
 resident memory.
 
-This is the curriculum half of issue 30's fleet; the learner's ingest of trajectory frames is not driven here.
+Only the curriculum's side of a fleet is driven: the learner's ingest of trajectory frames is not measured here.
 """
 
 from __future__ import annotations

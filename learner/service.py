@@ -170,7 +170,8 @@ class LearnerService:
         # The update sees the group's batch: every process's environments side by side.
         group_ppo = dataclasses.replace(ppo, num_envs=ppo.num_envs * group.count)
         self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
-        self._group_template = batch_template(agent, env_params, group_ppo.num_envs, ppo.num_steps)
+        self._group_template = (batch_template(agent, env_params, group_ppo.num_envs, ppo.num_steps)
+                                if group.several else self._template)
         self._update = self.parallel.jit_update(
             lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,
                                                  distribution=agent.distribution, optimizer=optimizer,
@@ -208,7 +209,7 @@ class LearnerService:
         self.lags: Counter[int] = Counter()
         self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
-        self._weights_hash = weights_hash(local_copy(self.train.params))
+        self._weights_hash = weights_hash(self.train.params)  # shapes and dtypes only
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
 
@@ -444,7 +445,9 @@ class LearnerService:
         self.env_steps += self.steps_per_batch
         if self.update % self.learner.publish_every == 0:
             self._publish_weights()
-        metrics = {k: float(v) for k, v in local_copy({**losses, **episode_metrics(placed.episodes)}).items()}
+        # The batch's own episode counts on one host (host arrays, as it arrived); the group's on several.
+        episodes = local_copy(placed.episodes) if self.group.several else batch.episodes
+        metrics = {k: float(v) for k, v in local_copy({**losses, **episode_metrics(episodes)}).items()}
         metrics.update(
             actor=float(batch.actor_id),
             steps_per_s=self._rate() * self.steps_per_batch,
