@@ -298,25 +298,26 @@ class TrajectoryWire:
         packed = _need(arrays, name + ROWS, (np.dtype(np.uint8),), _bits_shape(n * field.rows))
         fill = _need(arrays, name + FILL, (field.dtype,), (field.instance,))
         keep_all = np.unpackbits(packed, count=n * field.rows).view(np.bool_)
-        keeps, at, expected = [], 0, 0
+        kept, at, expected = [], 0, 0
         for rows, width in field.blocks:
-            keep = keep_all[at:at + n * rows].reshape(n, rows)
-            counts = keep.sum(axis=0)
-            keeps.append((keep, counts))
-            expected += int(counts.sum()) * width
+            # The rows a block sent, in the order `pack` wrote them: row by row, instances ascending in each.
+            row_index, instance_index = np.nonzero(keep_all[at:at + n * rows].reshape(n, rows).T)
+            kept.append((row_index, instance_index))
+            expected += row_index.size * width
             at += n * rows
         if data.size != expected:
             raise Rejected("bad_shape", f"array {name!r} holds {data.size} values, its rows bits select {expected}")
         full = np.empty((n, field.instance), field.dtype)
         full[...] = fill
         at, start = 0, 0
-        for (rows, width), (keep, counts) in zip(field.blocks, keeps, strict=True):
-            for row in range(rows):
-                count = int(counts[row]) * width
-                if count:
-                    full[keep[:, row], start + row * width:start + (row + 1) * width] = \
-                        data[at:at + count].reshape(-1, width)
-                at += count
+        for (rows, width), (row_index, instance_index) in zip(field.blocks, kept, strict=True):
+            count = row_index.size * width
+            if count:  # one scatter per block, into a (instance, row, feature) view of its columns
+                block = np.lib.stride_tricks.as_strided(full[:, start:], shape=(n, rows, width),
+                                                        strides=(full.strides[0], width * full.itemsize,
+                                                                 full.itemsize))
+                block[instance_index, row_index] = data[at:at + count].reshape(-1, width)
+            at += count
             start += rows * width
         return full.reshape(field.shape)
 

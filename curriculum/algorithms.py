@@ -97,19 +97,29 @@ class Curriculum:
             filter_config = NoopFilterConfig(ratio=self.config.filter_ratio, num_steps=self.config.filter_steps)
             levels, _ = sample_filtered_levels(key, n, self.spec, self.env_params, self.generator, filter_config)
             return levels
+        return self.random_levels(key, n)
+
+    def random_levels(self, key: Array, n: int) -> Level:
+        """n fresh random levels, unfiltered."""
         return jax.vmap(lambda k: sample_random_level(k, self.spec.sizes, self.generator))(jax.random.split(key, n))
 
     # -- sample ---------------------------------------------------------------------------------------------------
 
-    def sample(self, state: CurriculumState, key: Array) -> tuple[CurriculumState, LevelBatch]:
-        """The next batch of B levels."""
+    def sample(self, state: CurriculumState, key: Array,
+               fresh: Level | None = None) -> tuple[CurriculumState, LevelBatch]:
+        """The next batch of B levels. `fresh`: B new levels made beforehand (the curriculum service makes them
+        ahead, off its request path), used wherever the batch needs new ones; None draws them here. Whether the
+        batch used them shows in `state.counters.new_batches`, which counts every batch that did."""
         if self.method == "dr":
-            levels = self.new_levels(key, self.batch_size)
+            levels = self._new_levels(key, fresh)
             counters = state.counters._replace(new_batches=state.counters.new_batches + 1)
             return state._replace(counters=counters), self._batch(levels, ORIGIN_NEW, state)
         if self.method == "sfl":
-            return self._sample_sfl(state, key)
-        return self._sample_plr(state, key)
+            return self._sample_sfl(state, key, fresh)
+        return self._sample_plr(state, key, fresh)
+
+    def _new_levels(self, key: Array, fresh: Level | None) -> Level:
+        return self.new_levels(key, self.batch_size) if fresh is None else fresh
 
     def _batch(self, levels: Level, origin: Array | int, state: CurriculumState) -> LevelBatch:
         origin = jnp.broadcast_to(jnp.asarray(origin, jnp.int32), (self.batch_size,))
@@ -121,23 +131,26 @@ class Curriculum:
         filled = state.buffer.filled
         return filled.any() & (filled.mean() >= state.knobs.min_fill)
 
-    def _fresh(self, key: Array) -> Candidates:
+    def _fresh(self, key: Array, fresh: Level | None) -> Candidates:
         b = self.batch_size
-        return Candidates(self.new_levels(key, b), jnp.full(b, ORIGIN_NEW, jnp.int32),
+        return Candidates(self._new_levels(key, fresh), jnp.full(b, ORIGIN_NEW, jnp.int32),
                           jnp.zeros((b, LEVEL_ID_WORDS), jnp.uint32), jnp.zeros(b, jnp.int32))
 
-    def _sample_plr(self, state: CurriculumState, key: Array) -> tuple[CurriculumState, LevelBatch]:
+    def _sample_plr(self, state: CurriculumState, key: Array,
+                    fresh: Level | None) -> tuple[CurriculumState, LevelBatch]:
         coin_key, branch_key = jax.random.split(key)
         replay = self._can_replay(state) & (jax.random.uniform(coin_key) < state.knobs.replay_prob)
-        branches = (self._new_batch, self._replay_batch)
+        branches = (functools.partial(self._new_batch, fresh=fresh), self._replay_batch)
         if self.method == "accel":  # only ACCEL pays for compiling the mutation
             branches += (self._mutate_batch,)
         branch = jnp.where(state.mutate_next, _MUTATE, jnp.where(replay, _REPLAY, _NEW))
         return jax.lax.switch(branch, branches, state, branch_key)
 
-    def _new_batch(self, state: CurriculumState, key: Array) -> tuple[CurriculumState, LevelBatch]:
+    def _new_batch(self, state: CurriculumState, key: Array,
+                   fresh: Level | None) -> tuple[CurriculumState, LevelBatch]:
         staging, counters, levels, origin = take_candidates(
-            state.staging, state.counters, state.knobs, self._fresh(key), jnp.asarray(self.batch_size), rehand=True)
+            state.staging, state.counters, state.knobs, self._fresh(key, fresh), jnp.asarray(self.batch_size),
+            rehand=True)
         counters = counters._replace(new_batches=counters.new_batches + 1)
         state = state._replace(staging=staging, counters=counters, mutate_next=jnp.zeros((), bool))
         return state, self._batch(levels, origin, state)
@@ -163,7 +176,8 @@ class Curriculum:
         state = state._replace(staging=staging, counters=counters, mutate_next=jnp.zeros((), bool))
         return state, self._batch(levels, origin, state)
 
-    def _sample_sfl(self, state: CurriculumState, key: Array) -> tuple[CurriculumState, LevelBatch]:
+    def _sample_sfl(self, state: CurriculumState, key: Array,
+                    fresh: Level | None) -> tuple[CurriculumState, LevelBatch]:
         pick_key, fresh_key = jax.random.split(key)
         b = self.batch_size
         can_replay = state.buffer.filled.any() if self.batch_scored else self._can_replay(state)
@@ -176,10 +190,11 @@ class Curriculum:
         replays = buffer.replays.at[jnp.where(picked, slots, buffer.replays.shape[0])].add(1, mode="drop")
         if self.batch_scored:  # fresh levels are only trained on; the next refill scores others
             staging, counters = state.staging, state.counters
-            candidates, origin = self.new_levels(fresh_key, b), jnp.full(b, ORIGIN_NEW, jnp.int32)
+            candidates, origin = self._new_levels(fresh_key, fresh), jnp.full(b, ORIGIN_NEW, jnp.int32)
         else:
             staging, counters, candidates, origin = take_candidates(
-                state.staging, state.counters, state.knobs, self._fresh(fresh_key), b - from_buffer, rehand=True)
+                state.staging, state.counters, state.knobs, self._fresh(fresh_key, fresh), b - from_buffer,
+                rehand=True)
         candidate_row = jnp.clip(row - from_buffer, 0, b - 1)
         candidates = jax.tree.map(lambda x: x[candidate_row], candidates)
         levels = _select_rows(picked, jax.tree.map(lambda x: x[slots], buffer.levels), candidates)

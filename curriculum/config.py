@@ -63,6 +63,11 @@ class CurriculumConfig:
     """No-op filter: candidates generated per level kept."""
     filter_steps: int = 64
     """No-op filter: env steps of the all-zero policy per candidate."""
+    levels_ahead: int = 8
+    """The curriculum service only: batches of filtered new levels it keeps ready, made on a thread of their own so
+    that a level request never waits for the no-op filter's simulation. When requests outrun that thread and none
+    is ready, a new batch is drawn unfiltered at once and counted (`unfiltered` in the service's status). 0: every
+    new batch is filtered on the request path, as in fused training, and requests wait for it."""
     sfl_scoring: SflScoring = "online"
     """SFL: how levels are scored for learnability. "online": from the episodes the agent trains on (a candidate
     after `candidate_episodes` episodes, a buffered level whenever it is replayed), replaying once the buffer is
@@ -129,6 +134,8 @@ class CurriculumConfig:
         for name in ("sfl_candidates", "sfl_attempts", "sfl_refresh_updates"):
             if getattr(self, name) < 1:
                 problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
+        if self.levels_ahead < 0:
+            problems.append(f"curriculum.levels_ahead must be >= 0, got {self.levels_ahead}")
         for name in ("filter_ratio", "filter_steps"):
             if getattr(self, name) < 1:
                 problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")

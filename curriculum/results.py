@@ -17,6 +17,7 @@ sees); its outcome and return are exact, since the environment tracks them acros
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -149,13 +150,19 @@ def results_to_host(results: LevelResults) -> dict[str, np.ndarray]:
     return {name: np.asarray(getattr(host, name))[keep] for name in RESULT_FIELDS if name != "valid"}
 
 
+@functools.cache
+def _padding(rows: int) -> LevelResults:
+    """The shapes and dtypes of `empty_results(rows)`, worked out once per size (no device work per chunk)."""
+    return jax.eval_shape(lambda: empty_results(rows))
+
+
 def results_from_host(arrays: dict[str, np.ndarray], rows: int) -> LevelResults:
     """Host arrays of n <= rows results (as `results_to_host` gives) padded to `rows` rows."""
     count = int(np.asarray(arrays["episodes"]).shape[0])
     if count > rows:
         raise ValueError(f"{count} level results do not fit in {rows} rows")
     padded = {}
-    for name, empty in zip(RESULT_FIELDS, empty_results(rows), strict=True):
+    for name, empty in zip(RESULT_FIELDS, _padding(rows), strict=True):
         if name == "valid":
             padded[name] = np.arange(rows) < count
             continue

@@ -15,6 +15,9 @@ It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of 
   may ask (`bus.router.access_rules`);
 - `metrics/curriculum/0`: a status line with buffer statistics for `impulse launch`'s display.
 
+New random levels pass the no-op filter on a thread of their own, `curriculum.levels_ahead` batches ahead of the
+requests (`curriculum.ahead`), so a request waits only for the cheap rest of `sample`.
+
 With batch-scored SFL (`curriculum.sfl_scoring=batch`) results do not score levels: every `sfl_refresh_updates`
 policy versions (and once the first weights arrive) the service draws `sfl_candidates` fresh levels, has the
 learner's newest policy play each `sfl_attempts` times (a `CandidateScorer` the caller passes in, which follows
@@ -50,6 +53,7 @@ from impulse.bus.levels import decode_level_results, encode_level_batch
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
+from impulse.curriculum.ahead import LevelMaker
 from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
 from impulse.curriculum.results import empty_results
@@ -61,7 +65,7 @@ from impulse.curriculum.stats import (
     live_knob_values,
     top_levels,
 )
-from impulse.curriculum.wire import ResultsError, level_batch_arrays, results_from_message
+from impulse.curriculum.wire import ResultsError, checked_results, level_batch_arrays, results_chunks
 from impulse.engine.levels.kinetix_json import load_level_document
 from impulse.engine.levels.level import Level, level_id_values
 from impulse.engine.pytree import tree_arrays
@@ -70,8 +74,11 @@ log = logging.getLogger(__name__)
 
 CURRICULUM_ROLE = CURRICULUM
 CURRICULUM_ID = CURRICULUM
-RESULTS_PER_POLL = 64
-"""Result messages applied per poll at most, so a flood of results never starves sample queries."""
+RESULTS_PER_ROUND = 8
+"""Result messages applied between two looks at the level requests (a few `update` calls: one actor's message
+fills half of one), so that a request never waits behind a flood of results."""
+RESULT_ROUNDS = 8
+"""Rounds of results per cycle at most, so that results never starve the knob, inspect and inject queries."""
 
 KnobResolver = Callable[[CurriculumConfig, list[str]], CurriculumConfig]
 """Applies `key=value` assignments to a config, raising ValueError with the config system's message."""
@@ -186,6 +193,13 @@ class CurriculumService:
             config = curriculum.config
             self._candidates = jax.jit(lambda key: curriculum.new_levels(key, config.sfl_candidates))
             self._refill = jax.jit(curriculum.refill)
+        self.maker: LevelMaker | None = None
+        if curriculum.config.noop_filter and curriculum.config.levels_ahead > 0:
+            b = curriculum.batch_size
+            self.maker = LevelMaker(jax.jit(lambda key: curriculum.new_levels(key, b)),
+                                    jax.jit(lambda key: curriculum.random_levels(key, b)),
+                                    jax.random.fold_in(jax.random.fold_in(self._key, 2), self.samples),
+                                    curriculum.config.levels_ahead)
 
     # -- lifecycle -------------------------------------------------------------------------------------------------
 
@@ -193,7 +207,13 @@ class CurriculumService:
         """Compile sample and update before serving, so the first actor's query does not wait for XLA (a query
         times out after a few seconds)."""
         start = time.perf_counter()
-        state, _ = self._sample(self.state, self._key)
+        fresh, filtered = None, False
+        if self.maker is not None:
+            self.maker.start()
+            fresh, filtered = self.maker.take()
+        state, _ = self._sample(self.state, self._key, fresh)
+        if fresh is not None:
+            self.maker.give_back(fresh, filtered)
         self._update(state, empty_results(self.rows))
         log.info("curriculum %s compiled in %.1f s", self.curriculum.method, time.perf_counter() - start)
 
@@ -245,17 +265,26 @@ class CurriculumService:
         return False
 
     def close(self) -> None:
-        """Checkpoint what happened since the last checkpoint (samples and knob changes too)."""
+        """Stop making levels ahead; checkpoint what happened since the last checkpoint (samples and knob changes
+        too)."""
+        if self.maker is not None:
+            self.maker.close()
         self.save()
 
     def cycle(self) -> CycleReport | None:
         """Apply waiting results (or a finished candidate scoring), answer waiting queries; what was done
         (`updates`: result messages applied and refills, which drive the checkpoint cadence), or None if nothing
         was."""
-        applied = self._apply_results() + (self._refresh() if self.scorer is not None else 0)
-        served = 0
-        for query in self._sample_queries.poll():
-            served += self._answer_sample(query)
+        # Level requests first and between rounds of results, as actors wait on them.
+        served = self._answer_samples()
+        applied = 0
+        for _ in range(RESULT_ROUNDS):
+            taken, accepted = self._apply_results()
+            applied += accepted
+            served += self._answer_samples()
+            if taken < RESULTS_PER_ROUND:
+                break
+        applied += self._refresh() if self.scorer is not None else 0
         for query in self._knob_queries.poll():
             self._answer_knobs(query)
         for query in self._inspect_queries.poll():
@@ -269,24 +298,27 @@ class CurriculumService:
         return CycleReport(updates=applied, metrics={"result_messages": float(applied),
                                                      "samples_served": float(served)})
 
-    def _apply_results(self) -> int:
-        applied = 0
-        for received in self._results.poll(RESULTS_PER_POLL):
+    def _apply_results(self) -> tuple[int, int]:
+        """Apply the result messages waiting (RESULTS_PER_ROUND at most), in the order they came, packed into as few
+        `update` calls as their rows fit in; returns how many messages were taken, and how many of them applied
+        (the rest were refused and counted)."""
+        accepted = []
+        waiting = self._results.poll(RESULTS_PER_ROUND)
+        for received in waiting:
             try:
                 message = decode_level_results(received.payload, self.bus.keys.run)
-                chunks = results_from_message(message, self.rows)
+                accepted.append(checked_results(message))
             except Rejected as err:
                 self.bus.rejects.record(err.reason, received.key, err.detail)
                 continue
             except ResultsError as err:
                 self.bus.rejects.record("schema", received.key, str(err))
                 continue
-            for chunk in chunks:
-                self.state = self._update(self.state, chunk)
             self.policy_version = max(self.policy_version, message.policy_version)
             self.result_messages += 1
-            applied += 1
-        return applied
+        for chunk in results_chunks(accepted, self.rows):
+            self.state = self._update(self.state, chunk)
+        return len(waiting), len(accepted)
 
     # -- batch-scored SFL ---------------------------------------------------------------------------------------------
 
@@ -337,13 +369,20 @@ class CurriculumService:
         except BaseException as err:  # noqa: BLE001 - handed to the service's own thread, which raises it
             self._scored = err
 
+    def _answer_samples(self) -> int:
+        return sum(self._answer_sample(query) for query in self._sample_queries.poll())
+
     def _answer_sample(self, query: IncomingQuery) -> int:
         wanted = query.parameters.get("n")
         if wanted is not None and wanted != str(self.curriculum.batch_size):
             query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
             return 0
         key = jax.random.fold_in(self._key, self.samples + 1)
-        self.state, batch = self._sample(self.state, key)
+        fresh, filtered = self.maker.take() if self.maker is not None else (None, False)
+        new_batches = self.state.counters.new_batches
+        self.state, batch = self._sample(self.state, key, fresh)
+        if fresh is not None and int(self.state.counters.new_batches) == int(new_batches):
+            self.maker.give_back(fresh, filtered)  # a replayed batch: the new levels wait for the next request
         self.samples += 1
         query.reply(encode_level_batch(self.bus.stamp, level_batch_arrays(batch)))
         return 1
@@ -435,6 +474,10 @@ class CurriculumService:
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
                 **({"refills": self.refills, "scoring": self._scoring is not None,
                     "last_refill": self._last_refill} if self.scorer is not None else {}),
+                **({"levels_ahead": {"ready": self.maker.ready, "made": self.maker.made,
+                                     "unfiltered": self.maker.unfiltered,
+                                     "filter_seconds": round(self.maker.filter_seconds, 1)}}
+                   if self.maker is not None else {}),
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
                 **{k: json_scalar(v) for k, v in summary.items()}}
 

@@ -46,9 +46,9 @@ class ResultsError(ValueError):
     """Level results that are well-formed arrays but make no sense (negative counts, more solved than played)."""
 
 
-def results_from_message(message: Message, rows: int) -> list[LevelResults]:
-    """The results a frame carries, in chunks of `rows` rows; raises `bus.codec.Rejected` for a frame that does
-    not fit the schema and `ResultsError` for impossible counts."""
+def checked_results(message: Message) -> dict[str, np.ndarray]:
+    """The results a frame carries, as host arrays; raises `bus.codec.Rejected` for a frame that does not fit the
+    schema and `ResultsError` for impossible counts."""
     check(message, LEVEL_RESULTS_SCHEMA)
     arrays = {name: np.asarray(message.arrays[name]) for name in LEVEL_RESULTS_SCHEMA.arrays}
     episodes, solved = arrays["episodes"], arrays["solved"]
@@ -56,9 +56,23 @@ def results_from_message(message: Message, rows: int) -> list[LevelResults]:
         raise ResultsError("episode counts must satisfy 0 <= solved <= episodes")
     if (arrays["level_id"] == 0).all(axis=-1).any():
         raise ResultsError("level id 0 (unassigned) in results")
-    count = episodes.shape[0]
+    return arrays
+
+
+def results_chunks(results: list[dict[str, np.ndarray]], rows: int) -> list[LevelResults]:
+    """`checked_results` of several frames, in their order, packed into as few chunks of `rows` rows as they fit
+    in (the curriculum's `update` costs the same for a full chunk as for a nearly empty one)."""
+    if not results:
+        return []
+    arrays = {name: np.concatenate([got[name] for got in results]) for name in LEVEL_RESULTS_SCHEMA.arrays}
+    count = arrays["episodes"].shape[0]
     return [results_from_host({name: a[start:start + rows] for name, a in arrays.items()}, rows)
             for start in range(0, count, rows)]
+
+
+def results_from_message(message: Message, rows: int) -> list[LevelResults]:
+    """The results a frame carries, in chunks of `rows` rows (see `checked_results` for what it raises)."""
+    return results_chunks([checked_results(message)], rows)
 
 
 def level_batch_template(sizes: SceneSizes, batch_size: int) -> LevelBatch:

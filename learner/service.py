@@ -3,14 +3,19 @@
 One cycle (driven by the shared run loop):
 1. answer weight queries (an actor that starts or lost track asks `weights/latest`) and note actors joining and
    leaving (liveliness);
-2. take every trajectory frame waiting in the bounded inbox, decode and check it in this thread (never in a
+2. take every trajectory frame waiting in the bounded inbox and read its header in this thread (never in a
    zenoh callback): a malformed or foreign frame is dropped and counted by reason; a duplicate sequence number is
    dropped; a gap in an actor's sequence (after the first batch of it this learner sees) is counted as lost;
-3. take the oldest ready batch off the queue and acknowledge it to its actor (that frees a credit); a batch
+3. take the oldest ready frame off the queue and acknowledge it to its actor (that frees a credit); a frame
    acted by weights of an earlier learner epoch (before a restart) or more than `ppo.max_policy_lag` versions
-   old is dropped and counted instead of trained on;
+   old is dropped and counted instead of trained on, before its arrays are unpacked; the rest are unpacked and
+   checked against the batch's schema (a frame that does not fit is dropped and counted);
 4. run `ppo_update` on it, publish the new weights every `learner.publish_every` updates (a cached publication for
-   late joiners, plus the queryable), and report metrics.
+   late joiners, plus the queryable), and report metrics. On one host, steps 2 and 3 for the next frame run while
+   the update is computed (JAX dispatches it asynchronously), before the update's metrics are read.
+
+Only frames that are trained on are unpacked: a queue of frames waiting holds them as they came off the bus (the
+compact format's bytes, not the full arrays), and an overloaded learner spends nothing on frames it drops.
 
 The learner's epoch counts its restarts. Each start claims a new one, above both the epoch stored in the
 checkpoint it resumes and the last one claimed in the run directory (`claim_epoch`), so no two learner
@@ -64,7 +69,7 @@ from impulse.learner.hosts import ONE_HOST, HostGroup, broadcast_from_leader, gl
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
-from impulse.learner.update import TrainState, check_policy_lag, make_optimizer, ppo_update
+from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
 log = logging.getLogger("impulse.learner")
 
@@ -82,12 +87,30 @@ ready queue; refused by a full trajectory inbox; missing from an actor's sequenc
 
 
 class Queued(NamedTuple):
-    """A checked trajectory batch waiting to be trained on: which actor (incarnation) sent it, and its frame."""
+    """A trajectory frame waiting to be trained on: which actor (incarnation) sent it, and the frame, its header
+    read and its arrays not yet unpacked or checked (`_take` does that for the frames it trains on only)."""
 
     actor: str
     incarnation: int
     message: Message
-    batch: TrajectoryBatch
+
+
+@dataclasses.dataclass
+class Ingested:
+    """The learner's intake since it started: trajectory frames accepted into its queue, their bytes, and the time
+    its thread spent taking frames out of zenoh and reading their headers (refused ones included); then the frames
+    unpacked and checked when taken for an update (`LearnerService._take`), and the time that took. Together they
+    bound the frames per second one learner can take in besides its updates."""
+
+    frames: int = 0
+    bytes: int = 0
+    seconds: float = 0.0
+    unpacked: int = 0
+    unpack_seconds: float = 0.0
+
+    def status(self) -> dict[str, float]:
+        return {"frames": self.frames, "mb": round(self.bytes / 2**20, 1), "seconds": round(self.seconds, 3),
+                "unpacked": self.unpacked, "unpack_seconds": round(self.unpack_seconds, 3)}
 
 
 class LearnerError(RuntimeError):
@@ -166,6 +189,7 @@ class LearnerService:
         self.update, self.env_steps, self.epoch = int(self.update), int(self.env_steps), int(self.epoch)
         self.updates_at_start = self.update
         self.train = self.parallel.replicate(self.train)
+        self._version = int(local_copy(self.train.policy_version))
 
         # The update sees the group's batch: every process's environments side by side.
         group_ppo = dataclasses.replace(ppo, num_envs=ppo.num_envs * group.count)
@@ -191,6 +215,7 @@ class LearnerService:
         self._inbox_dropped_before = self.counts["dropped_inbox_full"]
         self._ready: deque[Queued] = deque()
         self._ready_limit = capacity
+        self.ingested = Ingested()
         # Only the leader publishes weights: the learner's other processes hold the same ones.
         self._weights_publisher = bus.latest_publisher(keys.weights_policy) if group.is_leader else None
         self._weights_queries = bus.queryable(keys.weights_latest, 16) if group.is_leader else None
@@ -249,7 +274,9 @@ class LearnerService:
 
     @property
     def version(self) -> int:
-        return int(local_copy(self.train.policy_version))
+        """The policy version of the newest update dispatched (kept on the host, so that reading it never waits for
+        the device)."""
+        return self._version
 
     # -- weights ------------------------------------------------------------------------------------------
 
@@ -300,14 +327,15 @@ class LearnerService:
     # -- trajectories -------------------------------------------------------------------------------------
 
     def _ingest(self) -> None:
-        for received in self._inbox.poll():
+        started = time.perf_counter()
+        waiting = self._inbox.poll()
+        for received in waiting:
             source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
             if self.group.several and not self._serves(source):
                 continue  # another learner process's actor
             try:
                 message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
                                                          self._wire.max_frame_bytes, self._wire.format)
-                batch = self._wire.checked(message)
                 stream = (source, incarnation)
                 last = self._last_seq.get(stream)
                 if last is not None and message.seq <= last:
@@ -324,7 +352,11 @@ class LearnerService:
                 dropped = self._ready.popleft()
                 self.counts["dropped_overflow"] += 1
                 self._acknowledge(dropped.actor, dropped.incarnation, dropped.message.seq)
-            self._ready.append(Queued(source, incarnation, message, batch))
+            self._ready.append(Queued(source, incarnation, message))
+            self.ingested.frames += 1
+            self.ingested.bytes += len(received.payload)
+        if waiting:
+            self.ingested.seconds += time.perf_counter() - started
         self.counts["dropped_inbox_full"] = self._inbox_dropped_before + self._inbox.dropped
 
     def _serves(self, actor: str) -> bool:
@@ -372,21 +404,41 @@ class LearnerService:
         return metrics
 
     def _take(self) -> tuple[str, Message, TrajectoryBatch] | None:
-        """The oldest batch fit to train on, acknowledging everything taken off the queue."""
+        """The oldest batch fit to train on, unpacked and checked, acknowledging everything taken off the queue.
+        The staleness is judged from the frame's header before its arrays are unpacked, and again from the
+        batch's own behaviour version after."""
         while self._ready:
-            actor, incarnation, message, batch = self._ready.popleft()
+            actor, incarnation, message = self._ready.popleft()
             self._acknowledge(actor, incarnation, message.seq)
             if message.learner_epoch != self.epoch:
                 self.counts["dropped_old_epoch"] += 1
                 continue
-            lag = check_policy_lag(int(batch.behaviour_version), self.version, self.ppo.max_policy_lag)
-            if not bool(lag.accepted) or int(lag.lag) < 0:
+            if self._lag(message.policy_version) is None:
                 self.counts["dropped_stale"] += 1
                 continue
-            self.lags[int(lag.lag)] += 1
-            self.actor_lag[actor] = int(lag.lag)
+            started = time.perf_counter()
+            try:
+                batch = self._wire.checked(message)
+            except Rejected as err:
+                self.bus.rejects.record(err.reason, actor, err.detail)
+                continue
+            finally:
+                self.ingested.unpacked += 1
+                self.ingested.unpack_seconds += time.perf_counter() - started
+            lag = self._lag(int(batch.behaviour_version))
+            if lag is None:
+                self.counts["dropped_stale"] += 1
+                continue
+            self.lags[lag] += 1
+            self.actor_lag[actor] = lag
             return actor, message, batch
         return None
+
+    def _lag(self, behaviour_version: int) -> int | None:
+        """How many versions behind the learner's policy `behaviour_version` is, or None if that is too far
+        (`ppo.max_policy_lag`) or ahead of it (`learner.update.check_policy_lag`'s rule, on the host)."""
+        lag = self._version - behaviour_version
+        return lag if 0 <= lag <= self.ppo.max_policy_lag else None
 
     # -- the cycle ----------------------------------------------------------------------------------------
 
@@ -410,6 +462,7 @@ class LearnerService:
             "updates_per_s": rate,
             "consumed_steps_per_s": rate * self.steps_per_batch,
             "queue": len(self._ready),
+            "ingested": self.ingested.status(),
             "actors": sorted(self.actors_alive),
             "actor_lag": self.actor_lag,
             "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
@@ -441,7 +494,12 @@ class LearnerService:
         self.key, update_key = jax.random.split(self.key)
         placed = self._place(batch)
         self.train, losses = self._update(self.train, placed, update_key)
+        self._version += 1
         self.update += 1
+        if not self.group.several and not self.finished():
+            # The next frame is read while the device computes this update.
+            self._ingest()
+            self._held = self._take()
         self.env_steps += self.steps_per_batch
         if self.update % self.learner.publish_every == 0:
             self._publish_weights()

@@ -16,6 +16,8 @@ from impulse.bus.config import BusConfig
 from impulse.bus.control import control_reply, control_request
 from impulse.bus.levels import encode_level_results
 from impulse.bus.session import Bus
+from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.config import CurriculumConfig
 from impulse.curriculum.service import CurriculumService
 from impulse.curriculum.state import ORIGIN_NEW
 from impulse.curriculum.wire import (
@@ -23,15 +25,17 @@ from impulse.curriculum.wire import (
     level_batch_schema,
     level_batch_template,
 )
+from impulse.engine.env.spec import EnvParams
 from impulse.engine.levels import handmade
 from impulse.engine.levels.level import level_id_values, level_id_words
+from impulse.learner.checkpoint import CURRICULUM, Checkpointer
 from impulse.studio.app import make_app
 from impulse.studio.console import CurriculumLink
 from impulse.studio.level_io import load_document
 from starlette.testclient import TestClient
 
 from tests.support.checkpoint_damage import corrupt_newest
-from tests.support.curriculum_service import BATCH, SPEC, start_service
+from tests.support.curriculum_service import BATCH, SPEC, resolve_knobs, start_service
 from tests.support.launch_procs import free_port
 
 pytestmark = pytest.mark.heavy
@@ -138,6 +142,38 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
             == staged
         assert restarted.live_knobs()["robust"] is True and restarted.samples == samples_saved
         assert (tmp_path / "ckpt-corrupt" / str(corrupted)).is_dir()
+        checkpoints.close()
+
+
+def test_new_levels_pass_the_noop_filter_ahead_of_the_requests(hub, tmp_path):
+    template = level_batch_template(SPEC.sizes, BATCH)
+    schema = level_batch_schema(template)
+    config = CurriculumConfig(method="dr", noop_filter=True, levels_ahead=2)
+    with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, Bus(hub.config, RUN, "actor", "actor-0") as actor:
+        checkpoints = Checkpointer(tmp_path / "ckpt")
+        service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "",
+                                    resolve_knobs, item=CURRICULUM)
+        service.start()  # returns once the first filtered batch is made
+        assert service.maker is not None and service.maker.made >= 1
+
+        def sample():
+            [payload] = actor.get(actor.keys.levels_sample, parameters=f"n={BATCH}", timeout_s=20)
+            return level_batch_from_message(decode(payload, run=RUN, kinds=Kind.LEVELS), schema, template)
+
+        served = []
+        for _ in range(3):
+            deadline = time.monotonic() + 60
+            while service.maker.ready < 1:
+                assert time.monotonic() < deadline, "no filtered batch made ahead"
+                time.sleep(0.01)
+            batch = serve_until(service, sample)
+            assert (np.asarray(batch.origin) == ORIGIN_NEW).all()
+            served.append(set(level_id_values(np.asarray(batch.levels.level_id)).tolist()))
+        assert len(set.union(*served)) == 3 * BATCH
+        ahead = service.status()["levels_ahead"]
+        assert ahead["made"] >= 3 and ahead["unfiltered"] == 0, ahead
+        service.close()
+        assert not service.maker.running
         checkpoints.close()
 
 

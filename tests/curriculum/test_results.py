@@ -41,3 +41,21 @@ def test_episodes_are_tallied_per_level_id_with_per_episode_means():
 
     padded = results_from_host(got, 6)
     assert int(np.asarray(padded.valid).sum()) == 2 and int(np.asarray(padded.episodes).sum()) == 3
+
+
+def test_results_of_several_frames_pack_into_full_chunks_in_their_order():
+    from impulse.curriculum.wire import results_chunks
+
+    def frame(first_id: int, count: int) -> dict[str, np.ndarray]:
+        ids = np.stack([level_id_words(first_id + i) for i in range(count)]).astype(np.uint32)
+        counts = np.arange(1, count + 1, dtype=np.int32)
+        zeros = np.zeros(count, np.float32)
+        return {"level_id": ids, "episodes": counts, "solved": counts - 1, "return_sum": zeros, "return_max": zeros,
+                "value_sum": zeros, "pvl_sum": zeros, "l1_sum": zeros, "policy_version": np.full(count, 2, np.int32)}
+
+    chunks = results_chunks([frame(10, 3), frame(20, 3), frame(30, 1)], rows=4)
+    assert [int(np.asarray(c.valid).sum()) for c in chunks] == [4, 3]
+    ids = [int(i) for c in chunks for i in level_id_values(np.asarray(c.level_id))[np.asarray(c.valid)]]
+    assert ids == [10, 11, 12, 20, 21, 22, 30]
+    assert [int(e) for c in chunks for e in np.asarray(c.episodes)[np.asarray(c.valid)]] == [1, 2, 3, 1, 2, 3, 1]
+    assert results_chunks([], rows=4) == []

@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -71,9 +72,11 @@ def zero_batch_arrays() -> dict[str, np.ndarray]:
     return tree_arrays(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template))
 
 
-def malformed_trajectories(watcher: StatusWatcher) -> dict[str, bytes]:
-    """One bad trajectory frame per reason the learner counts, by that reason ("old_epoch" is accepted, then dropped
-    because epoch 0 is no learner's; sent twice it is a "duplicate")."""
+def malformed_trajectories(watcher: StatusWatcher) -> dict[str, Callable[[int, int], bytes]]:
+    """One bad trajectory frame per reason the learner counts, by that reason, given the learner's policy version
+    and a sequence number ("old_epoch" is accepted, then dropped because epoch 0 is no learner's; "duplicate" needs
+    a number the stream has had). The learner unpacks and checks the arrays only of a frame it would train on, so
+    those that fail the array checks say they were acted by its current policy."""
     run = watcher.run
     arrays = zero_batch_arrays()
     frame = lambda arrays, **kw: bytes(encode(Kind.TRAJECTORY, arrays, run=kw.pop("run", run),  # noqa: E731
@@ -84,16 +87,16 @@ def malformed_trajectories(watcher: StatusWatcher) -> dict[str, bytes]:
     wrong_dtype = dict(arrays, **{"steps/reward": arrays["steps/reward"].astype(np.float64)})
     version = frame(arrays, seq=8, learner_epoch=1)
     return {
-        "bad_magic": b"XXXX" + good[4:],
-        "truncated": good[: len(good) // 2],
-        "wrong_run": frame(arrays, run="another-run", seq=2),
-        "wrong_kind": bytes(encode(Kind.WEIGHTS, arrays, run=run, meta={"incarnation": 1}, seq=3)),
-        "non_finite": frame(nan, seq=4, learner_epoch=1),
-        "bad_shape": frame(wrong_shape, seq=5, learner_epoch=1),
-        "bad_dtype": frame(wrong_dtype, seq=6, learner_epoch=1),
-        "bad_version": bytes(version[:4]) + (SCHEMA_MAJOR + 1).to_bytes(2, "little") + bytes(version[6:]),
-        "old_epoch": good,
-        "duplicate": good,
+        "bad_magic": lambda v, n: b"XXXX" + good[4:],
+        "truncated": lambda v, n: good[: len(good) // 2],
+        "wrong_run": lambda v, n: frame(arrays, run="another-run", seq=n),
+        "wrong_kind": lambda v, n: bytes(encode(Kind.WEIGHTS, arrays, run=run, meta={"incarnation": 1}, seq=n)),
+        "non_finite": lambda v, n: frame(nan, seq=n, learner_epoch=1, policy_version=v),
+        "bad_shape": lambda v, n: frame(wrong_shape, seq=n, learner_epoch=1, policy_version=v),
+        "bad_dtype": lambda v, n: frame(wrong_dtype, seq=n, learner_epoch=1, policy_version=v),
+        "bad_version": lambda v, n: bytes(version[:4]) + (SCHEMA_MAJOR + 1).to_bytes(2, "little") + bytes(version[6:]),
+        "old_epoch": lambda v, n: frame(arrays, learner_epoch=0, seq=n),
+        "duplicate": lambda v, n: good,
     }
 
 
@@ -101,13 +104,14 @@ class MalformedTrajectories:
     """Sends every bad trajectory frame until the learner's status counts its reason: the learner's inbox holds only
     a few frames between two updates and drops (and counts) the rest, so a frame it never read is sent again."""
 
-    def __init__(self, watcher: StatusWatcher, frames: dict[str, bytes]) -> None:
+    def __init__(self, watcher: StatusWatcher, frames: dict[str, Callable[[int, int], bytes]]) -> None:
         self.watcher = watcher
         self.frames = frames
         self.publisher = watcher.bus.publisher(watcher.bus.keys.traj("actor-9"))
         assert watcher.bus.wait_matching(self.publisher, 10), "the learner's trajectory subscription is not visible"
         self.publisher.put(np.random.default_rng(0).bytes(5000))
         self.sent_at = 0.0
+        self.seq = 1
 
     def missing(self) -> set[str]:
         status = self.watcher.poll().get("learner", {})
@@ -116,12 +120,19 @@ class MalformedTrajectories:
             counted.add("old_epoch")
         return set(self.frames) - counted
 
+    def learner_version(self) -> int:
+        """The learner's policy version now, from its newest weights (its status line can be a few updates old)."""
+        bus = self.watcher.bus
+        replies = bus.get(bus.keys.weights_latest, timeout_s=10)
+        return decode(replies[0], run=self.watcher.run, kinds=Kind.WEIGHTS).policy_version if replies else 0
+
     def all_counted(self) -> bool:
         missing = self.missing()
         if missing and time.monotonic() - self.sent_at > 3.0:  # a status line comes every two seconds or so
             for reason in self.frames:  # in order: "old_epoch" before its "duplicate"
                 if reason in missing:
-                    self.publisher.put(self.frames[reason])
+                    self.seq += 1  # a new number: the learner takes a number once, whatever its arrays hold
+                    self.publisher.put(self.frames[reason](self.learner_version(), self.seq))
                     time.sleep(0.4)
             self.sent_at = time.monotonic()
         return not missing
@@ -213,7 +224,7 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         malformed = MalformedTrajectories(watcher, frames)
         inject_foreign_weights_and_credit(watcher)
         wait_for(malformed.all_counted, 60, "the learner to count every bad trajectory by its reason", launch, log)
-        wait_for(lambda: (malformed.publisher.put(frames["bad_shape"]), time.sleep(0.5),
+        wait_for(lambda: (malformed.publisher.put(frames["bad_shape"](0, 1)), time.sleep(0.5),
                           refusals(watcher.poll().get("recorder", {})).get("bad_shape", 0) >= 1)[-1], 30,
                  "the recorder to refuse bad trajectories too", launch, log)
 

@@ -10,6 +10,7 @@ progress, and probe sessions holding one role's credentials each.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -74,8 +75,9 @@ class Cluster:
                    f"router.credentials={self.credentials}", "total_env_steps=100000000",
                    "checkpoint.every_updates=1000", *TINY_BATCH, *extra]
         with log_path.open("ab") as out:
+            # A group of its own: `ip netns exec` forks the program, and a kill must reach both.
             self.processes[name] = subprocess.Popen(command, cwd=REPO, env=env, stdout=out,
-                                                    stderr=subprocess.STDOUT)
+                                                    stderr=subprocess.STDOUT, start_new_session=True)
         self.logs[name] = log_path
 
     def start_all(self, *more: str) -> None:
@@ -89,11 +91,16 @@ class Cluster:
     def bus_config(self) -> BusConfig:
         return BusConfig(connect=(self.endpoints["test"],), credentials=str(self.credentials))
 
+    def kill(self, name: str) -> None:
+        """SIGKILL process `name` with everything it started (its process group)."""
+        process = self.processes[name]
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=30)
+
     def stop(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.send_signal(signal.SIGKILL)
-                process.wait(timeout=30)
+        for name in self.processes:
+            self.kill(name)
 
 
 def make_credentials(directory: Path, *router_hosts: str) -> Path:
@@ -274,9 +281,7 @@ def test_run_survives_router_restarts(cluster: Cluster) -> None:
     try:
         update = wait_update(watcher, cluster, 0, 240)
         for name in ("router",):
-            router = cluster.processes[name]
-            router.send_signal(signal.SIGKILL)
-            router.wait(timeout=30)
+            cluster.kill(name)
             time.sleep(2.0)
             watcher.latest.clear()
             cluster.start(name)
@@ -316,8 +321,7 @@ def test_hosts_in_separate_namespaces_survive_a_partition_and_a_router_restart(t
             hosts.partition("actor", connected=True)
             healed = wait_update(watcher, cluster, max(before, learner.get("update", 0)) + 3, 180)
 
-            cluster.processes["router"].send_signal(signal.SIGKILL)
-            cluster.processes["router"].wait(timeout=30)
+            cluster.kill("router")
             time.sleep(2.0)
             watcher.latest.clear()
             cluster.start("router")
