@@ -7,7 +7,8 @@ filter on a thread of its own and keeps up to `depth` filtered batches ready, so
 When requests outrun the thread and none is ready, `take` draws the batch unfiltered at once (a few random
 levels, cheap) and counts it, rather than keep an actor waiting past its timeout: the filter is soft in Kinetix
 too, and a level that doing nothing solves scores as unlearnable in every curriculum that keeps a buffer. A batch
-the request did not use (a replayed batch needs no new levels) is handed back with `give_back` and served next.
+the request did not use (a replayed batch needs no new levels) is handed back with `give_back`: a filtered one is
+served next, an unfiltered one dropped (and not counted).
 
 Nothing here is checkpointed: the ready batches are random levels no one has seen, remade after a restart.
 """
