@@ -9,6 +9,10 @@ A checkpoint is a set of named items, so that each reader restores only what it 
 Orbax writes each step into a temporary directory and renames it when complete, so a process killed mid-write
 (kill -9) leaves the previous checkpoints intact and the partial one is ignored and cleaned up on the next start.
 
+A background write that fails (orbax raises its error at the next save or wait) costs that checkpoint alone: the
+error is logged with its step, counted in `Checkpointer.failed_saves`, and the run goes on with the next save; the
+checkpoints before it stay as they were.
+
 Kept: the newest `keep_last` checkpoints and, when a metric is given, the best one by that metric.
 
 Verification on restore. Orbax itself only lists finalised steps (its temporary directories are ignored); it checks
@@ -147,6 +151,7 @@ class Checkpointer:
         self._tree_reader = ocp.StandardCheckpointHandler()
         self._json_reader = ocp.JsonCheckpointHandler()
         self._reads_abandoned = False  # an array read failed during this restore (`_quiet_abandoned_reads`)
+        self.failed_saves = 0  # background writes that failed (module docstring)
 
     def save(
         self,
@@ -163,15 +168,21 @@ class Checkpointer:
         if unknown or not items:
             raise ValueError(f"checkpoint items must be among {ARRAY_ITEMS}, got {sorted(items)}")
         metrics = None if solve_rate is None else {BEST_METRIC: float(solve_rate)}
-        self._manager.save(
-            step,
-            args=ocp.args.Composite(
-                **{name: ocp.args.StandardSave(tree) for name, tree in items.items()},
-                counters=ocp.args.JsonSave(counters),
-                config=ocp.args.JsonSave({"toml": config_toml}),
-            ),
-            metrics=metrics,
+        args = ocp.args.Composite(
+            **{name: ocp.args.StandardSave(tree) for name, tree in items.items()},
+            counters=ocp.args.JsonSave(counters),
+            config=ocp.args.JsonSave({"toml": config_toml}),
         )
+        try:
+            self._manager.save(step, args=args, metrics=metrics)
+        except Exception as err:  # noqa: BLE001 - orbax raises an earlier background write's failure here, once
+            self._count_failed_save(err)
+            self._manager.save(step, args=args, metrics=metrics)
+
+    def _count_failed_save(self, err: Exception) -> None:
+        self.failed_saves += 1
+        log.error("a checkpoint failed to write in the background (%s: %s); the checkpoints before it are intact, "
+                  "%d failed so far", type(err).__name__, err, self.failed_saves)
 
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
@@ -243,11 +254,14 @@ class Checkpointer:
                               + "\n  ".join(failures))
 
     def wait(self) -> None:
-        """Block until background writes are on disk."""
-        self._manager.wait_until_finished()
+        """Block until background writes are on disk (or have failed: logged and counted, not raised)."""
+        try:
+            self._manager.wait_until_finished()
+        except Exception as err:  # noqa: BLE001 - see `save`
+            self._count_failed_save(err)
 
     def close(self) -> None:
-        self._manager.wait_until_finished()
+        self.wait()
         self._manager.close()
         self._tree_reader.close()
         self._json_reader.close()
@@ -286,7 +300,7 @@ class Checkpointer:
             )
         counters = self._read_json(step, COUNTERS)
         config_toml = self._read_json(step, CONFIG)["toml"]
-        abstract = {name: jax.tree.map(ocp.utils.to_shape_dtype_struct, tree) for name, tree in chosen.items()}
+        abstract = {name: jax.tree.map(_placed_here, tree) for name, tree in chosen.items()}
         for name, tree in abstract.items():
             self._check_tree(step, name, tree)
         items = {}
@@ -482,3 +496,15 @@ def _describe(err: BaseException) -> str:
 
 def _path(key: tuple[str, ...]) -> str:
     return "/".join(str(part) for part in key)
+
+
+def _placed_here(leaf: Any) -> Any:
+    """The shape, dtype and placement a template leaf asks for, placed on this process's first device when the
+    template names no placement: orbax would otherwise lay arrays out as the writer's devices were (a checkpoint
+    written on a GPU then fails to read on a CPU with a topology mismatch)."""
+    struct = ocp.utils.to_shape_dtype_struct(leaf)
+    if getattr(struct, "sharding", None) is not None or not hasattr(struct, "shape"):
+        return struct
+    here = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    return jax.ShapeDtypeStruct(struct.shape, struct.dtype, sharding=here)
+

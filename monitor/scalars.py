@@ -21,6 +21,7 @@ a sink opens and wandb (an optional extra) only when its project is set.
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -64,6 +65,12 @@ def scalar_columns(record: Mapping[str, Any]) -> dict[str, float | int]:
     return columns
 
 
+def tensorboard_tag(name: str) -> str:
+    """`name` as a TensorBoard tag: characters TensorBoard refuses (anything but letters, digits, `_`, `-`, `/`
+    and `.`; `eval/kinetix:s` has one) become `_`, which tensorboardX would otherwise do with a log line per row."""
+    return re.sub(r"[^-/\w.]", "_", name)
+
+
 def write_scalars(writer: SummaryWriter, record: Mapping[str, Any]) -> bool:
     """Write one metrics row to an event file: each of its `scalar_columns` at step `env_steps` and wall time
     `time_s`, then flush, so a killed process loses no more than `metrics.jsonl` does. False (nothing written) for
@@ -72,8 +79,8 @@ def write_scalars(writer: SummaryWriter, record: Mapping[str, Any]) -> bool:
     if step is None:
         return False
     walltime = finite_number(record.get(WALL_TIME_COLUMN))
-    for tag, value in scalar_columns(record).items():
-        writer.add_scalar(tag, value, global_step=int(step), walltime=walltime)
+    for name, value in scalar_columns(record).items():
+        writer.add_scalar(tensorboard_tag(name), value, global_step=int(step), walltime=walltime)
     writer.flush()
     return True
 

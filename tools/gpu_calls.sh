@@ -4,6 +4,12 @@
 #
 #     bash tools/gpu_calls.sh 1     # carry [".device"], timeout_s 560: engine, env, S training  (~7 min)
 #     bash tools/gpu_calls.sh 2     # at once, on the warm machine, timeout_s 320: distributed, fused kernel
+#     bash tools/gpu_calls.sh general   # carry [".device"], timeout_s 590: train the general S agent (issue 26)
+#
+# `general` trains configs/general-s-gpu.toml for GENERAL_SECONDS (default 390; SIGINT then checkpoints), exports
+# the last checkpoint to $OUT/general-s and scores it on Kinetix S, our hand-made S and Kinetix M. The run's
+# metrics.jsonl and config.toml come back beside it; the export's checkpoint lies deeper than the 16 folders the
+# tool returns, so a next call on the warm machine tars /tmp/general-s into $OUT (docs/gpu.md).
 #
 # Each benchmark has its own time limit, so a slow one loses its own last lines and not the others'. JSON lines go
 # to $OUT/gpu.jsonl (call N's start line says "call": N, so `impulse bench gpu_table` reads both calls as one run),
@@ -37,6 +43,25 @@ if [ "$part" = 1 ]; then
     bench 240 engine --num-envs 32768
     bench 130 env --num-envs 32768 --sizes s,l
     bench 120 train --sizes s --kinetix-settings
+elif [ "$part" = general ]; then
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >&2
+    run=/tmp/general-s
+    echo "== [$(( $(date +%s) - started ))s] training for ${GENERAL_SECONDS:-390} s" >&2
+    timeout -s INT --kill-after=40 "${GENERAL_SECONDS:-390}" python3 -m impulse.deploy.cli train \
+        --config configs/general-s-gpu.toml run_dir=$run >&2
+    echo "== training exit $? after $(( $(date +%s) - started ))s" >&2
+    cp $run/config.toml $run/metrics.jsonl "$OUT/" 2>/dev/null
+    python3 -m impulse.deploy.cli export --checkpoint $run --out /tmp/general-s-export \
+        --note trained_on="$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1)" >&2 \
+        && tar -czf "$OUT/general-s.tgz" -C /tmp general-s-export
+    for set in kinetix:s handmade; do
+        echo "== [$(( $(date +%s) - started ))s] eval $set" >&2
+        timeout 60 python3 -m impulse.deploy.cli eval --checkpoint /tmp/general-s-export --levels $set --attempts 20 \
+            --seed 0 --json "$OUT/eval-${set#*:}.json" >&2
+    done
+    echo "== [$(( $(date +%s) - started ))s] eval kinetix:m" >&2
+    timeout 70 python3 -m impulse.deploy.cli eval --checkpoint /tmp/general-s-export --levels kinetix:m --attempts 20 \
+        --seed 0 --json "$OUT/eval-m.json" env.size=m >&2
 else
     bench 185 distributed --parts runs --size s --kinetix-settings --set network.width=128 --set network.depth=5 \
         --set bus.shm_pool_mib=512 --actors 1 2 --updates 12 --skip 3 --no-fused-after --timeout 150

@@ -97,7 +97,11 @@ class LoopSummary:
     cycles: int
     updates: int
     env_steps: int
+    """The running total, a resumed run's earlier steps included."""
+    steps_here: int
+    """Env steps this process made."""
     seconds: float
+    """From the service's start to the end of its last cycle (closing not counted)."""
     stopped: bool
     """Ended by a signal or `should_stop` rather than by the service finishing."""
     last: dict[str, float]
@@ -105,7 +109,8 @@ class LoopSummary:
 
     @property
     def steps_per_s(self) -> float:
-        return self.env_steps / self.seconds if self.seconds > 0 else 0.0
+        """This process's env steps per second of its cycles."""
+        return self.steps_here / self.seconds if self.seconds > 0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -151,6 +156,7 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
     last: dict[str, float] = {}
     start = time.perf_counter()  # again once the service has started: its rate counts the cycles only
     steps_here = 0
+    cycles_ended = None
     stopped = False
     sinks: list[ScalarSink] = []
     try:
@@ -191,6 +197,7 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                     service.save(window.summary())
                     saved_at = updates
             stopped = stopped or stop.stop
+            cycles_ended = time.perf_counter()
             if updates != saved_at:
                 service.save(window.summary())
     finally:
@@ -203,4 +210,5 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 metrics_file.close()
             for sink in sinks:
                 sink.close()
-    return LoopSummary(cycles, updates, env_steps, time.perf_counter() - start, stopped, last, window.summary())
+    seconds = (cycles_ended or time.perf_counter()) - start
+    return LoopSummary(cycles, updates, env_steps, steps_here, seconds, stopped, last, window.summary())

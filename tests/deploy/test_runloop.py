@@ -91,3 +91,11 @@ def test_a_progress_line_never_passes_the_runs_budget(caplog) -> None:
         line.update(65_536, 1000.0, {})
     text = stream.getvalue() + caplog.text
     assert "61,440/61,440 steps" in text and "65,536" not in text, text
+
+
+def test_a_resumed_run_reports_the_rate_of_its_own_steps() -> None:
+    """The summary's rate counts the env steps this process made, not the resumed run's earlier ones."""
+    resumed = CountingService(updates=4, done=1000)
+    summary = run_loop(resumed, LoopOptions(progress=ProgressLine(100_000, io.StringIO())))
+    assert summary.env_steps == 10 * 1004 and summary.steps_here == 40
+    assert summary.steps_per_s == 40 / summary.seconds

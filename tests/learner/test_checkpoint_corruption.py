@@ -280,3 +280,37 @@ def test_a_task_of_an_abandoned_read_collected_later_is_not_reported_but_other_t
         gc.collect()
     reports = [r.getMessage() + str(r.exc_info[1]) for r in caplog.records if r.name == "asyncio"]
     assert len(reports) == 1 and "a real bug" in reports[0], reports
+
+
+def test_a_checkpoint_that_fails_to_write_costs_itself_alone(tmp_path, caplog):
+    """A background write that fails (here: its temporary directory removed while orbax writes it) is logged and
+    counted at the next save, which goes on and lands; the checkpoint before it stays intact."""
+    tree = {"w": jnp.ones((2048, 4096))}  # 32 MB: written long enough for the fault to land mid-write
+    checkpoints = Checkpointer(tmp_path / "checkpoints")
+    checkpoints.save(1, {"train": tree}, {"updates": 1}, "x = 1")
+    checkpoints.wait()
+    interrupted = None
+    for step in range(2, 7):
+        checkpoints.save(step, {"train": tree}, {"updates": step}, "x = 1")
+        writing = tmp_path / "checkpoints" / f"{step}.orbax-checkpoint-tmp"
+        deadline = time.monotonic() + 5
+        while not writing.exists() and not (tmp_path / "checkpoints" / str(step)).exists() \
+                and time.monotonic() < deadline:
+            time.sleep(0.001)
+        if writing.exists():
+            interrupted = step
+            until = time.monotonic() + 1.0  # orbax may create parts again after one removal: keep removing them
+            while time.monotonic() < until:
+                shutil.rmtree(writing, ignore_errors=True)
+                time.sleep(0.01)
+            break
+        checkpoints.wait()
+    assert interrupted is not None, "every write finished before the fault could land"
+    with caplog.at_level(logging.ERROR, logger="impulse.learner.checkpoint"):
+        checkpoints.save(10, {"train": tree}, {"updates": 10}, "x = 1")
+        checkpoints.wait()
+    assert checkpoints.failed_saves == 1 and "failed to write in the background" in caplog.text
+    assert interrupted not in checkpoints.all_steps() and {1, 10} <= set(checkpoints.all_steps())
+    restored = checkpoints.restore({"train": tree})
+    assert restored.step == 10 and restored.counters == {"updates": 10}
+    checkpoints.close()

@@ -30,7 +30,7 @@ from tests.support.scalars import expected_points, metrics_rows, tensorboard_poi
 def _row(update: int, value: float) -> dict:
     return {"update": update, "env_steps": 1024 * update, "time_s": 1_800_000_000.5 + update,
             "solve_rate": value, "episode_return": np.float32(value * 2), "eval/mean": math.nan,
-            "drops/lost": 3, "note": "text"}
+            "drops/lost": 3, "note": "text", "eval/kinetix:s": value / 2}
 
 
 def test_a_resumed_run_hides_the_points_it_redoes(tmp_path: Path) -> None:
@@ -49,7 +49,8 @@ def test_a_resumed_run_hides_the_points_it_redoes(tmp_path: Path) -> None:
     marks = [event.step for event in EventFileLoader(str(files[1])).Load() if event.HasField("session_log")]
     assert marks == [1025], "the resumed file starts by hiding every earlier point past the checkpoint's step"
     points, wall = tensorboard_points(log_dir)
-    assert set(points) == {"update", "solve_rate", "episode_return", "drops/lost"}, "NaN, text, step and time: no tag"
+    assert set(points) == {"update", "solve_rate", "episode_return", "drops/lost", "eval/kinetix_s"}, \
+        "NaN, text, step and time: no tag; a character TensorBoard refuses becomes _"
     assert points["solve_rate"] == {1024: pytest.approx(0.1), 2048: pytest.approx(0.7), 3072: pytest.approx(0.8)}
     assert points["update"] == {1024: 1, 2048: 2, 3072: 3}
     assert points["episode_return"][3072] == pytest.approx(1.6)
@@ -126,4 +127,4 @@ def test_wandb_offline_holds_the_runs_name_config_and_every_row(tmp_path: Path,
     assert run.display_name == run.run_group == "quick-cpu" and run.project == "impulse-tests"
     logged_config = {item.key: json.loads(item.value_json) for item in run.config.update}
     assert logged_config["ppo"]["num_envs"] == 32 and logged_config["name"] == "quick-cpu", logged_config
-    assert logged == expected_points(rows, precision=float)
+    assert logged == expected_points(rows, precision=float, tags=False)

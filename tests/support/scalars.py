@@ -21,15 +21,18 @@ def metrics_rows(path: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def expected_points(rows: list[dict[str, Any]], precision: type = np.float32) -> Points:
-    """What the rows of a metrics.jsonl become: tag -> env_steps -> value (TensorBoard keeps float32)."""
+def expected_points(rows: list[dict[str, Any]], precision: type = np.float32, tags: bool = True) -> Points:
+    """What the rows of a metrics.jsonl become: tag -> env_steps -> value (TensorBoard keeps float32 and turns
+    names into tags; W&B, `tags=False`, keeps the names)."""
+    from impulse.monitor.scalars import tensorboard_tag
+
     points: Points = {}
     for row in rows:
         for key, value in row.items():
             if key in ("env_steps", "time_s") or isinstance(value, bool) or not isinstance(value, int | float):
                 continue
             if math.isfinite(value):
-                points.setdefault(key, {})[row["env_steps"]] = float(precision(value))
+                points.setdefault(tensorboard_tag(key) if tags else key, {})[row["env_steps"]] = float(precision(value))
     return points
 
 
