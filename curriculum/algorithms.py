@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -269,16 +270,24 @@ class Curriculum:
     def update(self, state: CurriculumState, results: LevelResults) -> CurriculumState:
         """Apply per-level results (any number of rows, in any order, from any mix of batches): buffered levels
         are re-scored, staged candidates accumulate and are offered to the buffer once played enough, results for
-        unknown ids are counted and dropped."""
+        unknown ids are counted and dropped.
+
+        Rows are applied one after another (a row may re-score a level an earlier row put into the buffer), over
+        the buffer's and staging area's bookkeeping and level ids only; the levels themselves, the bulk of the
+        state, are copied into the buffer once at the end, each slot from the last candidate accepted into it."""
         if self.method == "dr" or self.batch_scored:
             counters = state.counters._replace(results=state.counters.results + results.valid.sum())
             return state._replace(counters=counters)
         by_score_only = self.method == "sfl"
         function = LEARNABILITY if by_score_only else state.knobs.score
+        staged_ids = state.staging.levels.level_id
+        no_slot = state.buffer.filled.shape[0]
+        no_move = jnp.array([no_slot, 0], jnp.int32)  # (buffer slot, staging slot) of a row that moves no level
 
-        def rescore(state: CurriculumState, row: Array) -> CurriculumState:
+        def rescore(carry: _RowCarry, row: Array) -> tuple[_RowCarry, Array]:
+            state, buffer_ids = carry
             buffer, knobs = state.buffer, state.knobs
-            _, slot = find(buffer.levels.level_id, buffer.filled, results.level_id[row])
+            _, slot = find(buffer_ids, buffer.filled, results.level_id[row])
             memory = knobs.score_memory
             episodes = memory * buffer.episodes[slot] + results.episodes[row]
             solved = memory * buffer.solved[slot] + results.solved[row]
@@ -292,9 +301,10 @@ class Curriculum:
                 score=buffer.score.at[slot].set(score),
                 score_version=buffer.score_version.at[slot].set(results.policy_version[row]),
             )
-            return state._replace(buffer=buffer)
+            return _RowCarry(state._replace(buffer=buffer), buffer_ids), no_move
 
-        def offer(state: CurriculumState, slot: Array) -> CurriculumState:
+        def offer(carry: _RowCarry, slot: Array) -> tuple[_RowCarry, Array]:
+            state, buffer_ids = carry
             staging, buffer, counters = state.staging, state.buffer, state.counters
             episodes, solved = staging.episodes[slot], staging.solved[slot]
             score = score_of(function, episodes.astype(jnp.float32), solved.astype(jnp.float32),
@@ -305,13 +315,12 @@ class Curriculum:
             accept = ~buffer.filled[target] | (score > buffer.score[target])
             if by_score_only:  # SFL: a level the policy never solves (learnability 0) is not worth a slot
                 accept = accept & (score > 0)
-            index = jnp.where(accept, target, buffer.filled.shape[0])
+            index = jnp.where(accept, target, no_slot)
 
             def put(old: Array, new) -> Array:
                 return old.at[index].set(new, mode="drop")
 
             buffer = buffer._replace(
-                levels=jax.tree.map(lambda old, new: put(old, new[slot]), buffer.levels, staging.levels),
                 filled=put(buffer.filled, True),
                 score=put(buffer.score, score),
                 last_sampled=put(buffer.last_sampled, clock),
@@ -331,30 +340,57 @@ class Curriculum:
                 rejected=counters.rejected + ~accept,
             )
             staging = staging._replace(staged=staging.staged.at[slot].set(False))
-            return state._replace(buffer=buffer, staging=staging, counters=counters)
+            state = state._replace(buffer=buffer, staging=staging, counters=counters)
+            return _RowCarry(state, put(buffer_ids, staged_ids[slot])), jnp.stack([index, slot]).astype(jnp.int32)
 
-        def accumulate(state: CurriculumState, row: Array) -> CurriculumState:
-            _, slot = find(state.staging.levels.level_id, state.staging.staged, results.level_id[row])
+        def accumulate(carry: _RowCarry, row: Array) -> tuple[_RowCarry, Array]:
+            state, buffer_ids = carry
+            _, slot = find(staged_ids, state.staging.staged, results.level_id[row])
             state = state._replace(staging=add_result(state.staging, slot, results, row))
             ready = state.staging.episodes[slot] >= state.knobs.candidate_episodes
-            return jax.lax.cond(ready, offer, lambda s, _: s, state, slot)
+            return jax.lax.cond(ready, offer, lambda c, _: (c, no_move), _RowCarry(state, buffer_ids), slot)
 
-        def unknown(state: CurriculumState, row: Array) -> CurriculumState:
+        def unknown(carry: _RowCarry, row: Array) -> tuple[_RowCarry, Array]:
+            state = carry.state
             counters = state.counters._replace(unknown_results=state.counters.unknown_results + 1)
-            return state._replace(counters=counters)
+            return carry._replace(state=state._replace(counters=counters)), no_move
 
-        def skip(state: CurriculumState, row: Array) -> CurriculumState:
-            return state
+        def skip(carry: _RowCarry, row: Array) -> tuple[_RowCarry, Array]:
+            return carry, no_move
 
-        def apply_row(state: CurriculumState, row: Array) -> tuple[CurriculumState, None]:
+        def apply_row(carry: _RowCarry, row: Array) -> tuple[_RowCarry, Array]:
             level_id = results.level_id[row]
-            buffered, _ = find(state.buffer.levels.level_id, state.buffer.filled, level_id)
-            staged, _ = find(state.staging.levels.level_id, state.staging.staged, level_id)
+            buffered, _ = find(carry.buffer_ids, carry.state.buffer.filled, level_id)
+            staged, _ = find(staged_ids, carry.state.staging.staged, level_id)
             valid = results.valid[row] & (results.episodes[row] > 0)
             case = jnp.where(~valid, 0, jnp.where(buffered, 1, jnp.where(staged, 2, 3)))
-            state = jax.lax.switch(case, (skip, rescore, accumulate, unknown), state, row)
-            return state, None
+            return jax.lax.switch(case, (skip, rescore, accumulate, unknown), carry, row)
 
-        state, _ = jax.lax.scan(apply_row, state, jnp.arange(results.valid.shape[0]))
+        slim = state._replace(buffer=state.buffer._replace(levels=None), staging=state.staging._replace(levels=None))
+        carry, moves = jax.lax.scan(apply_row, _RowCarry(slim, state.buffer.levels.level_id),
+                                    jnp.arange(results.valid.shape[0]))
+        levels = _move_levels(state.buffer.levels, state.staging.levels, into=moves[:, 0], source=moves[:, 1])
+        state = carry.state._replace(buffer=carry.state.buffer._replace(levels=levels),
+                                     staging=carry.state.staging._replace(levels=state.staging.levels))
         counters = state.counters._replace(results=state.counters.results + results.valid.sum())
         return state._replace(counters=counters)
+
+
+class _RowCarry(NamedTuple):
+    """What `Curriculum.update` carries from row to row: the state without its levels, and the buffer's level ids
+    (which change as candidates move in)."""
+
+    state: CurriculumState
+    buffer_ids: Array  # uint32 [N, LEVEL_ID_WORDS]
+
+
+def _move_levels(buffered: Level, staged: Level, into: Array, source: Array) -> Level:
+    """The buffer's levels after `Curriculum.update`'s moves: row r put staging slot `source[r]` into buffer slot
+    `into[r]` (`into` past the buffer's last slot: no move). Where several rows moved into one slot, the last
+    one's level stays, as if each had been copied in turn."""
+    size = buffered.level_id.shape[0]
+    rows = jnp.arange(into.shape[0])
+    last = jnp.full(size, -1, jnp.int32).at[into].max(rows, mode="drop")
+    replaced = last >= 0
+    taken = source[jnp.maximum(last, 0)]
+    return jax.tree.map(lambda old, new: jnp.where(_rows(replaced, old), new[taken], old), buffered, staged)

@@ -168,8 +168,11 @@ class Checkpointer:
         if unknown or not items:
             raise ValueError(f"checkpoint items must be among {ARRAY_ITEMS}, got {sorted(items)}")
         metrics = None if solve_rate is None else {BEST_METRIC: float(solve_rate)}
+        # Host copies, taken here at once: orbax's own copy of device arrays goes through its thread pool and
+        # held a service's main thread for tens of milliseconds per save (a curriculum service's answers waited).
+        host = jax.device_get(dict(items))
         args = ocp.args.Composite(
-            **{name: ocp.args.StandardSave(tree) for name, tree in items.items()},
+            **{name: ocp.args.StandardSave(tree) for name, tree in host.items()},
             counters=ocp.args.JsonSave(counters),
             config=ocp.args.JsonSave({"toml": config_toml}),
         )

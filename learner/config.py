@@ -167,7 +167,7 @@ class CheckpointConfig:
 
     every_updates: int = 100
     """Checkpoint every this many updates, and once more when the run ends; 0: only when it ends (the curriculum
-    service, which counts result messages instead, then saves after every one)."""
+    service counts result messages instead, saves after every one with 0, and at most once every 10 s)."""
     keep_last: int = 3
     """Newest checkpoints kept (at least 1)."""
     keep_best: bool = True

@@ -32,6 +32,8 @@ log = logging.getLogger("impulse.curriculum")
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 CURRICULUM_SECTION = "curriculum."
+CHECKPOINT_REST_S = 10.0
+"""The curriculum service's checkpoints come at most this often (a crash loses at most this long of results)."""
 Reply = TypeVar("Reply")
 
 
@@ -306,8 +308,10 @@ def serve(args: argparse.Namespace) -> int:
         log.info("curriculum up: %s, buffer %d, batches of %d levels", curriculum.method,
                  config.curriculum.buffer_size, curriculum.batch_size)
         watcher = CurriculumLogger(monitor, service, config) if monitor is not None else None
-        # Checkpoints count result messages applied; with checkpoint.every_updates = 0, after every one.
+        # Checkpoints count result messages applied (with checkpoint.every_updates = 0, after every one), at most
+        # one per CHECKPOINT_REST_S: the messages come as often as the actors send, many times the learner's rate.
         run_loop(service, LoopOptions(checkpoint_every=max(config.checkpoint.every_updates, 1), idle_wait_s=0.002,
+                                      min_seconds_between_saves=CHECKPOINT_REST_S,
                                       every_turn=watcher.poll if watcher is not None else None))
     log.info("curriculum stopped: %d samples served, %d result messages applied", service.samples,
              service.result_messages)

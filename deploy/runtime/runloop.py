@@ -121,6 +121,9 @@ class LoopOptions:
     """metrics.jsonl to append one line per cycle to; None: no file (actors, the curriculum service)."""
     checkpoint_every: int = 0
     """Save every this many units of `CycleReport.updates`; 0: only when the loop ends."""
+    min_seconds_between_saves: float = 0.0
+    """A save that falls due sooner than this after the last one waits until this much time has passed (the loop's
+    last save, when it ends, never waits)."""
     window_size: int = 10
     """Cycles with finished episodes the metrics window spans."""
     idle_wait_s: float = 0.005
@@ -153,6 +156,7 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
     window = MetricsWindow(options.window_size)
     env_steps, updates, cycles = start_at.env_steps_done, updates_done, 0
     saved_at = updates_done
+    last_save = -float("inf")
     last: dict[str, float] = {}
     start = time.perf_counter()  # again once the service has started: its rate counts the cycles only
     steps_here = 0
@@ -193,9 +197,10 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 if progress is not None:
                     progress.update(env_steps, steps_here / elapsed if elapsed > 0 else 0.0, window.summary())
                 due = checkpoint_every > 0 and updates // checkpoint_every > saved_at // checkpoint_every
-                if report.updates and due:
+                rested = time.perf_counter() - last_save >= options.min_seconds_between_saves
+                if report.updates and due and rested:
                     service.save(window.summary())
-                    saved_at = updates
+                    saved_at, last_save = updates, time.perf_counter()
             stopped = stopped or stop.stop
             cycles_ended = time.perf_counter()
             if updates != saved_at:

@@ -146,6 +146,26 @@ def test_insertion_waits_for_episodes_fills_free_slots_then_replaces_only_a_stri
     assert not bool(state.staging.staged[:4].any())
 
 
+def test_levels_move_with_their_ids_when_one_update_fills_a_slot_twice(learnability_plr):
+    """One update in which 11 and 12 fill the two free slots, 13 then replaces the lowest (12) and a last row
+    re-scores 13 where it now is: each buffered level is the whole staged level of its id (the levels are copied
+    once, after the rows, from the last candidate accepted into each slot)."""
+    config, update = learnability_plr
+    state = _stage(make_state(config), [11, 12, 13])
+    marks = jnp.arange(state.staging.levels.densities.shape[0], dtype=jnp.float32)[:, None] + 100.0
+    staging = state.staging
+    state = state._replace(staging=staging._replace(levels=staging.levels.replace(
+        densities=jnp.broadcast_to(marks, staging.levels.densities.shape))))
+    state = update(state, _results(8, [11, 12, 13, 13], [2, 2, 2, 2], [1, 0, 1, 1]))
+    words = np.asarray(state.buffer.levels.level_id)[:, 1]
+    assert sorted(words.tolist()) == [11, 13] and int(state.counters.evicted) == 1
+    for slot, level_id in enumerate(words):
+        staged_slot = [11, 12, 13].index(int(level_id))
+        assert np.all(np.asarray(state.buffer.levels.densities[slot]) == 100.0 + staged_slot), (slot, level_id)
+    thirteen = int(np.flatnonzero(words == 13)[0])
+    assert float(state.buffer.episodes[thirteen]) == pytest.approx(4.0), "the last row re-scored 13 in its slot"
+
+
 def test_results_for_buffered_levels_rescore_in_place_and_unknown_ids_are_counted(learnability_plr):
     config, update = learnability_plr
     state = make_state(config, scores=[0.0, 0.0])

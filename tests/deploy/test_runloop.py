@@ -99,3 +99,12 @@ def test_a_resumed_run_reports_the_rate_of_its_own_steps() -> None:
     summary = run_loop(resumed, LoopOptions(progress=ProgressLine(100_000, io.StringIO())))
     assert summary.env_steps == 10 * 1004 and summary.steps_here == 40
     assert summary.steps_per_s == 40 / summary.seconds
+
+
+def test_saves_falling_due_too_soon_after_the_last_wait_and_the_last_save_never_does() -> None:
+    """With a rest between saves longer than the run, the cadence saves once (its first due save) and the loop
+    saves once more when it ends."""
+    service = CountingService(updates=6)
+    run_loop(service, LoopOptions(checkpoint_every=1, min_seconds_between_saves=3600.0,
+                                  progress=ProgressLine(1000, stream=io.StringIO())))
+    assert service.saved_at == [1, 6]
