@@ -36,7 +36,9 @@ Corrupt checkpoints. When the newest checkpoint is asked for (`step=None`, as ev
 corrupt, a warning names its step, the item and the error, its directory is moved (never deleted) to
 `<checkpoint directory>-corrupt/<step>` (`<step>-2`, ... if that exists), and the next newest is tried, until one
 restores; `Restored.step` says which. So a damaged newest checkpoint costs the updates since the one before, and
-a restarted service never crashes on the same files twice. If none restores, `CheckpointError` lists each step
+a restarted service never crashes on the same files twice. A process reading a run it does not own (`impulse
+eval`, export, `--init-from`, a shipped agent loaded to play: `restore(..., set_aside=False)`) only skips a
+corrupt checkpoint and leaves it where it is. If none restores, `CheckpointError` lists each step
 tried, its item and the problem; they have all been moved aside, and a learner or `impulse train --resume`
 started after that refuses to start over while they are there (`nothing_usable` says where they are), while the
 curriculum service starts with an empty buffer and says so. A checkpoint asked for by step
@@ -216,17 +218,19 @@ class Checkpointer:
         step = self._existing_step(step)
         return set(self._present(step)) & set(ARRAY_ITEMS)
 
-    def restore(self, templates: Templates, step: int | None = None) -> Restored:
+    def restore(self, templates: Templates, step: int | None = None, set_aside: bool = True) -> Restored:
         """Checkpoint `step`, or by default the newest one that is intact: only the array items named in
         `templates` are read, each shaped like its template. Newer corrupt checkpoints are moved aside on the way
-        (see the module docstring). Raises `CheckpointError` if the checkpoint does not fit the templates or none
-        is usable, `CorruptCheckpointError` if the explicitly asked `step` is corrupt."""
+        (see the module docstring), or only skipped with `set_aside=False`: what a reader of a run it does not own
+        passes (an evaluation, an export, a shipped agent loaded to play), so that it never moves another
+        process's files. Raises `CheckpointError` if the checkpoint does not fit the templates or none is usable,
+        `CorruptCheckpointError` if the explicitly asked `step` is corrupt."""
         self.wait()  # a save still being written is not on disk yet
         self._reads_abandoned = False
         with _quiet_abandoned_reads(lambda: self._reads_abandoned):
-            return self._restore(templates, step)
+            return self._restore(templates, step, set_aside)
 
-    def _restore(self, templates: Templates, step: int | None) -> Restored:
+    def _restore(self, templates: Templates, step: int | None, set_aside: bool) -> Restored:
         if step is not None:
             self._existing_step(step)
             try:
@@ -244,14 +248,20 @@ class Checkpointer:
             try:
                 restored = self._restore_step(candidate, templates)
             except CorruptCheckpointError as err:
+                if not set_aside:
+                    log.warning("checkpoint %d is corrupt: %s; left in place, trying the next newest", candidate,
+                                err.detail)
+                    failures.append(f"checkpoint {candidate}: {err.detail}; left in place")
+                    continue
                 moved = self._move_aside(candidate)
                 log.warning("checkpoint %d is corrupt: %s; moved it to %s and trying the next newest", candidate,
                             err.detail, moved)
                 failures.append(f"checkpoint {candidate}: {err.detail}; moved to {moved}")
                 continue
             if failures:
+                kept = self.corrupt_directory if set_aside else self.directory
                 log.warning("restored checkpoint %d: the %d newer one(s) were corrupt and are kept in %s", candidate,
-                            len(failures), self.corrupt_directory)
+                            len(failures), kept)
             return restored
         raise CheckpointError(f"no usable checkpoint in {self.directory}: every one is corrupt:\n  "
                               + "\n  ".join(failures))

@@ -260,13 +260,14 @@ def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams,
 def restore_policy(config: TrainingSetup, run_dir: Path, step: int | None = None,
                    trainer: FusedTrainer | None = None, train_levels: Level | None = None) -> Restored:
     """The `train` item (the policy) of a run's checkpoint, newest intact unless `step`, whichever mode wrote it;
-    `trainer` and `train_levels` from `build(config)` when the caller has them already."""
+    `trainer` and `train_levels` from `build(config)` when the caller has them already. A reader: a corrupt newer
+    checkpoint is skipped and left where it is (the run, or the shipped agent, is not this process's to change)."""
     if trainer is None:
         trainer, _, _, train_levels = build(config)
     template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         try:
-            return checkpoints.restore({TRAIN: template}, step)
+            return checkpoints.restore({TRAIN: template}, step, set_aside=False)
         except CheckpointError as err:
             raise RunError(str(err)) from err
 

@@ -123,6 +123,23 @@ def test_a_corrupt_newest_checkpoint_is_moved_aside_and_the_previous_one_restore
     assert "checkpoint 3 is corrupt: " + phrase in warning and str(moved) in warning
 
 
+def test_a_reader_skips_a_corrupt_newest_checkpoint_and_leaves_it_in_place(tmp_path, caplog):
+    """`set_aside=False` (evaluation, export, a shipped agent loaded to play): the previous checkpoint is restored
+    and the corrupt one stays where it was, every file, with no `-corrupt` folder made."""
+    directory = tmp_path / "checkpoints"
+    write_steps(directory)
+    truncate_data_file(directory / "3")
+    damaged = snapshot(directory / "3")
+    caplog.set_level(logging.WARNING, logger="impulse.learner.checkpoint")
+    with Checkpointer(directory) as checkpoints:
+        restored = checkpoints.restore({"train": TEMPLATE}, set_aside=False)
+        assert restored.step == 2 and restored.counters == {"update": 2}
+        assert checkpoints.all_steps() == [1, 2, 3]
+    assert snapshot(directory / "3") == damaged and not (tmp_path / "checkpoints-corrupt").exists()
+    assert any("checkpoint 3 is corrupt" in r.getMessage() and "left in place" in r.getMessage()
+               for r in caplog.records)
+
+
 def test_every_checkpoint_corrupt_is_an_error_that_names_the_directory_and_each_problem(tmp_path):
     directory = tmp_path / "checkpoints"
     write_steps(directory)
