@@ -82,6 +82,14 @@ class Settings:
                 f"run_dir={run_dir}", f"name={run_dir.name}", *self.overrides]
 
 
+def update_steps(overrides: tuple[str, ...]) -> int:
+    """Env steps of one update of every run: QUICK's sizes, or the overrides' (a GPU run sets its own)."""
+    from impulse.deploy.config import resolve_config
+    from impulse.deploy.run_config import RunConfig
+
+    return resolve_config(RunConfig, None, [*QUICK, *overrides]).ppo.steps_per_update
+
+
 def command(mode: str, seed: int, run_dir: Path, settings: Settings) -> list[str]:
     """The command line of one run."""
     cli = [sys.executable, "-m", "impulse.deploy.cli"]
@@ -263,10 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(the shared/ folder beside the checkout, or $IMPULSE_KINETIX_LEVELS)")
     settings = Settings(tuple(args.modes), tuple(args.seeds), args.curriculum, args.env_steps, args.eval_every,
                         args.attempts, args.actors, tuple(args.overrides), args.timeout)
-    steps_per_update = 64 * 64
-    for override in settings.overrides:
-        if override.startswith(("ppo.num_envs=", "ppo.num_steps=")):
-            raise SystemExit("the benchmark's curves assume 64 envs x 64 steps per update; change QUICK instead")
+    steps_per_update = update_steps(settings.overrides)
     emit({"record": "config", **environment(), "settings": dataclasses.asdict(settings) | {"quick": QUICK},
           "steps_per_update": steps_per_update, "commit": _commit(),
           "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")})

@@ -5,6 +5,7 @@
 #     bash tools/gpu_calls.sh 1     # carry [".device"], timeout_s 560: engine, env, S training  (~7 min)
 #     bash tools/gpu_calls.sh 2     # at once, on the warm machine, timeout_s 320: distributed, fused kernel
 #     bash tools/gpu_calls.sh general   # carry [".device"], timeout_s 590: train the general S agent (issue 26)
+#     bash tools/gpu_calls.sh learning  # carry [".device"], timeout_s 590: distributed against fused (issue 26)
 #
 # `general` trains configs/general-s-gpu.toml for GENERAL_SECONDS (default 390; SIGINT then checkpoints), exports
 # the last checkpoint to $OUT/general-s and scores it on Kinetix S, our hand-made S and Kinetix M. The run's
@@ -62,6 +63,14 @@ elif [ "$part" = general ]; then
     echo "== [$(( $(date +%s) - started ))s] eval kinetix:m" >&2
     timeout 70 python3 -m impulse.deploy.cli eval --checkpoint /tmp/general-s-export --levels kinetix:m --attempts 20 \
         --seed 0 --json "$OUT/eval-m.json" env.size=m >&2
+elif [ "$part" = learning ]; then
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >&2
+    # shellcheck disable=SC2086 # SEEDS is a list of words
+    bench 570 learning --seeds ${SEEDS:-0} --env-steps "${LEARNING_STEPS:-13107200}" --eval-every 25 --attempts 20 \
+        --timeout 270 --set network.width=128 --set network.depth=5 --set ppo.num_envs=2048 \
+        --set ppo.num_minibatches=32 --set ppo.update_epochs=8 --set ppo.learning_rate=1e-4 \
+        --set curriculum.sfl_scoring=batch --set curriculum.sfl_candidates=8192 --set curriculum.sfl_attempts=4 \
+        --set curriculum.sfl_refresh_updates=32 --set curriculum.buffer_size=1024 --set bus.shm_pool_mib=512
 else
     bench 185 distributed --parts runs --size s --kinetix-settings --set network.width=128 --set network.depth=5 \
         --set bus.shm_pool_mib=512 --actors 1 2 --updates 12 --skip 3 --no-fused-after --timeout 150

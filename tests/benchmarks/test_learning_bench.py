@@ -14,6 +14,7 @@ from impulse.benchmarks.learning import (
     curve,
     run_health,
     summarise,
+    update_steps,
 )
 
 
@@ -66,3 +67,10 @@ def test_both_modes_get_the_same_task_and_their_own_evaluation() -> None:
     assert shared and all(a in distributed for a in shared), shared
     assert "eval.every_updates=4" in fused and "evaluator.every_updates=4" in distributed
     assert "actors.num_actors=2" in distributed and "ppo.ent_coef=0.02" in distributed
+
+
+def test_an_update_is_as_large_as_the_overrides_make_it() -> None:
+    """Curves place points at policy version x update size: the CPU preset's 64 x 64, or what a GPU run sets."""
+    assert update_steps(()) == 64 * 64
+    assert update_steps(("ppo.num_envs=2048",)) == 2048 * 64
+
