@@ -194,6 +194,11 @@ def ahead_delta(before: dict[str, Any], after: dict[str, Any]) -> dict[str, Any]
             "unfiltered_batches": new["unfiltered"] - old.get("unfiltered", 0)}
 
 
+def percentile_ms(latencies_ms: np.ndarray, q: float) -> float | None:
+    """The q-th percentile of latencies in milliseconds, to 0.1 ms; None when there are none."""
+    return round(float(np.percentile(latencies_ms, q)), 1) if latencies_ms.size else None
+
+
 def measure(hub: str, service_pid: int, actors: int, processes: int, batch: int, period_s: float,
             seconds: float, results: bool) -> dict[str, Any]:
     got, memory = play_fleet(play_actors, lambda share: (hub, share, batch, period_s, seconds, results),
@@ -208,9 +213,9 @@ def measure(hub: str, service_pid: int, actors: int, processes: int, batch: int,
         "offered_per_s": round(actors / period_s, 1),
         "answered_per_s": round(latencies.size / seconds, 1),
         "unanswered": int(unanswered),
-        "latency_p50_ms": round(float(np.percentile(latencies, 50)), 1) if latencies.size else None,
-        "latency_p90_ms": round(float(np.percentile(latencies, 90)), 1) if latencies.size else None,
-        "latency_p99_ms": round(float(np.percentile(latencies, 99)), 1) if latencies.size else None,
+        "latency_p50_ms": percentile_ms(latencies, 50),
+        "latency_p90_ms": percentile_ms(latencies, 90),
+        "latency_p99_ms": percentile_ms(latencies, 99),
         "latency_max_ms": round(float(latencies.max()), 1) if latencies.size else None,
         "service_rss_mib_max": round(max(m["rss"] for m in memory), 1),
         "cpus": os.cpu_count(),
@@ -425,9 +430,6 @@ def measure_learner(hub: str, learner_pid: int, actors: int, processes: int, bat
     latencies = np.asarray([lat for got in results for lat in got.ack_latencies]) * 1000
     outstanding = np.asarray([n for got in results for n in got.outstanding])
 
-    def percentile(q: float) -> float | None:
-        return round(float(np.percentile(latencies, q)), 1) if latencies.size else None
-
     return {
         "actors": actors,
         "fleet_processes": len(results),
@@ -437,8 +439,8 @@ def measure_learner(hub: str, learner_pid: int, actors: int, processes: int, bat
         "sent_frames_per_s": round(sum(got.sent for got in results) / seconds, 1),
         "acked_frames_per_s": round(sum(got.acked for got in results) / seconds, 1),
         "skipped_no_credit": sum(got.skipped for got in results),
-        "publish_to_ack_p50_ms": percentile(50),
-        "publish_to_ack_p99_ms": percentile(99),
+        "publish_to_ack_p50_ms": percentile_ms(latencies, 50),
+        "publish_to_ack_p99_ms": percentile_ms(latencies, 99),
         "credits_outstanding_mean": round(float(outstanding.mean()), 2) if outstanding.size else None,
         **{f"learner_{part}_mib_max": round(max(m[part] for m in memory), 1)
            for part in ("rss", "private", "shared")},
