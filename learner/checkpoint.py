@@ -248,15 +248,9 @@ class Checkpointer:
             try:
                 restored = self._restore_step(candidate, templates)
             except CorruptCheckpointError as err:
-                if not set_aside:
-                    log.warning("checkpoint %d is corrupt: %s; left in place, trying the next newest", candidate,
-                                err.detail)
-                    failures.append(f"checkpoint {candidate}: {err.detail}; left in place")
-                    continue
-                moved = self._move_aside(candidate)
-                log.warning("checkpoint %d is corrupt: %s; moved it to %s and trying the next newest", candidate,
-                            err.detail, moved)
-                failures.append(f"checkpoint {candidate}: {err.detail}; moved to {moved}")
+                fate = f"moved to {self._move_aside(candidate)}" if set_aside else "left in place"
+                log.warning("checkpoint %d is corrupt: %s; %s, trying the next newest", candidate, err.detail, fate)
+                failures.append(f"checkpoint {candidate}: {err.detail}; {fate}")
                 continue
             if failures:
                 kept = self.corrupt_directory if set_aside else self.directory
