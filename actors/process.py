@@ -55,8 +55,8 @@ from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_bat
 from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
-from impulse.bus.keys import ACTOR
 from impulse.bus.levels import encode_level_batch, encode_level_results
+from impulse.bus.roles import ACTOR_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
@@ -75,7 +75,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("impulse.actor")
 
-ACTOR_ROLE = ACTOR
 PLAYED_LEVELS_EVERY_S = 10.0
 """An unchanged level batch (a fixed level set) is published again this often while a recorder listens, so that
 a recorder started later hears it too."""
@@ -276,7 +275,7 @@ class Actor:
     def status(self) -> dict[str, Any]:
         elapsed = time.monotonic() - self._started
         return {
-            "role": ACTOR_ROLE,
+            "role": ACTOR_ROLE.name,
             "name": self.name,
             "incarnation": self.incarnation,
             "steps_per_s": self._steps_done / elapsed if elapsed > 0 else 0.0,

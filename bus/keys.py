@@ -44,13 +44,10 @@ LEARNER = "learner"
 CURRICULUM = "curriculum"
 ACTOR = "actor"
 EVALUATOR = "evaluator"
-RECORDER = "recorder"
 OPERATOR = "operator"
-ROLES = (LEARNER, CURRICULUM, ACTOR, EVALUATOR, RECORDER, OPERATOR)
-"""The roles of a run's processes (the `<role>` chunk of their keys); the evaluator follows the learner's weights
-and scores them on level sets; the recorder writes the actors' episodes to a dataset; the operator is any
-command-line tool, the launcher or a watcher. Across machines each role has credentials of its own
-(`bus.router`)."""
+"""The `<role>` chunks of the roles whose messages this module names keys for; the operator is any command-line
+tool, the launcher or a watcher. What each role may ask and hear, and the roles added beside them, are
+`bus.roles`; across machines each role has credentials of its own (`bus.router`)."""
 
 STATUS = "status"
 ALIVE = "alive"
@@ -76,11 +73,9 @@ def check_name(name: str, what: str) -> str:
 
 
 def check_role(role: str) -> str:
-    """Return `role` if it is one of ROLES, else raise ValueError: a key under any other prefix would be refused
-    by a router with access control."""
-    if role not in ROLES:
-        raise ValueError(f"role {role!r} is not one of {', '.join(ROLES)}")
-    return role
+    """Return `role` if it can be the `<role>` chunk of a key, else raise ValueError. Which roles a router lets
+    publish is its access control's business (`bus.roles`), not this module's."""
+    return check_name(role, "role")
 
 
 @dataclass(frozen=True)
@@ -208,6 +203,6 @@ class Keys:
     def _parse(self, key: str, topic: str, what: str) -> tuple[str, str]:
         rest = key[len(self.root) + 1 :] if key.startswith(self.root + "/") else ""
         parts = rest.split("/")
-        if len(parts) != 3 or parts[0] not in ROLES or parts[1] != topic or not parts[2]:
+        if len(parts) != 3 or not parts[0] or parts[1] != topic or not parts[2]:
             raise ValueError(f"{key!r} is not a {what} key of run {self.run!r} ({self.root}/<role>/{topic}/<id>)")
         return parts[0], parts[2]

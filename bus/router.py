@@ -13,15 +13,16 @@ Security material lives in one credentials directory (made for trials by deploy/
 - `users.txt`: the router's `role:password` dictionary;
 - `router.password`: what a router presents when it links to another (`router.connect`), the user being `router`.
 
-A host holds only the files of the roles it runs. The roles are `bus.keys.ROLES`: `learner`, `curriculum`,
-`actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect|inject`, status watchers).
+A host holds only the files of the roles it runs. The roles are `bus.roles.Role`s: the protocol's `learner`,
+`curriculum`, `actor`, and `operator` for the command-line tools (`impulse curriculum get|set|inspect|inject`,
+status watchers), and the roles added beside them (`impulse router` lists them all with `--roles`).
 
 With access control on, the router denies by default and allows each role only its part of the protocol
 (`access_rules`): each role publishes only under its own key prefix (`bus.keys`), so only the learner can publish
 weights, credits and the learner's status, only the curriculum can answer level and knob queries, only actors can
 publish trajectories and level results, and only operators (and actors, for levels) may ask the curriculum;
-trajectories reach only the learner. Receivers tell who sent a message by the key it arrived on, which is what the
-router guarantees; a frame carries no sender name (docs/multi-host.md, "Threat model").
+trajectories reach only the learner and the recorder. Receivers tell who sent a message by the key it arrived on,
+which is what the router guarantees; a frame carries no sender name (docs/multi-host.md, "Threat model").
 
 Routers linked to each other (one per host, `router.connect`) trust each other: a router is recognised by its
 certificate (common name `router`; a router sees the certificate of one it connects to but not its user name, so
@@ -36,24 +37,15 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import zenoh
 from impulse.bus.config import RouterConfig, is_loopback
-from impulse.bus.keys import (
-    ACTOR,
-    CURRICULUM,
-    EVALUATOR,
-    LEARNER,
-    OPERATOR,
-    PREFIX,
-    RECORDER,
-    ROLES,
-    SCHEMA_MAJOR,
-)
+from impulse.bus.keys import LEARNER, PREFIX, SCHEMA_MAJOR
+from impulse.bus.roles import WEIGHTS_CACHE, Role
 
 log = logging.getLogger("impulse.router")
 
@@ -95,12 +87,10 @@ class Security:
 
 def client_security(credentials: str, role: str) -> dict[str, Any]:
     """Zenoh settings for a client process of `role`: TLS trust (and its certificate when one is there) and its
-    user/password when a password file is there. Roles other than ROLES (the launcher, command-line tools) use
-    the operator's. Raises CredentialsError when the directory has neither."""
+    user/password when a password file is there. Raises CredentialsError when the directory has neither."""
     security = Security.find(credentials)
     if security is None:
         return {}
-    role = role if role in ROLES else OPERATOR
     settings: dict[str, Any] = {}
     if security.tls:
         tls: dict[str, Any] = {"root_ca_certificate": security.file(CA_FILE)}
@@ -121,25 +111,30 @@ def _allow(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dic
     return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys}
 
 
-def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
+def access_rules(roles: Sequence[Role], by_certificate: bool, by_password: bool) -> dict[str, Any]:
     """Zenoh access control for the router: deny by default, then each role's part of the protocol.
 
     Each role may publish (put, reply, declare a queryable or a liveliness token) only under its own prefix
-    `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. `ingress` rules
-    say what a role may send into the router, `egress` what the router may deliver to it: trajectories reach only
-    the learner and the recorder (which also hears the levels the actors play), level results only the curriculum,
-    the learner's weights, credits and status reach actors (and
-    its weights and status the evaluator, whose evaluations reach the learner, and the curriculum service, which
-    scores candidate levels with them in batch-scored SFL), and every process may hear status lines. Keys cover
-    every run; the advanced publisher's cache for late joiners lives under `learner/weights/policy/@adv/**`,
-    which `**` does not match (`@` chunks match only themselves), hence its own keys.
+    `impulse/*/v2/<role>/**` (`bus.keys`), so a receiver can tell who sent a message from its key. Beyond that a
+    role may query what its `Role.asks` names (ingress), and the router delivers to it the puts its `Role.hears`
+    names, every status line, and, for a role that `answers`, the puts and queries under its own prefix (egress).
+    With the protocol's roles (`bus.roles`) that means: trajectories reach only the learner (and a recorder, if
+    one is declared), level results only the curriculum, the learner's weights, credits and status its
+    followers, and only operators may ask the curriculum's knobs. Keys cover every run; the learner's prefix
+    also covers the weights cache for late joiners (`bus.roles.WEIGHTS_CACHE`). Raises ValueError when two roles
+    share a name or one is named like a router.
     """
+    names = [role.name for role in roles]
+    if len(set(names)) != len(names) or ROUTER_ROLE in names:
+        raise ValueError(f"roles must have distinct names other than {ROUTER_ROLE!r}, got {', '.join(names)}")
     run = f"{PREFIX}/*/v{SCHEMA_MAJOR}"
-    weights_cache = f"{run}/{LEARNER}/weights/policy/@adv/**"
-    everything = [f"{PREFIX}/**", weights_cache]
+    everything = [f"{PREFIX}/**", f"{run}/{WEIGHTS_CACHE}"]
 
-    def own(role: str) -> list[str]:
-        return [f"{run}/{role}/**", *([weights_cache] if role == LEARNER else [])]
+    def under_run(patterns: Sequence[str]) -> list[str]:
+        return [f"{run}/{pattern}" for pattern in patterns]
+
+    def own(role: Role) -> list[str]:
+        return under_run([f"{role.name}/**", *([WEIGHTS_CACHE] if role.name == LEARNER else [])])
 
     listening = ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"]
     publishing = ["put", "reply", "declare_queryable", "liveliness_token"]
@@ -148,42 +143,27 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
         _allow("hear-declarations", "egress", [*listening, "declare_queryable", "liveliness_token", "reply"],
                everything),
         _allow("hear-statuses", "egress", ["put"], [f"{run}/*/status/*"]),
-        *(_allow(f"{role}-publishes", "ingress", publishing, own(role)) for role in ROLES),
-        _allow("learner-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/traj/*", f"{run}/{EVALUATOR}/results/*",
-                                                             *own(LEARNER)]),
-        _allow("actor-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache,
-                                                    f"{run}/{CURRICULUM}/levels/sample"]),
-        _allow("actor-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
-        _allow("evaluator-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
-        _allow("evaluator-hears", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
-        _allow("recorder-hears", "egress", ["put"], [f"{run}/{ACTOR}/traj/*", f"{run}/{ACTOR}/played/*",
-                                                     f"{run}/{LEARNER}/**"]),
-        _allow("curriculum-asks", "ingress", ["query"], [f"{run}/{LEARNER}/weights/**", weights_cache]),
-        _allow("curriculum-hears", "egress", ["put", "query"], [f"{run}/{ACTOR}/results/*", *own(CURRICULUM)]),
-        _allow("curriculum-hears-learner", "egress", ["put"], [f"{run}/{LEARNER}/**"]),
-        _allow("operator-asks", "ingress", ["query"], [f"{run}/{CURRICULUM}/knobs", f"{run}/{CURRICULUM}/inspect",
-                                                       f"{run}/{CURRICULUM}/inject"]),
         _allow("router-passes-in", "ingress", ALL_MESSAGES, everything),
         _allow("router-passes-out", "egress", ALL_MESSAGES, everything),
     ]
-    own_rules = {
-        LEARNER: ["learner-hears"],
-        CURRICULUM: ["curriculum-asks", "curriculum-hears", "curriculum-hears-learner"],
-        ACTOR: ["actor-asks", "actor-hears"],
-        EVALUATOR: ["evaluator-asks", "evaluator-hears"],
-        RECORDER: ["recorder-hears"],
-        OPERATOR: ["operator-asks"],
-    }
     subjects, policies = [], []
-    for role in ROLES:
-        subject: dict[str, Any] = {"id": role}
+    for role in roles:
+        own_rules = [_allow(f"{role.name}-publishes", "ingress", publishing, own(role))]
+        if role.asks:
+            own_rules.append(_allow(f"{role.name}-asks", "ingress", ["query"], under_run(role.asks)))
+        if role.hears:
+            own_rules.append(_allow(f"{role.name}-hears", "egress", ["put"], under_run(role.hears)))
+        if role.answers:
+            own_rules.append(_allow(f"{role.name}-answers", "egress", ["put", "query"], own(role)))
+        rules.extend(own_rules)
+        subject: dict[str, Any] = {"id": role.name}
         if by_certificate:
-            subject["cert_common_names"] = [role]
+            subject["cert_common_names"] = [role.name]
         if by_password:
-            subject["usernames"] = [role]
+            subject["usernames"] = [role.name]
         subjects.append(subject)
-        policies.append({"id": role, "subjects": [role], "rules": ["listen", "hear-declarations", "hear-statuses",
-                                                                   f"{role}-publishes", *own_rules[role]]})
+        policies.append({"id": role.name, "subjects": [role.name],
+                         "rules": ["listen", "hear-declarations", "hear-statuses", *(r["id"] for r in own_rules)]})
     if by_certificate:
         # By certificate alone: a router sees the certificate of a router it connects to, but not its user name.
         subjects.append({"id": ROUTER_ROLE, "cert_common_names": [ROUTER_ROLE]})
@@ -193,9 +173,9 @@ def access_rules(by_certificate: bool, by_password: bool) -> dict[str, Any]:
             "policies": policies}
 
 
-def router_zenoh_config(config: RouterConfig, lease_ms: int = 3000) -> zenoh.Config:
-    """The zenoh configuration of a router: its endpoints, TLS, user/password dictionary and access control.
-    Raises CredentialsError for missing files or access control without any way to tell roles apart."""
+def router_zenoh_config(config: RouterConfig, roles: Sequence[Role], lease_ms: int = 3000) -> zenoh.Config:
+    """The zenoh configuration of a router: its endpoints, TLS, user/password dictionary and access control for
+    `roles`. Raises CredentialsError for missing files or access control without any way to tell roles apart."""
     settings: dict[str, Any] = {
         "mode": "router",
         "scouting/multicast/enabled": False,
@@ -233,7 +213,7 @@ def router_zenoh_config(config: RouterConfig, lease_ms: int = 3000) -> zenoh.Con
         if config.connect and not by_certificate:
             raise CredentialsError("router.connect with access control needs mutual TLS (ca.pem, router.pem/.key "
                                    "and router.mutual_tls): linked routers recognise each other by certificate")
-        settings["access_control"] = access_rules(by_certificate, by_password)
+        settings["access_control"] = access_rules(roles, by_certificate, by_password)
     conf = zenoh.Config()
     for key, value in settings.items():
         conf.insert_json5(key, json.dumps(value))
@@ -253,11 +233,11 @@ def open_listeners_warning(config: RouterConfig) -> str | None:
             "makes trial ones) or listen on loopback only")
 
 
-def run_router(config: RouterConfig, stop: threading.Event | Callable[[], bool], poll_s: float = 0.1,
-               lease_ms: int = 3000) -> None:
-    """Keep a router open until `stop` is set (an Event) or returns True (a callable)."""
+def run_router(config: RouterConfig, roles: Sequence[Role], stop: threading.Event | Callable[[], bool],
+               poll_s: float = 0.1, lease_ms: int = 3000) -> None:
+    """Keep a router for a run of `roles` open until `stop` is set (an Event) or returns True (a callable)."""
     stopped = stop.is_set if isinstance(stop, threading.Event) else stop
-    session = zenoh.open(router_zenoh_config(config, lease_ms))
+    session = zenoh.open(router_zenoh_config(config, roles, lease_ms))
     try:
         log.info("router %s listening on %s%s", session.info.zid(), ", ".join(config.listen),
                  f", linked to {', '.join(config.connect)}" if config.connect else "")

@@ -90,8 +90,9 @@ def zenoh_config(config: BusConfig, *, listen: bool, role: str = "") -> zenoh.Co
 class Bus:
     """One process's zenoh session, its liveliness token, and every entity declared through it.
 
-    `role` is one of `bus.keys.ROLES` (the launcher, command-line tools and watchers are operators); the process
-    publishes under that role's prefix and, across machines, presents that role's credentials.
+    `role` is the name of one of the run's roles (`bus.roles`; the launcher, command-line tools and watchers are
+    operators); the process publishes under that role's prefix and, across machines, presents that role's
+    credentials.
 
     `close()` (or leaving the `with` block) undeclares them all, advanced subscribers first, then closes the
     session; a session left open keeps the process from exiting.

@@ -50,6 +50,7 @@ from impulse.bus.control import control_reply, encode_refusal, encode_report
 from impulse.bus.inbox import IncomingQuery
 from impulse.bus.keys import CURRICULUM
 from impulse.bus.levels import decode_level_results, encode_level_batch
+from impulse.bus.roles import CURRICULUM_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
@@ -72,7 +73,6 @@ from impulse.engine.pytree import tree_arrays
 
 log = logging.getLogger(__name__)
 
-CURRICULUM_ROLE = CURRICULUM
 CURRICULUM_ID = CURRICULUM
 RESULTS_PER_ROUND = 8
 """Result messages applied between two looks at the level requests (a few `update` calls: one actor's message
@@ -469,7 +469,7 @@ class CurriculumService:
         """The status line: counts and the buffer statistics (`curriculum.stats.buffer_summary`), which is how the
         service publishes them for monitoring."""
         summary = buffer_summary(self.state, self.curriculum.spec.sizes, self.policy_version)
-        return {"role": CURRICULUM_ROLE, "name": CURRICULUM_ROLE, "incarnation": self.incarnation,
+        return {"role": CURRICULUM_ROLE.name, "name": CURRICULUM_ID, "incarnation": self.incarnation,
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
                 **({"refills": self.refills, "scoring": self._scoring is not None,

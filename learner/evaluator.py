@@ -31,7 +31,6 @@ from impulse.learner.scoring import LevelSets, Scored, evaluation_columns, score
 
 log = logging.getLogger("impulse.evaluator")
 
-EVALUATOR_ROLE = EVALUATOR
 EVALUATOR_ID = EVALUATOR
 
 
@@ -90,7 +89,7 @@ class EvaluatorService:
     def status(self) -> dict[str, Any]:
         latest = self.latest
         return {
-            "role": EVALUATOR_ROLE,
+            "role": self.bus.role,
             "name": EVALUATOR_ID,
             "policy_version": self.follow.version,
             "scored_version": None if self.scored_at is None else self.scored_at[1],

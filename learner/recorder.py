@@ -32,7 +32,6 @@ from impulse.actors.follow import LearnerPresence
 from impulse.actors.trajectory import TrajectoryBatch
 from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
-from impulse.bus.keys import RECORDER
 from impulse.bus.levels import decode_level_batch
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
@@ -47,8 +46,7 @@ from impulse.learner.dataset import DatasetWriter, Episode
 
 log = logging.getLogger("impulse.recorder")
 
-RECORDER_ROLE = RECORDER
-RECORDER_ID = RECORDER
+RECORDER_ID = "recorder"
 LEVELS_KEPT = 4096
 """Levels kept by id for the episodes still to come (the newest heard)."""
 MAX_LEVELS_PER_BATCH = 65536
@@ -222,7 +220,7 @@ class RecorderService:
     def status(self) -> dict[str, Any]:
         writer = self.writer
         return {
-            "role": RECORDER_ROLE,
+            "role": self.bus.role,
             "name": self.ident,
             "path": str(writer.path),
             "pending_steps": writer.pending_steps,

@@ -52,6 +52,7 @@ from impulse.bus.codec import Message, Rejected
 from impulse.bus.credits import encode_credit
 from impulse.bus.evaluations import decode_evaluation
 from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
+from impulse.bus.roles import LEARNER_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
@@ -73,7 +74,6 @@ from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
 log = logging.getLogger("impulse.learner")
 
-LEARNER_ROLE = LEARNER
 LEARNER_ID = LEARNER
 ACK_REFRESH_S = 1.0
 """Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
@@ -451,7 +451,7 @@ class LearnerService:
     def status(self) -> dict[str, Any]:
         rate = self._rate()
         return {
-            "role": LEARNER_ROLE,
+            "role": LEARNER_ROLE.name,
             "name": self.group.name(LEARNER_ID),
             "host": f"{self.group.index}/{self.group.count}",
             "epoch": self.epoch,

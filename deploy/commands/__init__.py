@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from impulse.bus.roles import ACTOR_ROLE, CURRICULUM_ROLE, LEARNER_ROLE, OPERATOR_ROLE, Role
 from impulse.deploy.commands import (
     compare,
     config,
@@ -55,6 +56,9 @@ class Command:
     """The config dataclass it resolves from --config and key=value overrides; None if it takes none."""
     arguments: Callable[[argparse.ArgumentParser], None] | None = None
     """Adds the command's own options (beyond --config, --print-config and key=value overrides)."""
+    role: Role | None = None
+    """The role of the process the command runs, for a router's access control (`run_roles`); None for tools,
+    which are operators."""
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -99,6 +103,7 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=services.run_learner,
         arguments=services.add_learner_arguments,
+        role=LEARNER_ROLE,
     ),
     Command(
         "actor",
@@ -108,6 +113,7 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=services.run_actor,
         arguments=services.add_actor_arguments,
+        role=ACTOR_ROLE,
     ),
     Command(
         "evaluator",
@@ -119,6 +125,7 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=evaluator.run_evaluator,
         arguments=evaluator.add_evaluator_arguments,
+        role=evaluator.ROLE,
     ),
     Command(
         "recorder",
@@ -130,6 +137,7 @@ COMMANDS: tuple[Command, ...] = (
         config=RunConfig,
         run=recorder.run_recorder,
         arguments=recorder.add_recorder_arguments,
+        role=recorder.ROLE,
     ),
     Command(
         "curriculum",
@@ -141,6 +149,7 @@ COMMANDS: tuple[Command, ...] = (
         "prints them; `inspect` prints the buffer (histograms, top levels, lineage; --json, --render DIR).",
         run=curriculum.run,
         arguments=curriculum.add_arguments,
+        role=CURRICULUM_ROLE,
     ),
     Command(
         "router",
@@ -245,3 +254,9 @@ COMMANDS: tuple[Command, ...] = (
         arguments=view.add_view_arguments,
     ),
 )
+
+
+def run_roles() -> tuple[Role, ...]:
+    """Every role a run's processes may play: those of the commands that run a process, and the operator (the
+    launcher, command-line tools and watchers). What `impulse router` enforces and `--roles` lists."""
+    return (*(command.role for command in COMMANDS if command.role is not None), OPERATOR_ROLE)

@@ -268,9 +268,10 @@ def serve(args: argparse.Namespace) -> int:
     from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
     enable_compile_cache()
+    from impulse.bus.roles import CURRICULUM_ROLE
     from impulse.bus.session import Bus
     from impulse.curriculum.algorithms import Curriculum
-    from impulse.curriculum.service import CURRICULUM_ID, CURRICULUM_ROLE, CurriculumService
+    from impulse.curriculum.service import CURRICULUM_ID, CurriculumService
     from impulse.deploy.runtime.monitoring import CurriculumLogger, open_monitor
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
@@ -288,7 +289,7 @@ def serve(args: argparse.Namespace) -> int:
             raise ValueError(str(err)) from None
 
     with Checkpointer(checkpoint_dir, checkpoint_config) as checkpoints, \
-            Bus(config.bus, config.name, CURRICULUM_ROLE, CURRICULUM_ID) as bus, \
+            Bus(config.bus, config.name, CURRICULUM_ROLE.name, CURRICULUM_ID) as bus, \
             open_monitor(config) or nullcontext() as monitor:
         if args.resume and checkpoints.latest_step() is None and checkpoints.set_aside():
             log.warning("%s: the curriculum starts with an empty buffer", checkpoints.nothing_usable())

@@ -11,6 +11,8 @@ import sys
 from contextlib import nullcontext
 from pathlib import Path
 
+from impulse.bus.keys import EVALUATOR
+from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, Role
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
@@ -18,6 +20,10 @@ from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
 from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.service")
+
+ROLE = Role(EVALUATOR, asks=FOLLOWS_WEIGHTS, hears=LEARNER_BROADCASTS)
+"""What the evaluator may do on a router with access control: follow the learner's weights (its evaluations go
+under its own prefix, which the learner hears)."""
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -52,7 +58,7 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.levels.sets import LevelSetError
     from impulse.learner.agent import make_agent
-    from impulse.learner.evaluator import EVALUATOR_ID, EVALUATOR_ROLE, EvaluatorService
+    from impulse.learner.evaluator import EVALUATOR_ID, EvaluatorService
     from impulse.learner.scoring import load_level_sets
 
     spec, env_params = env_from_config(config.env)
@@ -62,7 +68,7 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
     except LevelSetError as err:
         print(f"impulse evaluator: evaluator.levels: {err}", file=sys.stderr)
         return EXIT_FAILED
-    with Bus(config.bus, config.name, EVALUATOR_ROLE, EVALUATOR_ID) as bus, \
+    with Bus(config.bus, config.name, ROLE.name, EVALUATOR_ID) as bus, \
             open_monitor(config) or nullcontext() as monitor:
         service = EvaluatorService(config.evaluator, seed=config.seed, status_every_s=config.actors.status_every_s,
                                    bus=bus, agent=agent, env_params=env_params, sets=sets)

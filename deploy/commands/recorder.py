@@ -10,10 +10,16 @@ import logging
 import sys
 from pathlib import Path
 
+from impulse.bus.keys import ACTOR
+from impulse.bus.roles import LEARNER_BROADCASTS, Role
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.service")
+
+ROLE = Role("recorder", hears=(f"{ACTOR}/traj/*", f"{ACTOR}/played/*", *LEARNER_BROADCASTS))
+"""What the recorder may do on a router with access control: hear the actors' trajectories and the levels they
+play, and the learner's presence; it publishes only its status."""
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
@@ -52,7 +58,7 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
     from impulse.learner.dataset import DatasetError, DatasetWriter
-    from impulse.learner.recorder import RECORDER_ID, RECORDER_ROLE, RecorderService
+    from impulse.learner.recorder import RECORDER_ID, RecorderService
     from impulse.learner.service import batch_template
 
     spec, env_params = env_from_config(config.env)
@@ -63,7 +69,7 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
     except (DatasetError, OSError) as err:
         print(f"impulse recorder: {err}", file=sys.stderr)
         return EXIT_FAILED
-    with Bus(config.bus, config.name, RECORDER_ROLE, RECORDER_ID) as bus:
+    with Bus(config.bus, config.name, ROLE.name, RECORDER_ID) as bus:
         service = RecorderService(config.recorder, bus=bus, writer=writer, template=template, sizes=spec.sizes,
                                   wire_compact=config.actors.wire_compact,
                                   status_every_s=config.actors.status_every_s)

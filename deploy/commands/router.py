@@ -24,11 +24,19 @@ EXIT_USAGE = 2
 def add_router_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--listen", action="append", metavar="ENDPOINT",
                         help="listen on ENDPOINT instead of router.listen (repeatable), e.g. tls/0.0.0.0:7447")
+    parser.add_argument("--roles", action="store_true",
+                        help="print the roles whose credentials the router's access control knows, one per line, "
+                        "and exit (what deploy/cluster/security/make-test-certs.sh makes credentials for)")
 
 
 def run_router_command(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.bus.router import CredentialsError, open_listeners_warning, run_router
+    from impulse.deploy.commands import run_roles
 
+    roles = run_roles()
+    if args.roles:
+        print("\n".join(role.name for role in roles))
+        return 0
     router = config.router
     if args.listen:
         try:
@@ -41,7 +49,7 @@ def run_router_command(args: argparse.Namespace, config: RunConfig) -> int:
         log.warning(warning)
     with StopFlag("stopping the router") as stop:
         try:
-            run_router(router, lambda: stop.stop, lease_ms=config.bus.lease_ms)
+            run_router(router, roles, lambda: stop.stop, lease_ms=config.bus.lease_ms)
         except CredentialsError as err:
             print(f"impulse router: {err}", file=sys.stderr)
             return EXIT_USAGE

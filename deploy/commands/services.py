@@ -85,13 +85,14 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     except HostsError as err:
         print(f"impulse learner: {err}", file=sys.stderr)
         return EXIT_USAGE
+    from impulse.bus.roles import LEARNER_ROLE
     from impulse.bus.session import Bus
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.memory import DoesNotFit
     from impulse.learner.agent import make_agent
     from impulse.learner.run import final_evaluation
-    from impulse.learner.service import LEARNER_ID, LEARNER_ROLE, LearnerError, LearnerService
+    from impulse.learner.service import LEARNER_ID, LearnerError, LearnerService
 
     # A new run made here (not a launcher's, not resumed) is taken back if it is refused before it trains.
     created = create_run_dir(run_dir) and args.run is None and not args.resume and group.is_leader
@@ -101,7 +102,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     agent = make_agent(config.network, spec)
     # The learner's other processes on several hosts write nothing of the run's: the leader does.
     leads = group.is_leader
-    with Bus(config.bus, config.name, LEARNER_ROLE, group.name(LEARNER_ID), listen=args.hub) as bus, \
+    with Bus(config.bus, config.name, LEARNER_ROLE.name, group.name(LEARNER_ID), listen=args.hub) as bus, \
             (open_monitor(config) if leads else None) or nullcontext() as monitor:
         try:
             service = LearnerService(
@@ -177,7 +178,8 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
             return EXIT_USAGE
     enable_compile_cache()
     from impulse.actors.levels import CurriculumLevels, LevelSource, LocalLevels
-    from impulse.actors.process import ACTOR_ROLE, Actor, actor_name
+    from impulse.actors.process import Actor, actor_name
+    from impulse.bus.roles import ACTOR_ROLE
     from impulse.bus.session import Bus
     from impulse.curriculum.wire import level_batch_template
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
@@ -189,7 +191,7 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    with Bus(config.bus, config.name, ACTOR_ROLE, actor_name(args.index)) as bus, \
+    with Bus(config.bus, config.name, ACTOR_ROLE.name, actor_name(args.index)) as bus, \
             open_monitor(config) or nullcontext() as monitor:
         levels: LevelSource
         if config.uses_curriculum_service:

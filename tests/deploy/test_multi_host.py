@@ -30,6 +30,7 @@ from impulse.bus.keys import Keys
 from impulse.bus.session import zenoh_config
 from impulse.bus.stamp import Stamp
 
+from tests.support.credentials import make_credentials
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, TINY_BATCH, StatusWatcher, free_port, tail, wait_for
 from tests.support.namespaces import Hosts, why_not
 
@@ -39,9 +40,6 @@ RUN = "multihost"
 FORGED_VERSION = 1_000_000
 PARTITION_S = 8.0
 """Longer than the bus lease (3 s): both sides declare the other gone before the link comes back."""
-
-CERT_SCRIPT = REPO / "deploy" / "cluster" / "security" / "make-test-certs.sh"
-
 
 @dataclass
 class Cluster:
@@ -101,15 +99,6 @@ class Cluster:
     def stop(self) -> None:
         for name in self.processes:
             self.kill(name)
-
-
-def make_credentials(directory: Path, *router_hosts: str) -> Path:
-    made = subprocess.run(["bash", str(CERT_SCRIPT), str(directory),
-                           *router_hosts], capture_output=True, text=True)
-    if made.returncode != 0 and "openssl" in made.stderr:
-        pytest.skip(f"openssl is needed to make test certificates: {made.stderr.strip()}")
-    assert made.returncode == 0, made.stderr
-    return directory
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,8 @@ import jax
 import jax.numpy as jnp
 import pytest
 from impulse.actors.levels import LocalLevels
-from impulse.actors.process import ACTOR_ROLE, Actor, actor_name
+from impulse.actors.process import Actor, actor_name
+from impulse.bus.roles import ACTOR_ROLE
 from impulse.bus.session import Bus
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
@@ -99,7 +100,7 @@ def test_an_actor_refuses_a_rollout_that_does_not_fit_and_compiles_it_only_once(
     counter = CompileCounter("actor_rollout")
     jax.monitoring.register_event_duration_secs_listener(counter)
     try:
-        with Bus(config.bus, "memory-test", ACTOR_ROLE, actor_name(0), listen=True) as bus:
+        with Bus(config.bus, "memory-test", ACTOR_ROLE.name, actor_name(0), listen=True) as bus:
 
             def new_actor() -> Actor:
                 return Actor(config.actors, num_envs=8, num_steps=8, seed=0, index=0, bus=bus, agent=agent,

@@ -6,6 +6,8 @@
 # so a copied directory cannot sign more; run the script again for new credentials.
 #
 # Usage: deploy/cluster/security/make-test-certs.sh DIR [ROUTER_HOST ...]
+#   The roles are those `impulse router --roles` lists, so run it where Impulse is installed (its virtualenv
+#   active), or say how to run Impulse in IMPULSE, e.g. IMPULSE=".venv/bin/python -m impulse.deploy.cli".
 #   DIR           where to write ca.pem, router.pem/.key/.password, users.txt and <role>.pem/.key/.password
 #                 (created)
 #   ROUTER_HOST   further names and addresses a router is reached by (localhost and 127.0.0.1 are always
@@ -22,7 +24,12 @@ hosts=(localhost 127.0.0.1)
 for host in "$@"; do
     [[ " ${hosts[*]} " == *" $host "* ]] || hosts+=("$host")
 done
-roles=(learner curriculum actor evaluator recorder operator)
+read -r -a impulse <<< "${IMPULSE:-impulse}"
+if ! role_list=$("${impulse[@]}" router --roles) || [[ -z $role_list ]]; then
+    echo "$0: '${impulse[*]} router --roles' did not list the roles: activate Impulse's virtualenv or set IMPULSE" >&2
+    exit 2
+fi
+mapfile -t roles <<< "$role_list"
 days=365
 mkdir -p "$dir"
 # Only this user may list or read the directory: it holds every role's private keys and passwords.
