@@ -111,8 +111,9 @@ class Actor:
     def __init__(self, actors: ActorConfig, *, num_envs: int, num_steps: int, seed: int, index: int, bus: Bus,
                  agent: ActingAgent, env_params: EnvParams, levels: LevelSource, level_results: LevelResultsFn,
                  env_steps_goal: int = 0, monitor: Monitor | None = None,
-                 monitor_config: MonitorConfig | None = None):
-        """`num_envs` x `num_steps` per batch (the run's `ppo` section); `seed`: the run's; `level_results`: how
+                 monitor_config: MonitorConfig | None = None, restart_envs: bool = False):
+        """`num_envs` x `num_steps` per batch, every environment restarted on each new level batch when
+        `restart_envs` (the run's `ppo` section); `seed`: the run's; `level_results`: how
         per-level results are computed from a batch (`learner.curriculum_inputs.batch_level_results` with the
         agent and the PPO settings); `env_steps_goal`: this actor's share of the run, for its progress line;
         `monitor_config` says what to stream when there is a `monitor`."""
@@ -139,6 +140,8 @@ class Actor:
         watch = self.watch
 
         def actor_rollout(params: Any, carry: RolloutCarry, batch: Any) -> Any:
+            if restart_envs:
+                carry = start_rollout(spec, env_params, batch.levels, num_envs, carry.key, batch.train)
             return rollout(agent.act, params, spec, env_params, carry, batch.levels, steps, batch.train, watch)
 
         # Compiled ahead of time by `start`, which checks that it fits in memory; `jit` then reuses that program.

@@ -26,6 +26,11 @@ class PPOConfig:
     """Environments stepped side by side per rollout (in fused mode; in each actor, in distributed mode)."""
     num_steps: int = 256
     """Environment steps per rollout, per environment."""
+    restart_envs: bool = False
+    """Restart every environment on the new level batch at the start of each rollout, as Kinetix's SFL trainer
+    does: an episode lasts at most num_steps (the value of its last state stands in for the rest) and every
+    level of a batch is played from its start. False: an episode runs across rollouts until it ends or times
+    out, and a new batch's levels are taken up as episodes end."""
     num_minibatches: int = 32
     """Minibatches split across environments (whole sequences), so it must divide num_envs."""
     update_epochs: int = 8

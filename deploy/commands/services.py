@@ -207,7 +207,7 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
                       seed=config.seed, index=args.index, bus=bus, agent=agent, env_params=env_params,
                       levels=levels, level_results=partial(batch_level_results, agent, config.ppo),
                       env_steps_goal=config.total_env_steps // config.actors.num_actors, monitor=monitor,
-                      monitor_config=config.monitor)
+                      monitor_config=config.monitor, restart_envs=config.ppo.restart_envs)
         log.info("%s up: %d envs x %d steps per batch, levels %s, incarnation %d", actor.name,
                  config.ppo.num_envs, config.ppo.num_steps, levels.description, actor.incarnation)
         on_cycle = MetricsLogger(monitor, actor.name, actor.status) if monitor is not None else None

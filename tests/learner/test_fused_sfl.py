@@ -48,3 +48,23 @@ def test_the_buffer_is_refilled_by_the_policy_on_schedule_and_replayed_from_the_
     # half of each batch comes from the buffer whenever it holds a level: here from the first update
     assert int(first_filled) > 0, "no candidate had a learnability above 0 (choose another seed)"
     assert replayed == [0.5 if any_held else 0.0 for any_held in held] and replayed[0] == 0.5
+
+
+def test_restarted_environments_play_each_batch_from_its_start():
+    """`ppo.restart_envs` (Kinetix's SFL form): every rollout starts every environment afresh on the new batch, so
+    no episode outlives a rollout; without it, episodes run on across rollouts."""
+    timesteps = {}
+    for restart in (True, False):
+        config = resolve_config(RunConfig, None, [*OVERRIDES, f"ppo.restart_envs={str(restart).lower()}"])
+        trainer, _, _, levels = build(config)
+        init, iterate = trainer.jitted()
+        carry = init(jax.random.PRNGKey(0), levels)
+        seen = []
+        for _ in range(3):
+            carry, _ = iterate(carry, levels)
+            seen.append(np.asarray(carry.envs.env_state.timestep))
+        timesteps[restart] = np.stack(seen)
+    steps = config.ppo.num_steps
+    assert (timesteps[True] <= steps).all()
+    assert (timesteps[True] == steps).mean() > 0.5, "most episodes run the whole rollout"
+    assert (timesteps[False][-1] > steps).any(), "without restarts some episode carries on into a later rollout"
