@@ -140,9 +140,8 @@ class Actor:
         watch = self.watch
 
         def actor_rollout(params: Any, carry: RolloutCarry, batch: Any) -> Any:
-            if restart_envs:
-                carry = start_rollout(spec, env_params, batch.levels, num_envs, carry.key, batch.train)
-            return rollout(agent.act, params, spec, env_params, carry, batch.levels, steps, batch.train, watch)
+            return rollout(agent.act, params, spec, env_params, carry, batch.levels, steps, batch.train, watch,
+                           restart_envs)
 
         # Compiled ahead of time by `start`, which checks that it fits in memory; `jit` then reuses that program.
         self._rollout = jax.jit(actor_rollout, donate_argnums=1)

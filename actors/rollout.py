@@ -99,10 +99,15 @@ def rollout(
     num_steps: int,
     train: Array | None = None,
     watch: int = 0,
+    restart: bool = False,
 ) -> RolloutResult:
     """Run `num_steps` steps of every environment, episodes that start here taking their train flag from `train`
-    [K] bool (None: all trained on); record the first `watch` environments for a live view."""
+    [K] bool (None: all trained on); record the first `watch` environments for a live view. `restart`: first start
+    every environment afresh on `levels` (as `start_rollout` does), cutting the episodes the carry was playing
+    (`ppo.restart_envs`)."""
     flags = _train_flags(levels, train)
+    if restart:
+        carry = start_rollout(spec, env_params, levels, carry.trains.shape[0], carry.key, train)
 
     def act(obs: Any, state: EnvState, key: Array) -> tuple[Array, tuple[Array, Array]]:
         action, log_prob, value = policy(params, obs, key)

@@ -92,11 +92,10 @@ class FusedTrainer:
             levels, flags = chosen.levels, chosen.train
             origin_metrics = {f"levels_{name}": (chosen.origin == origin).mean() for name, origin in
                               (("new", ORIGIN_NEW), ("replay", ORIGIN_REPLAY), ("mutated", ORIGIN_MUTATED))}
-        acting, envs = carry.train.params, carry.envs
-        if self.ppo.restart_envs:
-            envs = start_rollout(self.spec, self.env_params, levels, self.ppo.num_envs, envs.key, flags)
+        acting = carry.train.params
         envs, trajectory, train_mask, stats, _ = rollout(
-            self.agent.act, acting, self.spec, self.env_params, envs, levels, self.ppo.num_steps, flags
+            self.agent.act, acting, self.spec, self.env_params, carry.envs, levels, self.ppo.num_steps, flags,
+            restart=self.ppo.restart_envs,
         )
         # The parameters that acted are the ones trained, so the batch's version equals the learner's: lag 0.
         batch = make_batch(trajectory, envs.obs, carry.train.policy_version, train_mask=train_mask, episodes=stats)
