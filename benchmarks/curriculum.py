@@ -159,7 +159,7 @@ def train_and_evaluate(method: str, seed: int, config: RunConfig, eval_sets: lis
           "num_envs": config.ppo.num_envs, "num_steps": config.ppo.num_steps,
           "update_epochs": config.ppo.update_epochs, "num_minibatches": config.ppo.num_minibatches,
           "learning_rate": config.ppo.learning_rate, "anneal_lr": config.ppo.anneal_lr,
-          "curriculum": dataclasses.asdict(config.curriculum),
+          "ppo": dataclasses.asdict(config.ppo), "curriculum": dataclasses.asdict(config.curriculum),
           "eval_sets": {s.name: (s.names if s.levels is not None else f"skipped: {s.skipped}") for s in eval_sets},
           "attempts": attempts, **environment()})
     progress(f"{method} seed {seed}: compiled in {compile_s:.1f} s; {num_updates} updates of {steps_per_update} "
