@@ -23,7 +23,9 @@ policy versions (and once the first weights arrive) the service draws `sfl_candi
 learner's newest policy play each `sfl_attempts` times (a `CandidateScorer` the caller passes in, which follows
 the learner's weights) and refills its buffer with the most learnable (`Curriculum.refill`). The scoring runs on a
 thread of its own, so level queries are answered from the current buffer meanwhile; the refill is applied in
-`cycle`, like everything else that changes the state.
+`cycle`, like everything else that changes the state. Until the first refill, level queries are refused with the
+reason (actors wait and ask again), so that training starts on a scored buffer, as the fused trainer's does,
+rather than on fresh levels alone.
 
 Its whole state, knobs included, is checkpointed with orbax as the `curriculum` item (through a checkpointer the
 caller passes in), so a restarted service resumes with every buffered and staged level. Work happens in the
@@ -79,6 +81,8 @@ RESULTS_PER_ROUND = 8
 fills half of one), so that a request never waits behind a flood of results."""
 RESULT_ROUNDS = 8
 """Rounds of results per cycle at most, so that results never starve the knob, inspect and inject queries."""
+SCORING_JOIN_S = 10.0
+"""How long `close` waits for a candidate scoring under way (the launcher gives the service 20 s to stop)."""
 
 KnobResolver = Callable[[CurriculumConfig, list[str]], CurriculumConfig]
 """Applies `key=value` assignments to a config, raising ValueError with the config system's message."""
@@ -169,6 +173,8 @@ class CurriculumService:
         self.result_messages = 0
         self.knob_changes = 0
         self.refills = 0
+        self.requests_held = 0
+        """Level queries refused while the buffer waited for its first scoring (batch-scored SFL)."""
         self.injected = 0
         self.policy_version = 0
         self.incarnation = secrets.randbits(31)
@@ -266,10 +272,14 @@ class CurriculumService:
 
     def close(self) -> None:
         """Stop making levels ahead; checkpoint what happened since the last checkpoint (samples and knob changes
-        too)."""
+        too); give a candidate scoring under way a little time to finish (a process that exits while a thread is
+        inside XLA aborts)."""
         if self.maker is not None:
             self.maker.close()
         self.save()
+        if self._scoring is not None and self._scoring.is_alive():
+            log.info("waiting up to %.0f s for the candidate scoring under way", SCORING_JOIN_S)
+            self._scoring.join(SCORING_JOIN_S)
 
     def cycle(self) -> CycleReport | None:
         """Apply waiting results (or a finished candidate scoring), answer waiting queries; what was done
@@ -372,10 +382,19 @@ class CurriculumService:
     def _answer_samples(self) -> int:
         return sum(self._answer_sample(query) for query in self._sample_queries.poll())
 
+    @property
+    def filling(self) -> bool:
+        """Batch-scored SFL before its first refill: level queries wait for a scored buffer."""
+        return self.scorer is not None and self.refills == 0
+
     def _answer_sample(self, query: IncomingQuery) -> int:
         wanted = query.parameters.get("n")
         if wanted is not None and wanted != str(self.curriculum.batch_size):
             query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
+            return 0
+        if self.filling:
+            self.requests_held += 1
+            query.reply_error("the level buffer is being filled: the first candidate scoring is under way")
             return 0
         key = jax.random.fold_in(self._key, self.samples + 1)
         fresh, filtered = self.maker.take() if self.maker is not None else (None, False)
@@ -472,7 +491,8 @@ class CurriculumService:
         return {"role": CURRICULUM_ROLE.name, "name": CURRICULUM_ID, "incarnation": self.incarnation,
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
-                **({"refills": self.refills, "scoring": self._scoring is not None,
+                **({"refills": self.refills, "scoring": self._scoring is not None, "filling": self.filling,
+                    "requests_held": self.requests_held,
                     "last_refill": self._last_refill} if self.scorer is not None else {}),
                 **({"levels_ahead": {"ready": self.maker.ready, "made": self.maker.made,
                                      "unfiltered": self.maker.unfiltered,

@@ -123,7 +123,8 @@ def _refill_part(status: dict[str, Any]) -> str:
         return ""
     last = status.get("last_refill") or {}
     newest = f" (v{last['version']}, {last.get('seconds', 0):.0f} s)" if "version" in last else ""
-    return f" | refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}"
+    filling = ", filling the buffer before training" if status.get("filling") else ""
+    return f" | refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}{filling}"
 
 
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,

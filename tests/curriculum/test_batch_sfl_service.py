@@ -4,6 +4,7 @@ refills its buffer with the learnable ones, at the first weights and then every 
 
 from __future__ import annotations
 
+import threading
 import time
 
 import jax
@@ -41,6 +42,18 @@ def cycle_until(service: CurriculumService, condition, timeout_s: float, what: s
         time.sleep(0.01)
 
 
+def ask_levels(service: CurriculumService, asker: Bus) -> list[bytes]:
+    """One level query, as an actor asks it, answered by the service cycling meanwhile: the batches it got."""
+    replies: list[bytes] = []
+    query = threading.Thread(target=lambda: replies.extend(asker.get(
+        asker.keys.levels_sample, parameters=f"n={service.curriculum.batch_size}", timeout_s=10)))
+    query.start()
+    while query.is_alive():
+        service.cycle()
+        time.sleep(0.01)
+    return replies
+
+
 def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> None:
     config = resolve_config(RunConfig, QUICK_LAUNCH, [
         f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
@@ -65,8 +78,12 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
                                     item=CURRICULUM, scorer=scorer)
         service.start()
         assert not np.asarray(service.state.buffer.filled).any()
+        # Training starts on a scored buffer: until the first refill, level queries are refused (actors ask again).
+        assert ask_levels(service, learner) == [] and service.requests_held == 1
+        assert service.status()["filling"] and "filling the buffer" in curriculum_line(service.status())
         publish(0)
         cycle_until(service, lambda: service.refills == 1, 300, "the first refill, from version 0")
+        assert len(ask_levels(service, learner)) == 1 and not service.status()["filling"]
         assert "| refills 1 (v0, " in curriculum_line(service.status())
         filled = np.asarray(service.state.buffer.filled)
         refill = service.status()["last_refill"]
