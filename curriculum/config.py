@@ -82,6 +82,11 @@ class CurriculumConfig:
     learnability p (1 - p)."""
     sfl_refresh_updates: int = 32
     """SFL batch scoring: updates between refreshes of the buffer (Kinetix: 128)."""
+    sfl_hold_while_scoring: bool = False
+    """SFL batch scoring in the curriculum service: refuse level requests during every scoring, not only the
+    first, so actors (and with them the learner) wait as the fused trainer does and no batch comes from a buffer
+    more than one refresh old. For a service that shares its device with actors or the learner, whose scorings
+    would otherwise run slowly and late; it costs the actors' time while a scoring runs."""
     devices: tuple[int, ...] = ()
     """The GPU the curriculum service runs on, as a one-item list of its position among the GPUs the process may
     see (it then sees only that one); empty: every GPU is visible and JAX uses the first. Fused training ignores

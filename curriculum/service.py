@@ -25,7 +25,7 @@ the learner's weights) and refills its buffer with the most learnable (`Curricul
 thread of its own, so level queries are answered from the current buffer meanwhile; the refill is applied in
 `cycle`, like everything else that changes the state. Until the first refill, level queries are refused with the
 reason (actors wait and ask again), so that training starts on a scored buffer, as the fused trainer's does,
-rather than on fresh levels alone.
+rather than on fresh levels alone; with `sfl_hold_while_scoring` during every scoring.
 
 Its whole state, knobs included, is checkpointed with orbax as the `curriculum` item (through a checkpointer the
 caller passes in), so a restarted service resumes with every buffered and staged level. Work happens in the
@@ -384,8 +384,11 @@ class CurriculumService:
 
     @property
     def filling(self) -> bool:
-        """Batch-scored SFL before its first refill: level queries wait for a scored buffer."""
-        return self.scorer is not None and self.refills == 0
+        """Batch-scored SFL before its first refill, or while any scoring runs with `sfl_hold_while_scoring`:
+        level queries wait for a scored buffer."""
+        if self.scorer is None:
+            return False
+        return self.refills == 0 or (self.curriculum.config.sfl_hold_while_scoring and self._scoring is not None)
 
     def _answer_sample(self, query: IncomingQuery) -> int:
         wanted = query.parameters.get("n")
@@ -394,7 +397,7 @@ class CurriculumService:
             return 0
         if self.filling:
             self.requests_held += 1
-            query.reply_error("the level buffer is being filled: the first candidate scoring is under way")
+            query.reply_error("the level buffer is being filled: a candidate scoring is under way")
             return 0
         key = jax.random.fold_in(self._key, self.samples + 1)
         fresh, filtered = self.maker.take() if self.maker is not None else (None, False)

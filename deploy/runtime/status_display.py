@@ -123,7 +123,7 @@ def _refill_part(status: dict[str, Any]) -> str:
         return ""
     last = status.get("last_refill") or {}
     newest = f" (v{last['version']}, {last.get('seconds', 0):.0f} s)" if "version" in last else ""
-    filling = ", filling the buffer before training" if status.get("filling") else ""
+    filling = ", holding level requests" if status.get("filling") else ""
     return f" | refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}{filling}"
 
 

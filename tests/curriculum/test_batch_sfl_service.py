@@ -80,7 +80,7 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
         assert not np.asarray(service.state.buffer.filled).any()
         # Training starts on a scored buffer: until the first refill, level queries are refused (actors ask again).
         assert ask_levels(service, learner) == [] and service.requests_held == 1
-        assert service.status()["filling"] and "filling the buffer" in curriculum_line(service.status())
+        assert service.status()["filling"] and "holding level requests" in curriculum_line(service.status())
         publish(0)
         cycle_until(service, lambda: service.refills == 1, 300, "the first refill, from version 0")
         assert len(ask_levels(service, learner)) == 1 and not service.status()["filling"]
@@ -107,3 +107,52 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
         assert service.status()["last_refill"]["version"] == EVERY
         service.save()
         assert checkpoints.restore({CURRICULUM: service.state}).counters["refills"] == 2
+
+
+class GatedScorer:
+    """A real `PolicyScorer` whose scorings wait until the test lets them finish."""
+
+    def __init__(self, scorer: PolicyScorer) -> None:
+        self.scorer, self.gate = scorer, threading.Event()
+
+    def policy(self):
+        return self.scorer.policy()
+
+    def solve_rates(self, params, levels, key):
+        assert self.gate.wait(60), "the test never let the scoring finish"
+        return self.scorer.solve_rates(params, levels, key)
+
+
+@pytest.mark.parametrize("hold", [False, True])
+def test_level_requests_during_a_later_scoring_are_held_only_when_asked(tmp_path, hold: bool) -> None:
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [
+        f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
+        f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
+        f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
+        f"curriculum.sfl_hold_while_scoring={str(hold).lower()}", "ppo.num_envs=8", "network.width=16",
+        "network.depth=1"])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    params = agent.init(jax.random.PRNGKey(0))
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
+            Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
+        weights = learner.latest_publisher(learner.keys.weights_policy)
+        scorer = GatedScorer(PolicyScorer(bus, agent, env_params, ATTEMPTS))
+        service = CurriculumService(curriculum, bus, checkpoints, "", lambda current, assignments: current,
+                                    item=CURRICULUM, scorer=scorer)
+        service.start()
+        for version in (0, EVERY):
+            weights.put(encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
+                                       weights_hash(params)))
+            cycle_until(service, lambda: service.status()["scoring"], 30, f"the scoring of version {version}")
+            answered = ask_levels(service, learner)
+            if version == 0 or hold:
+                assert answered == [], "held: the first scoring, or every scoring with sfl_hold_while_scoring"
+            else:
+                assert len(answered) == 1, "answered from the current buffer while the scoring runs"
+            scorer.gate.set()
+            cycle_until(service, lambda v=version: service.refills == 1 + v // EVERY, 120, "the refill")
+            scorer.gate.clear()
+        assert service.requests_held == (2 if hold else 1)
+        assert len(ask_levels(service, learner)) == 1
