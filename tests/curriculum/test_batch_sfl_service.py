@@ -42,6 +42,20 @@ def cycle_until(service: CurriculumService, condition, timeout_s: float, what: s
         time.sleep(0.01)
 
 
+def small_setup(*overrides: str):
+    """The run config, env, agent (a small network: the tests are about the service), its parameters and the
+    batch-scored SFL curriculum the tests share."""
+    config = resolve_config(RunConfig, QUICK_LAUNCH, [
+        f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
+        f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
+        f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
+        "ppo.num_envs=8", "network.width=16", "network.depth=1", *overrides])
+    spec, env_params = env_from_config(config.env)
+    agent = make_agent(config.network, spec)
+    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    return config, env_params, agent, agent.init(jax.random.PRNGKey(0)), curriculum
+
+
 def ask_levels(service: CurriculumService, asker: Bus) -> list[bytes]:
     """One level query, as an actor asks it, answered by the service cycling meanwhile: the batches it got."""
     replies: list[bytes] = []
@@ -55,15 +69,7 @@ def ask_levels(service: CurriculumService, asker: Bus) -> list[bytes]:
 
 
 def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> None:
-    config = resolve_config(RunConfig, QUICK_LAUNCH, [
-        f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
-        f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
-        f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
-        "ppo.num_envs=8", "network.width=16", "network.depth=1"])  # a small network: the test is about the service
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
-    params = agent.init(jax.random.PRNGKey(0))
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    config, env_params, agent, params, curriculum = small_setup()
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
             Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
         weights = learner.latest_publisher(learner.keys.weights_policy)
@@ -125,16 +131,8 @@ class GatedScorer:
 
 @pytest.mark.parametrize("hold", [False, True])
 def test_level_requests_during_a_later_scoring_are_held_only_when_asked(tmp_path, hold: bool) -> None:
-    config = resolve_config(RunConfig, QUICK_LAUNCH, [
-        f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
-        f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
-        f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
-        f"curriculum.sfl_hold_while_scoring={str(hold).lower()}", "ppo.num_envs=8", "network.width=16",
-        "network.depth=1"])
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
-    params = agent.init(jax.random.PRNGKey(0))
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    hold_override = f"curriculum.sfl_hold_while_scoring={str(hold).lower()}"
+    config, env_params, agent, params, curriculum = small_setup(hold_override)
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
             Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
         weights = learner.latest_publisher(learner.keys.weights_policy)
