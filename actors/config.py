@@ -39,6 +39,13 @@ class ActorConfig:
     wire_float16: bool = False
     """With `wire_compact`: observation features as float16 (half the bytes again; the learner widens them back
     to float32, so it trains on inputs rounded to float16's 11 significant bits). False: exact float32."""
+    lockstep: bool = False
+    """Actor and learner take turns: every batch is rolled out by the weights of the update just before it (policy
+    lag 0), and the actor's random stream depends on the run's seed and its index only, not on its incarnation.
+    With one actor and a fixed level set (`env.levels`), a launch then gives the same learner metrics for the same
+    seed, bit for bit on one machine: for reproducing a run, and for checking that a change left the distributed
+    mode's behaviour as it was. Needs num_actors = 1 and learner.publish_every = 1; slower, since each side waits
+    while the other works. With the curriculum service the level batches still depend on when its results arrive."""
     devices: tuple[int, ...] = ()
     """GPUs the actors run on, as positions among the GPUs the process may see: actor i takes
     devices[i % len(devices)] and sees only it (CUDA_VISIBLE_DEVICES); empty: every actor sees them all and JAX
@@ -51,5 +58,8 @@ class ActorConfig:
         check_range("actors.credit_timeout_s", self.credit_timeout_s, above=0)
         check_range("actors.memory_fraction", self.memory_fraction, at_least=0, below=1)
         check_range("actors.status_every_s", self.status_every_s, at_least=0)
+        if self.lockstep and self.num_actors != 1:
+            raise ValueError(f"actors.lockstep takes turns with one actor, not {self.num_actors}: set "
+                             "actors.num_actors=1")
         if self.wire_float16 and not self.wire_compact:
             raise ValueError("actors.wire_float16 is part of the compact format: set actors.wire_compact=true too")

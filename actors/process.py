@@ -22,7 +22,9 @@ one that does not fit is refused with the sizes and an override (`impulse actor`
 makes `impulse launch` give up at once), instead of being killed by the kernel in its first rollout.
 
 Weights. The actor follows the learner (`actors.follow.LearnerFollower`): it adopts only intact, strictly newer
-weights of its network (a restarted learner's new epoch excepted), ignores repeats and refuses replays.
+weights of its network (a restarted learner's new epoch excepted), ignores repeats and refuses replays. In
+lockstep (`actors.lockstep`) it rolls out only with weights newer than those of its last batch, so actor and
+learner take turns and a launch is reproducible (docs/distributed.md).
 
 Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
 `credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
@@ -129,7 +131,9 @@ class Actor:
         self.num_envs, self.num_steps = num_envs, num_steps
         self.env_steps_goal = env_steps_goal
         # Seeded by the run, the actor and the incarnation: a restarted actor does not replay its predecessor.
-        seed = (seed * 1_000_003 + index * 7919 + self.incarnation) % 2**32
+        # In lockstep the incarnation is left out, so that the same seed gives the same run.
+        salt = 0 if actors.lockstep else self.incarnation
+        seed = (seed * 1_000_003 + index * 7919 + salt) % 2**32
         self.key = jax.random.PRNGKey(seed)
         self.env_params = env_params
         self.level_results = level_results
@@ -162,6 +166,7 @@ class Actor:
         self.acked = 0  # highest sequence number the learner has taken off its queue
         self._blocked_since: float | None = None  # when the actor last ran out of credit
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
+        self._acted: tuple[int, int] | None = None  # (epoch, version) of the weights of the latest rollout
         self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0}
         self._steps_done = 0
         self._stream: RolloutStream | None = None
@@ -286,8 +291,8 @@ class Actor:
             "learner_epoch": self.epoch,
             "in_flight": self.in_flight,
             "levels": self.levels.description,
-            "waiting": "weights" if self.params is None else "levels" if self.levels.waiting else (
-                "credit" if self.in_flight >= self.actors.credits else ""),
+            "waiting": "weights" if self.params is None or self._awaits_next_weights() else (
+                "levels" if self.levels.waiting else "credit" if self.in_flight >= self.actors.credits else ""),
             "rejected": self.bus.rejects.counts(),
             "weights_latency_ms": self.follow.latency_ms(),
             **self.counts,
@@ -344,12 +349,15 @@ class Actor:
         drop_oldest = self.actors.when_no_credit == "drop_oldest"
         if not self._has_credit() and not drop_oldest:
             return None
+        if self._awaits_next_weights():
+            return None
         start, started_at = time.monotonic(), time.time()
         self.key, level_key = jax.random.split(self.key)
         levels = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
         if levels is None:
             return None
         self._offer_played_levels(levels)
+        self._acted = (self.epoch, self.version)
         self.carry, steps, train_mask, stats, watched = self._rollout(self.params, self.carry, levels)
         batch = make_batch(steps, self.carry.obs, self.version, actor_id=self.index, train_mask=train_mask,
                            episodes=stats)
@@ -372,6 +380,11 @@ class Actor:
         metrics = {name: float(value) for name, value in jax.device_get(episode_metrics(stats)).items()}
         metrics.update(policy_version=float(self.version), steps_per_s=env_steps / self._last_cycle_s)
         return CycleReport(env_steps=env_steps, updates=0, metrics=metrics)
+
+    def _awaits_next_weights(self) -> bool:
+        """In lockstep, whether the weights at hand already acted (the learner has not yet published the update
+        made on the latest batch)."""
+        return self.actors.lockstep and self._acted is not None and (self.epoch, self.version) <= self._acted
 
     def progress(self) -> Progress:
         """An actor starts from nothing; its goal is its share of the run's env steps (for its progress line)."""

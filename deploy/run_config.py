@@ -65,6 +65,9 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         check_range("total_env_steps", self.total_env_steps, at_least=1)
+        if self.actors.lockstep and self.learner.publish_every != 1:
+            raise ValueError("actors.lockstep waits for the weights of every update: set learner.publish_every=1 "
+                             f"(it is {self.learner.publish_every})")
 
     def output_dir(self) -> Path:
         """The run directory with the run name filled in."""

@@ -52,6 +52,9 @@ DISTRIBUTED_ONLY: tuple[str, ...] = ("queue", "actor")
 FUSED_ONLY: tuple[str, ...] = ("reward_per_step", "levels_new")
 """Columns only the fused trainer writes."""
 
+MACHINE_COLUMNS: tuple[str, ...] = ("time_s", "steps_per_s")
+"""Columns that measure the machine rather than the learning: left out when runs are checked for identity."""
+
 DEFAULT_METRIC = "solve_rate"
 EVAL_MEAN = "eval/mean"
 IDENTITY_KEYS: tuple[str, ...] = ("name", "run_dir")
@@ -225,6 +228,34 @@ def check_metrics(runs: Sequence[Run], metrics: Sequence[str]) -> None:
             near = difflib.get_close_matches(metric, sorted(present), n=3)
             hint = f" (did you mean {', '.join(near)}?)" if near else ""
             raise RunError(f"no run has the column {metric!r}{hint}; their columns: {', '.join(sorted(present))}")
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """One value on which runs checked for identity differ: the update's row, the column, every run's value."""
+
+    update: int
+    column: str
+    values: tuple[Any, ...]
+
+
+def mismatches(runs: Sequence[Run], updates: int, ignore: Iterable[str] = MACHINE_COLUMNS) -> list[Mismatch]:
+    """Where the runs' first `updates` rows differ, in every column all of them have on that row (`ignore` left
+    out): empty when they agree bit for bit. metrics.jsonl holds each value as Python writes a float (the shortest
+    text that reads back to the same double), so equal text is equal bits; null (NaN) equals null. RunError for a
+    run with fewer rows."""
+    for run in runs:
+        if len(run.rows) < updates:
+            raise RunError(f"{run.path} has {len(run.rows)} metrics rows, fewer than the {updates} to check")
+    skipped = set(ignore)
+    found = []
+    for rows in zip(*(run.rows[:updates] for run in runs)):
+        shared = [name for name in rows[0] if name not in skipped and all(name in row for row in rows)]
+        for name in shared:
+            values = tuple(row[name] for row in rows)
+            if any(value != values[0] for value in values[1:]):
+                found.append(Mismatch(rows[0]["update"], name, values))
+    return found
 
 
 def finite_number(value: Any) -> float | int | None:

@@ -3,7 +3,9 @@
 One row per run: its label, mode, progress (share of `total_env_steps` done, updates, env steps, wall clock), and
 for each metric (default: `solve_rate`, and `eval/mean` when a run has it) the final and best values and, with
 `--threshold`, the env steps and time at which it first reached the bar. Below the table, the config keys whose
-values differ between the runs. `--plot FILE.png` draws the curves, `--json` prints the same as JSON. Reading,
+values differ between the runs. `--plot FILE.png` draws the curves, `--json` prints the same as JSON.
+`--identical N` checks instead that the runs' first N updates agree bit for bit (exit status 1, listing the values,
+where they do not). Reading,
 summarising and diffing are `monitor.runs`'s; this module parses and prints. Exit status 2, with one line on
 stderr, for a path that is not a run, a run without metrics yet, or a metric no run has.
 """
@@ -38,6 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also show the env steps and time at which each metric first reached VALUE")
     parser.add_argument("--plot", type=Path, metavar="FILE.png", help="draw each metric against --by, a line per run")
     parser.add_argument("--json", action="store_true", help="print the comparison as JSON instead of a table")
+    parser.add_argument("--identical", type=int, metavar="N",
+                        help="instead: check that the runs' first N updates agree bit for bit in every column they "
+                        "share (time_s and steps_per_s left out); exit status 1, listing the differences, if not")
 
 
 def run(args: argparse.Namespace, _config: object = None) -> int:
@@ -52,6 +57,9 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         read_runs,
         summarise,
     )
+
+    if args.identical is not None:
+        return check_identical(args.runs, args.identical)
 
     if args.by not in AXES:
         print(f"impulse compare: --by must be one of {', '.join(AXES)}, got {args.by!r}", file=sys.stderr)
@@ -76,6 +84,31 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         print()
         print(diff_table(diff, labels))
     return 0
+
+
+def check_identical(paths: Sequence[Path], updates: int) -> int:
+    """`--identical N`: 0 and one line when the runs agree bit for bit over their first N updates; 1 and every
+    differing value otherwise; 2 for a path that is not a run or one with fewer rows."""
+    from impulse.monitor.runs import MACHINE_COLUMNS, RunError, mismatches, read_runs
+
+    if updates < 1:
+        print(f"impulse compare: --identical needs at least 1 update, got {updates}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        runs = read_runs(paths)
+        found = mismatches(runs, updates)
+    except RunError as err:
+        print(f"impulse compare: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    labels = [run.label for run in runs]
+    if not found:
+        print(f"identical: the first {updates} updates of {', '.join(labels)} agree bit for bit "
+              f"({', '.join(MACHINE_COLUMNS)} left out)")
+        return 0
+    rows = [[str(m.update), m.column, *(json.dumps(value) for value in m.values)] for m in found]
+    print(f"not identical: {len(found)} values differ in the first {updates} updates\n"
+          + aligned(["update", "column", *labels], rows, left=2))
+    return 1
 
 
 def as_json(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, threshold: float | None,

@@ -140,3 +140,26 @@ def test_clear_errors(runs, tmp_path, capsys):
     assert "eval/mean" in error and "queue" in error and "reward_per_step" in error, error
     assert "--by must be one of env_steps, time_s, update, got 'steps'" in one_line_error(capsys, *runs, "--by",
                                                                                           "steps")
+
+
+def test_identical_lists_every_value_that_differs_bit_for_bit(tmp_path, capsys):
+    """--identical: runs that agree in every shared column but the machine's (time_s, steps_per_s) pass; a value one
+    bit apart, in a column both have, fails with that value named; a column only one run has is not compared."""
+    loss = 0.1 + 0.2  # 0.30000000000000004: one bit from 0.3
+    rows = [{"update": u, "env_steps": 64 * u, "policy_loss": loss * u, "solve_rate": None} for u in (1, 2, 3)]
+    same = write_run(tmp_path / "same", ["name=same"], [{**row, "time_s": 7.0 * row["update"]} for row in rows])
+    twin = write_run(tmp_path / "twin", ["name=twin"], [{**row, "steps_per_s": 9.0, "extra": 1} for row in rows])
+    off = write_run(tmp_path / "off", ["name=off"], [*rows[:2], {**rows[2], "policy_loss": 0.9}])
+    status, out, err = compare(capsys, same, twin, "--identical", "3")
+    assert (status, err) == (0, "")
+    assert out.startswith("identical: the first 3 updates of same, twin agree bit for bit")
+    status, out, _ = compare(capsys, same, off, "--identical", "2")
+    assert status == 0
+    status, out, _ = compare(capsys, same, off, "--identical", "3")
+    assert status == 1
+    assert re.split(r"\s{2,}", out.splitlines()[-1].strip()) == ["3", "policy_loss", repr(loss * 3), "0.9"]
+    assert compare(capsys, same, write_run(tmp_path / "near", ["name=near"], [
+        {**row, "policy_loss": row["policy_loss"] + 1e-16} if row["update"] == 1 else row for row in rows]),
+        "--identical", "1")[0] == 1
+    status, _, err = compare(capsys, same, off, "--identical", "4")
+    assert status == 2 and "fewer than the 4 to check" in err

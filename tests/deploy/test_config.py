@@ -142,6 +142,14 @@ def test_cross_field_check_becomes_config_error() -> None:
         resolve_config(RunConfig, None, ["ppo.num_minibatches=7"])
 
 
+def test_lockstep_is_refused_where_it_could_not_take_turns() -> None:
+    resolve_config(RunConfig, None, ["actors.lockstep=true", "actors.num_actors=1"])
+    with pytest.raises(ConfigError, match=r"actors\.lockstep takes turns with one actor, not 2"):
+        resolve_config(RunConfig, None, ["actors.lockstep=true", "actors.num_actors=2"])
+    with pytest.raises(ConfigError, match=r"set learner\.publish_every=1 \(it is 3\)"):
+        resolve_config(RunConfig, None, ["actors.lockstep=true", "actors.num_actors=1", "learner.publish_every=3"])
+
+
 # (key, a refused value): counts, sizes, rates and probabilities outside the range the code can use.
 OUT_OF_RANGE = [
     ("total_env_steps", "0"),
