@@ -1,9 +1,13 @@
 """The PPO loss (Schulman et al., 2017), piece by piece.
 
 Each piece is a small pure function of arrays, so that tests can check it by hand; `ppo_loss` evaluates the
-network on a minibatch and puts them together. Ratios are taken against the behaviour policy's log-probabilities
-(those recorded when the data was collected), so a lagging actor's data is weighted by pi_current / mu; the clip
-keeps that ratio near 1 for the gradient, as in on-policy PPO.
+network on a minibatch and puts them together. Ratios are taken against the centre of the clip, the proximal
+policy. By default (`ppo.proximal = "behaviour"`) that is the behaviour policy (the log-probabilities recorded when
+the data was collected), so a lagging actor's data is weighted by pi_current / mu and the clip keeps that ratio
+near 1, as in on-policy PPO. With `ppo.proximal = "learner"` it is the learner's own policy at the start of the
+update, and each sample is weighted by the truncated importance ratio min(rho-bar, pi_proximal / mu): the decoupled
+objective of Hilton et al. (2022, "Batch size-invariance for policy optimization"), under which the trust region
+is the learner's and a lagging batch is not clipped merely for being old. On-policy both are the same objective.
 
 Every mean is over the samples the batch trains on: a `weight` of 0 (a step of a level a curriculum only
 evaluates) removes a sample from the loss and the statistics without changing any shape.
@@ -31,6 +35,8 @@ class PPOBatch(NamedTuple):
     advantage: Array
     target: Array  # value target (GAE lambda-return or V-trace v_s)
     weight: Array  # 1.0 for samples to learn from, 0.0 for those to leave out
+    proximal_log_prob: Array | None = None  # the clip's centre, log pi_proximal(a|x); None: the behaviour's
+    importance: Array | None = None  # min(rho-bar, pi_proximal / mu) per sample; None: 1
 
 
 def weighted_mean(x: Array, weight: Array | None = None) -> Array:
@@ -48,13 +54,18 @@ def normalize_advantages(advantages: Array, eps: float = 1e-8, weight: Array | N
 
 
 def policy_loss(
-    log_prob: Array, behaviour_log_prob: Array, advantages: Array, clip_eps: float, weight: Array | None = None
+    log_prob: Array, centre_log_prob: Array, advantages: Array, clip_eps: float, weight: Array | None = None,
+    importance: Array | None = None,
 ) -> Array:
-    """Clipped surrogate: -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)), r = exp(log_prob - behaviour_log_prob)."""
-    ratio = jnp.exp(log_prob - behaviour_log_prob)
+    """Clipped surrogate: -mean(w min(r A, clip(r, 1 - eps, 1 + eps) A)), r = exp(log_prob - centre_log_prob), w
+    the samples' `importance` weights (1 where None)."""
+    ratio = jnp.exp(log_prob - centre_log_prob)
     unclipped = ratio * advantages
     clipped = jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages
-    return -weighted_mean(jnp.minimum(unclipped, clipped), weight)
+    surrogate = jnp.minimum(unclipped, clipped)
+    if importance is not None:
+        surrogate = importance * surrogate
+    return -weighted_mean(surrogate, weight)
 
 
 def value_loss(
@@ -98,19 +109,21 @@ def ppo_loss(
     `apply_fn(params, obs) -> (distribution params, value)` (see `learner.networks.ActorCritic`); leading
     dimensions of the batch pass straight through it. Uses config.clip_eps (also for the value clip when
     config.clip_value), vf_coef, ent_coef and normalize_advantages. Returns (total loss, metrics) with metrics
-    total_loss, policy_loss, value_loss, entropy, approx_kl, clip_fraction."""
+    total_loss, policy_loss, value_loss, entropy, approx_kl, clip_fraction (both measured from the clip's
+    centre)."""
     dist_params, values = apply_fn(params, batch.obs)
     log_prob = distribution.log_prob(dist_params, batch.action)
     weight = batch.weight
     advantages = batch.advantage
     if config.normalize_advantages:
         advantages = normalize_advantages(advantages, weight=weight)
-    pi_loss = policy_loss(log_prob, batch.behaviour_log_prob, advantages, config.clip_eps, weight)
+    centre = batch.behaviour_log_prob if batch.proximal_log_prob is None else batch.proximal_log_prob
+    pi_loss = policy_loss(log_prob, centre, advantages, config.clip_eps, weight, batch.importance)
     v_loss = value_loss(values, batch.old_value, batch.target, config.clip_eps if config.clip_value else None,
                         weight)
     entropy = entropy_bonus(distribution.entropy(dist_params), weight)
     loss = total_loss(pi_loss, v_loss, entropy, config.vf_coef, config.ent_coef)
-    log_ratio = jax.lax.stop_gradient(log_prob - batch.behaviour_log_prob)
+    log_ratio = jax.lax.stop_gradient(log_prob - centre)
     metrics = {
         "total_loss": loss,
         "policy_loss": pi_loss,

@@ -7,8 +7,9 @@ batch's behaviour version (whether to train on a stale batch at all is the calle
 `check_policy_lag`), and learns only from the steps the batch's train mask keeps. Targets and advantages come
 from GAE (on-policy, `correction = "none"`) or V-trace (importance-weighted, robust to policy lag) computed once
 per update with the current parameters; then
-`update_epochs` passes over `num_minibatches` minibatches of whole sequences apply the clipped PPO loss against
-the behaviour log-probabilities.
+`update_epochs` passes over `num_minibatches` minibatches of whole sequences apply the clipped PPO loss, centred
+on the behaviour log-probabilities or, with `proximal = "learner"`, on the learner's own before the update
+(`learner.losses`).
 """
 
 from __future__ import annotations
@@ -121,14 +122,24 @@ def ppo_update(
         targets, advantages = targets_and_advantages(
             config, trajectory, trajectory.value, last_value, jnp.zeros_like(log_prob)
         )
+    proximal = {}
+    old_value = trajectory.value
+    if config.proximal == "learner":
+        # Decoupled PPO: the clip is centred on the learner's policy before this update (and the value clip on its
+        # values); the behaviour's lag is corrected by a truncated importance weight instead.
+        proximal = {"proximal_log_prob": jax.lax.stop_gradient(log_prob),
+                    "importance": jax.lax.stop_gradient(
+                        jnp.minimum(config.vtrace_rho_bar, jnp.exp(log_prob - trajectory.log_prob)))}
+        old_value = jax.lax.stop_gradient(values)
     samples = PPOBatch(
         obs=trajectory.obs,
         action=trajectory.action,
         behaviour_log_prob=trajectory.log_prob,
-        old_value=trajectory.value,
+        old_value=old_value,
         advantage=jax.lax.stop_gradient(advantages),
         target=jax.lax.stop_gradient(targets),
         weight=batch.train_mask.astype(jnp.float32),
+        **proximal,
     )
 
     def loss_fn(params, minibatch: PPOBatch):

@@ -48,6 +48,38 @@ def test_policy_loss_gradient_vanishes_where_clipped() -> None:
     np.testing.assert_allclose(grad, [0.0, -0.5 / 4, 2.2 / 4, 0.0], rtol=1e-6, atol=1e-7)
 
 
+def test_importance_weights_scale_each_sample_of_the_surrogate() -> None:
+    # Surrogates 1.2, 0.5, -2.2, -0.8 (above) weighted by 0.5, 1, 1, 0: 0.6 + 0.5 - 2.2 = -1.1, mean -0.275.
+    importance = jnp.array([0.5, 1.0, 1.0, 0.0])
+    loss = policy_loss(jnp.log(jnp.asarray(RATIOS)), jnp.zeros(4), ADVANTAGES, 0.2, importance=importance)
+    assert float(loss) == pytest.approx(0.275, abs=1e-6)
+
+
+def test_the_clip_centred_on_the_learner_keeps_the_gradient_of_a_lagging_batch() -> None:
+    """A sample the learner's policy already favours 1.5 times more than the lagging behaviour policy did, with a
+    positive advantage: centred on the behaviour, the ratio 1.5 is clipped and the sample teaches nothing;
+    centred on the learner (ratio 1, weight min(1, 1.5) = 1), it pushes the action up."""
+    config = PPOConfig(normalize_advantages=False, clip_eps=0.2, vf_coef=0.0, ent_coef=0.0)
+    params = {"logit": jnp.zeros(()), "value": jnp.zeros(1)}
+    learner = jnp.full(1, math.log(0.5))  # the fixed policy's log pi(a = 0)
+    behaviour = learner - math.log(1.5)
+    lagging = PPOBatch(obs=jnp.zeros(1), action=jnp.zeros(1, jnp.int32), behaviour_log_prob=behaviour,
+                       old_value=jnp.zeros(1), advantage=jnp.ones(1), target=jnp.zeros(1), weight=jnp.ones(1))
+    centred = lagging._replace(proximal_log_prob=learner, importance=jnp.minimum(1.0, jnp.exp(learner - behaviour)))
+
+    def policy(params, obs):  # pi(a = 0) = sigmoid(logit): one half at logit 0
+        return jnp.stack([params["logit"] + 0.0 * obs, 0.0 * obs], axis=-1), params["value"] + 0.0 * obs
+
+    def grad_and_clip(batch: PPOBatch) -> tuple[float, float]:
+        grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, policy, Categorical(2), batch, config)
+        return float(grads["logit"]), float(metrics["clip_fraction"])
+
+    assert grad_and_clip(lagging) == (0.0, 1.0)
+    gradient, clipped = grad_and_clip(centred)
+    assert clipped == 0.0
+    assert gradient == pytest.approx(-0.5, abs=1e-6)  # d/dlogit of -pi(a=0) / 0.5 = -sigmoid'(0) / 0.5
+
+
 def test_value_loss_by_hand() -> None:
     assert float(value_loss(VALUES, OLD_VALUES, TARGETS, 0.2)) == pytest.approx(VALUE_LOSS_CLIPPED, abs=1e-6)
     assert float(value_loss(VALUES, OLD_VALUES, TARGETS, None)) == pytest.approx(VALUE_LOSS_UNCLIPPED, abs=1e-6)
