@@ -270,14 +270,19 @@ class CurriculumService:
     def finished(self) -> bool:
         return False
 
+    @property
+    def scoring_under_way(self) -> bool:
+        """Whether a candidate scoring's thread is still inside XLA (after `close`: it outlived the wait)."""
+        return self._scoring is not None and self._scoring.is_alive()
+
     def close(self) -> None:
         """Stop making levels ahead; checkpoint what happened since the last checkpoint (samples and knob changes
         too); give a candidate scoring under way a little time to finish (a process that exits while a thread is
-        inside XLA aborts)."""
+        inside XLA aborts at the interpreter's teardown: `impulse curriculum serve` then ends without one)."""
         if self.maker is not None:
             self.maker.close()
         self.save()
-        if self._scoring is not None and self._scoring.is_alive():
+        if self.scoring_under_way:
             log.info("waiting up to %.0f s for the candidate scoring under way", SCORING_JOIN_S)
             self._scoring.join(SCORING_JOIN_S)
 

@@ -316,4 +316,10 @@ def serve(args: argparse.Namespace) -> int:
                                       every_turn=watcher.poll if watcher is not None else None))
     log.info("curriculum stopped: %d samples served, %d result messages applied", service.samples,
              service.result_messages)
+    if service.scoring_under_way:
+        # Everything is checkpointed and closed; a thread still inside XLA would abort the interpreter's teardown
+        # (SIGABRT), so the process ends here without one.
+        log.info("leaving the candidate scoring under way unfinished")
+        logging.shutdown()
+        os._exit(0)
     return 0
