@@ -122,15 +122,29 @@ def curve(rows: list[dict[str, Any]], steps_per_update: int) -> list[dict[str, f
     return points
 
 
+HEALTH_WINDOW = 16
+"""Updates at the start and at the end of a run over which its policy entropy is averaged."""
+
+
 def run_health(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Policy lag and drops as the learner wrote them (the distributed mode's; the fused mode has none)."""
+    """Policy lag and drops as the learner wrote them (the distributed mode's; the fused mode has none), and how
+    the updates went: mean clip fraction and KL (from the clip's centre), and the policy entropy over the first
+    and the last HEALTH_WINDOW updates (a policy that learns becomes less random)."""
     lags = [row["policy_lag"] for row in rows if "policy_lag" in row]
     last = rows[-1] if rows else {}
     drops = {k.removeprefix("drops/"): v for k, v in last.items() if k.startswith("drops/") and v}
+
+    def mean_of(column: str, part: list[dict[str, Any]]) -> float | None:
+        values = [row[column] for row in part if row.get(column) is not None]
+        return float(np.mean(values)) if values else None
+
     return {"updates": int(last.get("update", 0)), "env_steps": int(last.get("env_steps", 0)),
             "policy_lag_mean": float(np.mean(lags)) if lags else None,
             "policy_lag_max": int(max(lags)) if lags else None,
-            "drops": drops, "batches_dropped": int(sum(drops.values()))}
+            "drops": drops, "batches_dropped": int(sum(drops.values())),
+            "clip_fraction_mean": mean_of("clip_fraction", rows), "approx_kl_mean": mean_of("approx_kl", rows),
+            "entropy_start": mean_of("entropy", rows[:HEALTH_WINDOW]),
+            "entropy_end": mean_of("entropy", rows[-HEALTH_WINDOW:])}
 
 
 def final_scores(run_dir: Path, attempts: int) -> dict[str, Any]:
@@ -195,6 +209,13 @@ def time_to(points: list[dict[str, float]], target: float) -> float | None:
     return None
 
 
+def curve_mean(points: list[dict[str, float]]) -> float:
+    """A run's mean Kinetix-S solve rate over its evaluations after training started (version 0 left out): less
+    noisy than its final checkpoint alone."""
+    trained = [point[KINETIX_S] for point in points if point["env_steps"] > 0 and math.isfinite(point[KINETIX_S])]
+    return statistics.fmean(trained) if trained else math.nan
+
+
 def summarise(runs: list[dict[str, Any]], modes: tuple[str, ...]) -> list[dict[str, Any]]:
     finals = {mode: [r["final"][KINETIX_S] for r in runs if r["mode"] == mode and KINETIX_S in r["final"]]
               for mode in modes}
@@ -205,12 +226,14 @@ def summarise(runs: list[dict[str, Any]], modes: tuple[str, ...]) -> list[dict[s
         mine = [r for r in runs if r["mode"] == mode]
         kinetix = mean_and_error(finals[mode])
         handmade = mean_and_error([r["final"][HANDMADE] for r in mine if HANDMADE in r["final"]])
+        over_curve = mean_and_error([curve_mean(r["curve"]) for r in mine if r["curve"]])
         reached = [time_to(r["curve"], target) for r in mine]
         lags = [r["policy_lag_mean"] for r in mine if r["policy_lag_mean"] is not None]
         records.append({
             "record": "summary", "mode": mode, "seeds": [r["seed"] for r in mine],
             "final_kinetix_s": kinetix[0], "final_kinetix_s_se": kinetix[1],
             "final_handmade": handmade[0], "final_handmade_se": handmade[1],
+            "curve_kinetix_s": over_curve[0], "curve_kinetix_s_se": over_curve[1],
             "wall_s_mean": statistics.fmean(r["wall_s"] for r in mine) if mine else math.nan,
             "policy_lag_mean": statistics.fmean(lags) if lags else None,
             "batches_dropped": sum(r["batches_dropped"] for r in mine),

@@ -26,14 +26,18 @@ def run(mode: str, seed: int, final: float, curve_points: list[tuple[float, floa
 
 
 def test_curve_and_health_read_the_learners_rows() -> None:
-    rows = [{"update": 1, "env_steps": 4096, "time_s": 10.0, "policy_lag": 0},
+    rows = [{"update": 1, "env_steps": 4096, "time_s": 10.0, "policy_lag": 0, "entropy": 5.0, "clip_fraction": 0.1,
+             "approx_kl": 0.01},
             {"update": 2, "env_steps": 8192, "time_s": 12.0, "policy_lag": 2, "eval/policy_version": 1.0,
-             f"eval/{KINETIX_S}": 0.3, f"eval/{HANDMADE}": 0.2, "drops/dropped_stale": 3, "drops/lost": 0}]
+             f"eval/{KINETIX_S}": 0.3, f"eval/{HANDMADE}": 0.2, "drops/dropped_stale": 3, "drops/lost": 0,
+             "entropy": 3.0, "clip_fraction": 0.3, "approx_kl": 0.03}]
     [point] = curve(rows, 4096)
     assert point == {"env_steps": 4096.0, "time_s": 2.0, KINETIX_S: 0.3, HANDMADE: 0.2}
     health = run_health(rows)
     assert health["policy_lag_mean"] == 1.0 and health["policy_lag_max"] == 2
     assert health["drops"] == {"dropped_stale": 3} and health["batches_dropped"] == 3 and health["updates"] == 2
+    assert math.isclose(health["clip_fraction_mean"], 0.2) and math.isclose(health["approx_kl_mean"], 0.02)
+    assert health["entropy_start"] == health["entropy_end"] == 4.0  # both windows hold both rows here
 
 
 def test_the_bar_holds_within_ninety_percent_and_fails_below() -> None:
@@ -44,6 +48,8 @@ def test_the_bar_holds_within_ninety_percent_and_fails_below() -> None:
     assert math.isclose(summary["summaryfused"]["target_kinetix_s"], 0.9 * 0.28)
     assert summary["summaryfused"]["seconds_to_target"] == [20.0, 20.0, 20.0]
     assert summary["summarydistributed"]["policy_lag_mean"] == 1.5
+    assert math.isclose(summary["summaryfused"]["curve_kinetix_s"], 0.2)  # the mean of 0.1 and 0.3
+    assert math.isclose(summary["summarydistributed"]["curve_kinetix_s"], 0.28)
 
     # Far below, with seeds that agree: neither 90% nor within two standard errors.
     far = [run("fused", s, 0.30 + 0.01 * s, []) for s in range(3)]
