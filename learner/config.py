@@ -62,11 +62,13 @@ class PPOConfig:
     vtrace_c_bar: float = 1.0
     """V-trace: trace-cutting weights are clipped at this (c-bar); gae_lambda scales them further. At most
     vtrace_rho_bar; 0 cuts every trace (one-step TD targets)."""
-    proximal: Literal["behaviour", "learner"] = "behaviour"
-    """What the PPO clip is centred on. "behaviour": the policy that acted (classic PPO; a batch some versions old
-    starts partly clipped). "learner": the learner's policy at the start of the update, with every sample
-    weighted by min(vtrace_rho_bar, pi_learner / pi_behaviour), the decoupled objective of Hilton et al. (2022),
-    for lagging actors. The same objective when the data is on-policy (fused mode), up to rounding."""
+    proximal: Literal["behaviour", "learner"] = "learner"
+    """What the PPO clip is centred on. "learner": the learner's policy at the start of the update, with every
+    sample weighted by min(vtrace_rho_bar, pi_learner / pi_behaviour), the decoupled objective of Hilton et al.
+    (2022), so that a batch from a lagging actor is not clipped for being old. "behaviour": the policy that acted
+    (classic PPO: with actors a few versions behind, much of every batch starts outside the clip and teaches
+    nothing, which kept distributed runs from learning; benchmarks/RESULTS.md). The two are the same objective
+    when the data is on-policy (fused mode), up to rounding."""
     max_policy_lag: int = 4
     """Trajectories older than this many policy versions are dropped rather than corrected; 0 keeps only those
     acted by the learner's current weights."""

@@ -2,12 +2,12 @@
 
 Each piece is a small pure function of arrays, so that tests can check it by hand; `ppo_loss` evaluates the
 network on a minibatch and puts them together. Ratios are taken against the centre of the clip, the proximal
-policy. By default (`ppo.proximal = "behaviour"`) that is the behaviour policy (the log-probabilities recorded when
-the data was collected), so a lagging actor's data is weighted by pi_current / mu and the clip keeps that ratio
-near 1, as in on-policy PPO. With `ppo.proximal = "learner"` it is the learner's own policy at the start of the
-update, and each sample is weighted by the truncated importance ratio min(rho-bar, pi_proximal / mu): the decoupled
-objective of Hilton et al. (2022, "Batch size-invariance for policy optimization"), under which the trust region
-is the learner's and a lagging batch is not clipped merely for being old. On-policy both are the same objective.
+policy. By default (`ppo.proximal = "learner"`) that is the learner's own policy at the start of the update, and
+each sample is weighted by the truncated importance ratio min(rho-bar, pi_proximal / mu): the decoupled objective
+of Hilton et al. (2022, "Batch size-invariance for policy optimization"), under which the trust region is the
+learner's and a lagging actor's batch is not clipped merely for being old. With `ppo.proximal = "behaviour"` it is
+the behaviour policy (the log-probabilities recorded when the data was collected), as in classic PPO. On-policy
+both are the same objective.
 
 Every mean is over the samples the batch trains on: a `weight` of 0 (a step of a level a curriculum only
 evaluates) removes a sample from the loss and the statistics without changing any shape.

@@ -8,8 +8,8 @@ batch's behaviour version (whether to train on a stale batch at all is the calle
 from GAE (on-policy, `correction = "none"`) or V-trace (importance-weighted, robust to policy lag) computed once
 per update with the current parameters; then
 `update_epochs` passes over `num_minibatches` minibatches of whole sequences apply the clipped PPO loss, centred
-on the behaviour log-probabilities or, with `proximal = "learner"`, on the learner's own before the update
-(`learner.losses`).
+on the learner's log-probabilities before the update (or, with `proximal = "behaviour"`, on the behaviour's;
+`learner.losses`).
 """
 
 from __future__ import annotations
