@@ -5,9 +5,9 @@ for each metric (default: `solve_rate`, and `eval/mean` when a run has it) the f
 `--threshold`, the env steps and time at which it first reached the bar. Below the table, the config keys whose
 values differ between the runs. `--plot FILE.png` draws the curves, `--json` prints the same as JSON.
 `--identical N` checks instead that the runs' first N updates agree bit for bit (exit status 1, listing the values,
-where they do not). Reading,
-summarising and diffing are `monitor.runs`'s; this module parses and prints. Exit status 2, with one line on
-stderr, for a path that is not a run, a run without metrics yet, or a metric no run has.
+where they do not). Reading, summarising and diffing are `monitor.runs`'s; this module parses and prints. Exit
+status 2, with one line on stderr, for a path that is not a run, a run without metrics yet, or a metric no run
+has.
 """
 
 from __future__ import annotations
