@@ -1,4 +1,4 @@
-# Two commands for a fresh machine: `make run` (the main job) and `make test` (lint, then the test suite as two
+# Two commands for a fresh machine: `make run` (the main job) and `make test` (lint, then the test suite as three
 # parallel streams, see tests/conftest.py).
 # Both create .venv with python3 (3.11 or 3.12) and install the project into it; the install is redone only
 # when pyproject.toml changes (the stamp file below), so later runs start at once.
@@ -14,7 +14,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/pytest -n 2 --dist loadgroup --durations=20
+	$(VENV)/bin/pytest -n 3 --dist loadgroup --durations=20
 
 venv: $(STAMP)
 

@@ -8,11 +8,13 @@ JAX's persistent compilation cache lives under `<repo>/.cache/jax` (ignored by g
 the same machine, or CI after a developer's run, skips recompiling the engine's jitted functions; only
 compilations slower than half a second are stored, which keeps the cache small.
 
-`make test` runs the suite as two streams side by side (pytest-xdist, `-n 2 --dist loadgroup`): tests marked
+`make test` runs the suite as three streams side by side (pytest-xdist, `-n 3 --dist loadgroup`): tests marked
 `heavy` (they start processes of their own: launches, Zenoh sessions, viewers, training subprocesses; or train
-for a while) run one after another on one worker, every other test runs in order on the other. Neither stream
-compiles a program twice, and the CPU the heavy tests leave idle while their processes wait goes to the rest.
-The marks balance the two streams (each about half of the suite's time on a 2-core machine).
+for a while) run one after another on one worker; every other test runs in order on one of two more workers, the
+engine's and the curriculum's tests on one, the rest on the other. On a 2-core machine the heavy tests' processes
+spend much of their time waiting (for updates, kills, timeouts), so two light streams keep both cores busy where
+one would leave one idle. A stream never compiles a program twice, and streams share what they compile through
+the compilation cache above. The split balances the two light streams (each about half of their CPU time).
 """
 
 from __future__ import annotations
@@ -30,9 +32,18 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "heavy: starts processes of its own or trains for a while (own stream)")
 
 
+ENGINE_STREAM = ("tests/engine/", "tests/curriculum/")
+"""Test folders whose light tests form the second light stream."""
+
+
 def pytest_itemcollected(item: pytest.Item) -> None:
     """Each test joins its stream as it is collected, before xdist reads the groups."""
-    stream = "heavy" if item.get_closest_marker("heavy") else "light"
+    if item.get_closest_marker("heavy"):
+        stream = "heavy"
+    elif item.nodeid.startswith(ENGINE_STREAM):
+        stream = "light-engine"
+    else:
+        stream = "light"
     item.add_marker(pytest.mark.xdist_group(stream))
 
 

@@ -66,6 +66,8 @@ class Cluster:
             role, extra = name, [f"--connect={self.endpoints[name]}"]
         if role == "actor":
             extra += ["--index", "0"]
+        if role == "learner":  # a few updates a second are plenty here; unthrottled, the tiny batches would keep
+            extra += ["learner.slow_down_s=0.2"]  # the learner, actor and evaluator busy at the rest's expense
         if role == "evaluator":
             extra += ["evaluator.levels=handmade:s_easy_car_right", "evaluator.every_updates=2", "evaluator.attempts=2"]
         command = [*self.prefixes.get(name, []), sys.executable, "-m", "impulse.deploy.cli", role, "--config",
@@ -137,15 +139,24 @@ def wait_update(watcher: StatusWatcher, cluster: Cluster, beyond: int, timeout_s
         raise AssertionError(f"{err}\n{all_logs(cluster)}") from None
 
 
-def collect(subscriber: zenoh.Subscriber, kind: Kind) -> list:
-    """The decoded frames waiting in a probe's subscriber (undecodable ones as None)."""
-    found = []
-    while (sample := subscriber.try_recv()) is not None:
+class Heard:
+    """What one probe session hears on a key, decoded as it arrives (undecodable frames as None). A callback that
+    only appends never blocks Zenoh: a bounded FIFO channel left undrained while a fast run publishes would, once
+    full, stall the probe's session and make closing it time out."""
+
+    def __init__(self, session: zenoh.Session, key: str, kind: Kind) -> None:
+        self.kind = kind
+        self.frames: list = []
+        self.subscriber = session.declare_subscriber(key, self.hear)
+
+    def hear(self, sample: zenoh.Sample) -> None:
         try:
-            found.append(decode(sample.payload.to_bytes(), run=RUN, kinds=kind))
+            self.frames.append(decode(sample.payload.to_bytes(), run=RUN, kinds=self.kind))
         except Rejected:
-            found.append(None)
-    return found
+            self.frames.append(None)
+
+    def so_far(self) -> list:
+        return list(self.frames)
 
 
 def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
@@ -174,12 +185,11 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
                                                           "recorder")}
         probe = sessions["actor"]
         try:
-            weights = probe.declare_subscriber(keys.weights_policy, zenoh.handlers.FifoChannel(64))
-            credits = probe.declare_subscriber(keys.credit("actor-0"), zenoh.handlers.FifoChannel(64))
-            learner_status = sessions["operator"].declare_subscriber(keys.status("learner", "learner"),
-                                                                     zenoh.handlers.FifoChannel(64))
-            trajectories = rogues["actor"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
-            recorded = rogues["recorder"].declare_subscriber(keys.traj_all, zenoh.handlers.FifoChannel(64))
+            weights = Heard(probe, keys.weights_policy, Kind.WEIGHTS)
+            credits = Heard(probe, keys.credit("actor-0"), Kind.CREDIT)
+            learner_status = Heard(sessions["operator"], keys.status("learner", "learner"), Kind.METRICS)
+            trajectories = Heard(rogues["actor"], keys.traj_all, Kind.TRAJECTORY)
+            recorded = Heard(rogues["recorder"], keys.traj_all, Kind.TRAJECTORY)
             # The curriculum role answers level and knob queries (a stand-in: this run has no curriculum service);
             # a second queryable of each, under actor credentials, tries to.
             asked: dict[str, list[str]] = {"knobs": [], "inject": []}
@@ -192,8 +202,9 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
                 keys.curriculum_inject, lambda q: (asked["inject"].append(bytes(q.payload.to_bytes()).decode()),
                                                    q.reply(keys.curriculum_inject, b"injected")))
             rogues["actor"].declare_queryable(keys.levels_sample, lambda q: q.reply(keys.levels_sample, b"rogue"))
-            real = weights.recv().payload.to_bytes()  # the learner publishes after every update
-            genuine = decode(real, run=RUN, kinds=Kind.WEIGHTS)
+            # the learner publishes after every update
+            genuine = wait_for(lambda: next((m for m in weights.so_far() if m is not None), None), 60,
+                               "the learner's weights at the probe")
             forged_weights = bytes(encode(Kind.WEIGHTS, genuine.arrays, run=RUN, policy_version=FORGED_VERSION,
                                           learner_epoch=genuine.learner_epoch, meta=genuine.meta))
             forged_credit = bytes(encode(Kind.CREDIT, {}, run=RUN, learner_epoch=genuine.learner_epoch,
@@ -225,11 +236,11 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
             inject_answers = {role: [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
                               for role, replies in inject_replies.items()}
             time.sleep(3)
-            heard_weights = collect(weights, Kind.WEIGHTS)
-            heard_credits = collect(credits, Kind.CREDIT)
-            heard_status = collect(learner_status, Kind.METRICS)
-            stolen = trajectories.try_recv()
-            heard_by_recorder = collect(recorded, Kind.TRAJECTORY)
+            heard_weights = weights.so_far()
+            heard_credits = credits.so_far()
+            heard_status = learner_status.so_far()
+            stolen = trajectories.so_far()
+            heard_by_recorder = recorded.so_far()
         finally:
             for session in (*sessions.values(), *rogues.values()):
                 session.close()
@@ -246,7 +257,7 @@ def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
         assert all(m is not None and m.meta.get("incarnation") != FORGED_VERSION for m in heard_credits)
         assert heard_status and all(m is not None and m.meta.get("finished") is False for m in heard_status), (
             "only the learner's own statuses arrive, none of them forged")
-        assert stolen is None  # actor credentials do not read trajectories, though the actor keeps sending them
+        assert stolen == []  # actor credentials do not read trajectories, though the actor keeps sending them
         assert any(m is not None for m in heard_by_recorder)  # recorder credentials do
         actor = wait_for(lambda: watcher.poll().get("actor-0"), 30, "the actor's status")
         assert actor["policy_version"] < FORGED_VERSION and sum(actor["rejected"].values()) == 0, actor
