@@ -2,9 +2,11 @@
 
 Zenoh can hand each sample to a Python callback, but a slow callback is an unbounded queue (the reference measured
 a 124 MB backlog) and work done inside it runs on zenoh's threads. Here nothing is done in a callback but queueing:
-every subscription feeds a bounded `Mailbox` (a callback that only appends the sample, and counts what it has to
-drop when full, so no drop goes uncounted), queryables and liveliness watchers feed bounded zenoh channels, and the
-owner drains them with `poll` or `wait` wherever it decodes anyway. Back-pressure is the protocol's business
+every subscription and every queryable feeds a bounded `Mailbox` (a callback that only appends the sample or query,
+and counts what it has to drop when full, so no drop goes uncounted), liveliness watchers feed a zenoh ring channel,
+and the owner drains them with `poll` or `wait` wherever it decodes anyway. Nothing blocks zenoh's receive thread:
+a full zenoh FIFO channel would, stalling everything the session receives until its owner drains it (anyone on
+the bus can send a flood of queries to a service that is busy). Back-pressure is the protocol's business
 (credits), never a full queue's: zenoh's blocking gives up silently after a while.
 Zenoh channels have no receive-with-timeout, so `wait` polls with a short sleep (at most WAIT_SLEEP_MAX_S).
 """
@@ -74,11 +76,12 @@ def _received(sample: zenoh.Sample) -> Received | None:
 
 
 class Mailbox:
-    """A bounded queue of samples that zenoh's callback fills and the owner's thread empties.
+    """A bounded queue of samples (or queries) that zenoh's callback fills and the owner's thread empties.
 
-    When full it drops the newest sample (`drop_oldest=False`: what is queued is kept in order) or the oldest
+    When full it drops the newest item (`drop_oldest=False`: what is queued is kept in order) or the oldest
     (`drop_oldest=True`: only the newest matter), and counts each drop in `dropped`. The callback does nothing else:
-    no decoding, no copy, no device work on zenoh's threads.
+    no decoding, no copy, no device work on zenoh's threads. A dropped query is finalised unanswered when it is
+    released, so its asker's `get` ends with no reply.
     """
 
     def __init__(self, capacity: int, drop_oldest: bool) -> None:
@@ -162,12 +165,19 @@ class IncomingQuery:
 
 
 class QueryInbox:
-    """Queries to one queryable, waiting in a bounded zenoh channel until the owner answers them."""
+    """Queries to one queryable, waiting in a `Mailbox` until the owner answers them. A full mailbox drops the
+    newest query and counts it (`dropped`): its asker gets no reply, and nothing else the session receives waits."""
 
-    def __init__(self, queryable: zenoh.Queryable, key: str) -> None:
+    def __init__(self, queryable: zenoh.Queryable, key: str, mailbox: Mailbox) -> None:
         self.queryable = queryable
         self.key = key
+        self.mailbox = mailbox
         self._concrete = not any(ch in key for ch in "*$")
+
+    @property
+    def dropped(self) -> int:
+        """Queries dropped so far because the mailbox was full."""
+        return self.mailbox.dropped
 
     def _incoming(self, query: zenoh.Query) -> IncomingQuery:
         # Replies must name a concrete key: the queryable's own, or (serving a pattern) the one asked for.
@@ -175,7 +185,7 @@ class QueryInbox:
 
     def poll(self, max_items: int | None = None) -> list[IncomingQuery]:
         """Every query waiting now (at most `max_items`), without blocking."""
-        return _drain(self.queryable.try_recv, self._incoming, max_items)
+        return _drain(self.mailbox.try_recv, self._incoming, max_items)
 
     def wait(self, timeout_s: float) -> IncomingQuery | None:
         """The next query, waiting up to `timeout_s` seconds for it; None if none came."""

@@ -11,9 +11,9 @@ always-truthy status object, says a subscriber is there) before its first put; a
 already declared to it (`wait_queryable`); connect endpoints are retried forever, so a peer started before the hub,
 or whose hub restarts, links up by itself; a peer killed with SIGKILL is seen gone at once by liveliness. Protocols
 still tolerate losing a message to a peer that joined a moment ago (re-granted credits, retried queries).
-Subscriptions feed `Mailbox` callbacks (`bus.inbox`); a session holding callback subscribers must be closed
-explicitly or its process does not exit, which `Bus.close` does, undeclaring every entity (advanced subscribers
-first) before it closes the session.
+Subscriptions and queryables feed `Mailbox` callbacks (`bus.inbox`, `bus.queryable`); a session holding callbacks
+must be closed explicitly or its process does not exit, which `Bus.close` does, undeclaring every entity (advanced
+subscribers first) before it closes the session.
 """
 
 from __future__ import annotations
@@ -209,11 +209,13 @@ class Bus:
         return Inbox(subscriber, key, mailbox)
 
     def queryable(self, key: str, capacity: int) -> QueryInbox:
-        """Serve queries on `key`; they wait in a channel of `capacity` until `QueryInbox.poll` hands them out."""
+        """Serve queries on `key`; up to `capacity` of them wait until `QueryInbox.poll` hands them out, and more
+        are dropped and counted (`QueryInbox.dropped`)."""
         self._check_open()
         check_positive("queryable capacity", capacity, int)
-        queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(capacity))
-        return QueryInbox(self._remember(queryable), key)
+        mailbox = Mailbox(capacity, drop_oldest=False)
+        queryable = self.session.declare_queryable(key, zenoh.handlers.Callback(mailbox))
+        return QueryInbox(self._remember(queryable), key, mailbox)
 
     def get(
         self, key: str, *, payload: bytes | None = None, parameters: str = "", timeout_s: float | None = None

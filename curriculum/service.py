@@ -507,6 +507,8 @@ class CurriculumService:
                                      "filter_seconds": round(self.maker.filter_seconds, 1)}}
                    if self.maker is not None else {}),
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
+                "dropped_queries": sum(queries.dropped for queries in (self._sample_queries, self._knob_queries,
+                                                                       self._inspect_queries, self._inject_queries)),
                 **{k: json_scalar(v) for k, v in summary.items()}}
 
 

@@ -467,6 +467,7 @@ class LearnerService:
             "actor_lag": self.actor_lag,
             "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
             "rejected": self.rejected(),
+            "dropped_queries": self._weights_queries.dropped if self._weights_queries is not None else 0,
             "solve_rate": self._last_metrics.get("window_solve_rate"),
             "finished": self.finished(),
             "peer_drops": self.peer_drops.totals(),

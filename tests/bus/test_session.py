@@ -217,6 +217,35 @@ def test_query_error_reply_and_nobody_answering(local_hub: BusConfig) -> None:
         assert client.get(client.keys.weights_latest, timeout_s=0.3) == []
 
 
+def test_a_flood_of_queries_is_dropped_and_counted_without_stalling_the_session(local_hub: BusConfig) -> None:
+    """More queries than a queryable holds, while its owner is busy: the newest are dropped and counted, the asker
+    of a dropped one gets no reply, and the session goes on receiving everything else (a blocking channel would
+    hold zenoh's receive thread until the owner drained it)."""
+    with Bus(local_hub, "flood", "curriculum", "0") as server, Bus(local_hub, "flood", "actor", "a0") as client:
+        queries = server.queryable(server.keys.curriculum_knobs, 2)
+        inbox = server.inbox(server.keys.credit("a0"), 4)
+        assert client.wait_queryable(client.keys.curriculum_knobs, 2.0)
+        credit = client.publisher(client.keys.credit("a0"))
+        assert client.wait_matching(credit, 2.0)
+        asked = [client.session.get(client.keys.curriculum_knobs, payload=str(i).encode(), timeout=5)
+                 for i in range(6)]  # sent at once; their replies are read below
+        deadline = time.monotonic() + 3
+        while queries.dropped < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert queries.dropped == 4
+        credit.put(b"after the flood")
+        received = inbox.wait(3.0)
+        assert received is not None and received.payload == b"after the flood"
+        held = queries.poll()
+        assert [query.payload for query in held] == [b"0", b"1"]
+        for query in held:
+            query.reply(b"answer to " + query.payload)
+        started = time.monotonic()
+        answers = [[reply.ok.payload.to_bytes() for reply in replies if reply.ok is not None] for replies in asked]
+        assert answers == [[b"answer to 0"], [b"answer to 1"], [], [], [], []]
+        assert time.monotonic() - started < 4, "a dropped query must end its asker's get before the timeout"
+
+
 def test_close_is_idempotent_and_withdraws_the_token(local_hub: BusConfig) -> None:
     with Bus(local_hub, "close", "learner", "0") as learner:
         watcher = learner.watch_alive(learner.keys.alive_pattern("actor"))

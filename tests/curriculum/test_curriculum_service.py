@@ -191,6 +191,7 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
         assert reply["ok"] and reply["slot"] == 0 and not reply["evicted"], reply
         buffer = service.state.buffer
         assert np.asarray(buffer.filled).sum() == 1 and service.injected == 1 and service.status()["injected"] == 1
+        assert service.status()["dropped_queries"] == 0
         assert f"{int(level_id_values(np.asarray(buffer.levels.level_id))[0]):016x}" == reply["level_id"]
 
         for document, reason in ((car, "in the buffer already"),
