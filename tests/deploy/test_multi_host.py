@@ -330,7 +330,9 @@ def test_hosts_in_separate_namespaces_survive_a_partition_and_a_router_restart(t
                 assert cluster.processes[role].poll() is None, all_logs(cluster)
             assert "actor actor-0 left" in cluster.logs["learner"].read_text()
         finally:
-            watcher.close()
-            cluster.stop()
+            try:
+                watcher.close()
+            finally:  # even if closing the probe's session failed: no process of the run may outlive the test
+                cluster.stop()
     finally:
         hosts.destroy()
