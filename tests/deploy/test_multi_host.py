@@ -140,23 +140,25 @@ def wait_update(watcher: StatusWatcher, cluster: Cluster, beyond: int, timeout_s
 
 
 class Heard:
-    """What one probe session hears on a key, decoded as it arrives (undecodable frames as None). A callback that
-    only appends never blocks Zenoh: a bounded FIFO channel left undrained while a fast run publishes would, once
-    full, stall the probe's session and make closing it time out."""
+    """What one probe session hears on a key. Its callback only appends the payload, so it never blocks Zenoh: a
+    bounded FIFO channel left undrained while a fast run publishes would, once full, stall the probe's session and
+    make closing it time out."""
 
     def __init__(self, session: zenoh.Session, key: str, kind: Kind) -> None:
         self.kind = kind
-        self.frames: list = []
-        self.subscriber = session.declare_subscriber(key, self.hear)
-
-    def hear(self, sample: zenoh.Sample) -> None:
-        try:
-            self.frames.append(decode(sample.payload.to_bytes(), run=RUN, kinds=self.kind))
-        except Rejected:
-            self.frames.append(None)
+        self.payloads: list[bytes] = []
+        self.subscriber = session.declare_subscriber(key, lambda sample: self.payloads.append(
+            sample.payload.to_bytes()))
 
     def so_far(self) -> list:
-        return list(self.frames)
+        """The frames heard so far, decoded (undecodable ones as None)."""
+        frames = []
+        for payload in list(self.payloads):
+            try:
+                frames.append(decode(payload, run=RUN, kinds=self.kind))
+            except Rejected:
+                frames.append(None)
+        return frames
 
 
 def test_access_control_lets_only_each_role_its_part(cluster: Cluster) -> None:
