@@ -33,6 +33,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -162,18 +163,37 @@ def final_scores(run_dir: Path, attempts: int) -> dict[str, Any]:
             "levels": {name: s["solve_rate"] for name, s in table.items()}}
 
 
+INTERRUPT_GRACE_S = 90.0
+"""Seconds a run interrupted at its time limit has to write its last checkpoint before it is killed."""
+
+
+def stop_at_timeout(process: subprocess.Popen[bytes], timeout_s: float,
+                    grace_s: float = INTERRUPT_GRACE_S) -> int | None:
+    """Wait for a run; at `timeout_s` interrupt it as Ctrl-C would, so that it checkpoints the policy it has
+    reached and the final scoring sees that policy rather than an older periodic checkpoint; kill it if it has not
+    stopped `grace_s` later. Returns the exit status, or None when the run hit its time limit."""
+    try:
+        return process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    return None
+
+
 def train_one(mode: str, seed: int, root: Path, settings: Settings, steps_per_update: int) -> dict[str, Any]:
     run_dir = root / f"{mode}-seed{seed}"
     log_path = root / f"{mode}-seed{seed}.log"
     progress(f"[{mode} seed {seed}] training ({settings.env_steps:,} env steps); log: {log_path}")
     start = time.monotonic()
     with log_path.open("w") as log:
-        try:
-            returncode = subprocess.run(command(mode, seed, run_dir, settings), cwd=REPO, stdout=log,
-                                        stderr=subprocess.STDOUT, timeout=settings.timeout_s,
-                                        env={**os.environ, "IMPULSE_KINETIX_LEVELS": str(LEVELS_DIR)}).returncode
-        except subprocess.TimeoutExpired:
-            returncode = None
+        process = subprocess.Popen(command(mode, seed, run_dir, settings), cwd=REPO, stdout=log,
+                                   stderr=subprocess.STDOUT,
+                                   env={**os.environ, "IMPULSE_KINETIX_LEVELS": str(LEVELS_DIR)})
+        returncode = stop_at_timeout(process, settings.timeout_s)
     wall_s = time.monotonic() - start
     rows = metrics_rows(run_dir)
     record: dict[str, Any] = {"record": "run", "mode": mode, "seed": seed, "returncode": returncode,
@@ -251,6 +271,7 @@ def summarise(runs: list[dict[str, Any]], modes: tuple[str, ...]) -> list[dict[s
 
 
 def plot(runs: list[dict[str, Any]], path: Path, settings: Settings) -> None:
+    step = settings.eval_every * update_steps(settings.overrides) / 1e6  # env steps (millions) between points
     panels = []
     for level_set in (KINETIX_S, HANDMADE):
         series = []
@@ -262,7 +283,6 @@ def plot(runs: list[dict[str, Any]], path: Path, settings: Settings) -> None:
                 ys = [p[level_set] for p in r["curve"]]
                 series.append(Series(f"{mode}, one seed", xs, ys, MODE_COLORS[mode], width=1, dashed=True,
                                      markers=False))
-                step = settings.eval_every * 4096 / 1e6
                 for x, y in zip(xs, ys, strict=True):  # the evaluator's points fall near the nominal ones
                     by_x.setdefault(round(x / step) * step, []).append(y)
             xs = sorted(by_x)
@@ -285,7 +305,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--actors", type=int, default=2, help="actors of the distributed mode")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="a config override for every run (after the CPU settings)")
-    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds a run may take")
+    parser.add_argument("--timeout", type=float, default=3600.0,
+                        help="seconds a run may train; then it is interrupted, checkpoints and is scored")
     parser.add_argument("--plot", type=Path, help="write the curves here (PNG)")
     parser.add_argument("--keep", type=Path, help="keep the run directories and logs here (default: a temp dir)")
     args = parser.parse_args(argv)

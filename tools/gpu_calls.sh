@@ -7,6 +7,10 @@
 #     bash tools/gpu_calls.sh general   # carry [".device"], timeout_s 590: train the general S agent (issue 26)
 #     bash tools/gpu_calls.sh learning  # carry [".device"], timeout_s 590: distributed against fused (issue 26)
 #
+# `learning` runs `impulse bench learning` at Kinetix's settings (2,048 envs x 64 steps, 8 epochs x 32 minibatches,
+# lr 1e-4, batch-scored SFL, the entity transformer; LEARNING_NETWORK=entity for the 221,521-parameter network),
+# fused then distributed, each for LEARNING_STEPS env steps or 210 s, whichever comes first: a run still training
+# at 210 s is interrupted, checkpoints and is scored, and its curve says how far it got.
 # `general` trains configs/general-s-gpu.toml for GENERAL_SECONDS (default 390; SIGINT then checkpoints), exports
 # the last checkpoint to $OUT/general-s and scores it on Kinetix S, our hand-made S and Kinetix M. The run's
 # metrics.jsonl and config.toml come back beside it; the export's checkpoint lies deeper than the 16 folders the
@@ -66,8 +70,9 @@ elif [ "$part" = general ]; then
 elif [ "$part" = learning ]; then
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >&2
     # shellcheck disable=SC2086 # SEEDS is a list of words
-    bench 570 learning --seeds ${SEEDS:-0} --env-steps "${LEARNING_STEPS:-13107200}" --eval-every 25 --attempts 20 \
-        --timeout 270 --set network.width=128 --set network.depth=5 --set ppo.num_envs=2048 \
+    bench 540 learning --seeds ${SEEDS:-0} --env-steps "${LEARNING_STEPS:-13107200}" --eval-every 25 --attempts 20 \
+        --timeout 210 --plot "$OUT/learning.png" --set network.kind="${LEARNING_NETWORK:-transformer}" \
+        --set network.width=128 --set network.depth=5 --set ppo.num_envs=2048 \
         --set ppo.num_minibatches=32 --set ppo.update_epochs=8 --set ppo.learning_rate=1e-4 \
         --set curriculum.sfl_scoring=batch --set curriculum.sfl_candidates=8192 --set curriculum.sfl_attempts=4 \
         --set curriculum.sfl_refresh_updates=32 --set curriculum.buffer_size=1024 --set bus.shm_pool_mib=512

@@ -4,6 +4,8 @@ the per-mode summary and the issue's bar (no training, so it stays fast)."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 from impulse.benchmarks.learning import (
@@ -13,6 +15,7 @@ from impulse.benchmarks.learning import (
     command,
     curve,
     run_health,
+    stop_at_timeout,
     summarise,
     update_steps,
 )
@@ -80,3 +83,28 @@ def test_an_update_is_as_large_as_the_overrides_make_it() -> None:
     assert update_steps(()) == 64 * 64
     assert update_steps(("ppo.num_envs=2048",)) == 2048 * 64
 
+
+
+def test_a_run_at_its_time_limit_is_interrupted_so_it_can_checkpoint(tmp_path: Path) -> None:
+    """Ctrl-C first (a run checkpoints on SIGINT), a kill only when it does not stop within the grace period."""
+    marker = tmp_path / "checkpointed"
+    obedient = ("import signal, sys, time, pathlib\n"
+                "def stop(*_):\n"
+                f"    pathlib.Path({str(marker)!r}).write_text('yes'); sys.exit(0)\n"
+                "signal.signal(signal.SIGINT, stop)\n"
+                "print('ready', flush=True)\n"
+                "time.sleep(60)\n")
+    process = subprocess.Popen([sys.executable, "-c", obedient], stdout=subprocess.PIPE)
+    assert process.stdout is not None and process.stdout.readline() == b"ready\n"
+    assert stop_at_timeout(process, timeout_s=0.2, grace_s=30.0) is None
+    assert marker.read_text() == "yes" and process.returncode == 0
+
+    stubborn = ("import signal, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                "print('ready', flush=True)\ntime.sleep(60)\n")
+    process = subprocess.Popen([sys.executable, "-c", stubborn], stdout=subprocess.PIPE)
+    assert process.stdout is not None and process.stdout.readline() == b"ready\n"
+    assert stop_at_timeout(process, timeout_s=0.2, grace_s=0.5) is None
+    assert process.returncode == -9
+
+    quick = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    assert stop_at_timeout(quick, timeout_s=30.0) == 3
