@@ -101,7 +101,6 @@ def summarise(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One "summary" per level x start, in the order the runs came: the final solve rate and the mean over the
     whole curve (which rewards learning early and is less noisy than one last point), each as mean and standard
     error across seeds, and each seed's env steps to SOLVED."""
-
     summaries = []
     for level in dict.fromkeys(r["level"] for r in runs):
         for start in STARTS:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,13 +64,14 @@ def random_plans(nvec: tuple[int, ...], steps: int, count: int, seed: int) -> Pl
     return Plans(draws, [f"random {i}" for i in range(count)])
 
 
-def solves(env: Env, level: int, plans: np.ndarray, batch: int) -> np.ndarray:
-    """Whether each plan's first episode on level `level` of the env's set ends solved (bool [N]); the episode
-    ends at its first `done` (what follows belongs to the next one)."""
+def player(env: Env) -> Callable[[jax.Array, jax.Array], jax.Array]:
+    """`play(level, plans)`: whether each plan's first episode on level `level` of the env's set ends solved
+    (bool [N]); the episode ends at its first `done` (what follows belongs to the next one). Jitted once, with
+    the level traced, so every level and family of a run shares one compile."""
 
-    def episode(plan: jax.Array) -> jax.Array:
+    def episode(level: jax.Array, plan: jax.Array) -> jax.Array:
         key = jax.random.PRNGKey(0)  # draws only the level of the episode after the one that counts
-        _, state = reset_from_batch(env.spec, env.params, env.levels, jnp.int32(level))
+        _, state = reset_from_batch(env.spec, env.params, env.levels, level)
 
         def act(carry: tuple[Any, jax.Array, jax.Array], action: jax.Array) -> tuple[Any, None]:
             state, solved, ended = carry
@@ -79,12 +81,18 @@ def solves(env: Env, level: int, plans: np.ndarray, batch: int) -> np.ndarray:
         (_, solved, _), _ = jax.lax.scan(act, (state, jnp.bool_(False), jnp.bool_(False)), plan)
         return solved
 
-    play = jax.jit(jax.vmap(episode))
+    return jax.jit(jax.vmap(episode, in_axes=(None, 0)))
+
+
+def solves(play: Callable[[jax.Array, jax.Array], jax.Array], level: int, plans: np.ndarray,
+           batch: int) -> np.ndarray:
+    """`play` over `plans` in batches of `batch`, the last one padded to full size so that one compile serves
+    all."""
     out = []
-    for first in range(0, len(plans), batch):  # the last batch padded to full size, so one compile serves all
+    for first in range(0, len(plans), batch):
         part = plans[first:first + batch]
         padded = np.concatenate([part, np.zeros((batch - len(part), *part.shape[1:]), part.dtype)])
-        out.append(np.asarray(play(jnp.asarray(padded)))[:len(part)])
+        out.append(np.asarray(play(jnp.int32(level), jnp.asarray(padded)))[:len(part)])
     return np.concatenate(out) if out else np.zeros(0, bool)
 
 
@@ -104,12 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     emit({"record": "config", **environment(), "levels": args.levels, "size": args.size, "random": args.random,
           "window_starts": args.window_starts, "window_lengths": args.window_lengths, "seed": args.seed,
           "max_timesteps": steps})
+    play = player(env)
     for level, name in enumerate(env.level_names):
         record: dict[str, Any] = {"record": "level", "level": name}
         for family, plans in (("constant", constant_plans(nvec, steps)),
                               ("window", window_plans(nvec, steps, args.window_starts, args.window_lengths)),
                               ("random", random_plans(nvec, steps, args.random, args.seed))):
-            solved = solves(env, level, plans.actions, args.batch)
+            solved = solves(play, level, plans.actions, args.batch)
             record[family] = {"episodes": int(len(solved)), "solved": int(solved.sum())}
             if family == "random":
                 record["random_solve_fraction"] = float(solved.mean()) if len(solved) else 0.0
