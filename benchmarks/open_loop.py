@@ -8,30 +8,43 @@ actions, so every motor and thruster binding has its own dimension):
   rest, for every dimension, value, start in `--window-starts` and length in `--window-lengths`;
 - random: uniformly random actions every step (`--random` episodes), the exploration a fresh policy does.
 
+With `--agent RUN_DIR` (a trained policy, such as pretrained/general-s), the levels are played in that run's
+environment settings, and the agent plays `--agent-episodes` sampled episodes from each level's start. Its line
+then says how much probability the agent gives, at each step of its own episodes, to the actions whose holding
+solves the level (the constant family's solvers), against the share those actions have of the action space:
+whether the agent's moves lean towards a plan that works or away from it.
+
 Output: one JSON line per level (`record` = "level") with the episodes and solves of each family, the solve
-fraction of random play, and the first solving plans of the constant and window families; progress on stderr.
+fraction of random play, the first solving plans of the constant and window families and, with `--agent`, the
+agent's part (`agent`); progress on stderr.
 
     impulse bench open_loop --levels kinetix:s
     impulse bench open_loop --levels ../shared/kinetix-levels/s/h9_explode_then_thrust_over.json --random 4096
+    impulse bench open_loop --levels kinetix:s --agent pretrained/general-s
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from impulse.benchmarks._harness import emit, environment, progress
 from impulse.engine.env.api import Env, make_env
-from impulse.engine.env.env import reset_from_batch
+from impulse.engine.env.env import reset_batch, reset_from_batch
+from impulse.engine.env.episodes import LoopCarry, Step, episode_loop, first_episode, first_episode_start
 
 FIRST_SOLVERS = 5
 """Solving plans listed per family in a level's line."""
+EARLY_STEPS = 16
+"""The agent's early moves: its first this many steps (h0 and h1 need the thruster through about 16)."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +109,83 @@ def solves(play: Callable[[jax.Array, jax.Array], jax.Array], level: int, plans:
     return np.concatenate(out) if out else np.zeros(0, bool)
 
 
+class AgentEpisodes(NamedTuple):
+    """An agent's own sampled episodes, E per level, environment k * E + e playing level k: its action
+    distribution's parameters at every step [T, K * E, P], whether the step belongs to the first episode
+    [T, K * E], and whether that episode ended solved [K * E]."""
+
+    dist_params: np.ndarray
+    live: np.ndarray
+    solved: np.ndarray
+
+
+def load_agent(run_dir: Path, levels: str, size: str) -> tuple[Env, Any, Any]:
+    """(env over `levels` in size class `size` with the run's other environment settings, the run's `Agent`, its
+    newest policy)."""
+    from impulse.deploy.config import load_run_config
+    from impulse.deploy.run_config import RunConfig
+    from impulse.learner.agent import make_agent
+    from impulse.learner.run import restore_policy
+
+    config = load_run_config(RunConfig, run_dir)
+    settings = {field: value for field, value in dataclasses.asdict(config.env).items()
+                if field not in ("levels", "size")}
+    env = make_env(levels=levels, size=size, **settings)
+    agent = make_agent(config.network, env.spec)
+    return env, agent, restore_policy(config, run_dir).items["train"].params
+
+
+def agent_episodes(env: Env, agent: Any, params: Any, episodes: int, seed: int) -> AgentEpisodes:
+    """`episodes` episodes of the agent's sampled policy from the start of each of the env's levels."""
+    levels = jax.tree.map(lambda x: jnp.repeat(x, episodes, axis=0), env.levels)
+    num_envs = env.num_levels * episodes
+
+    def play(levels: Any, key: jax.Array) -> tuple[Any, Any]:
+        obs, state = reset_batch(env.spec, env.params, levels, num_envs)
+
+        def act(obs: Any, state: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+            dist_params, _ = agent.apply(params, obs)
+            return agent.distribution.sample(dist_params, key), dist_params
+
+        def record(step: Step) -> tuple[jax.Array, jax.Array]:
+            return step.aux, ~step.extra.finished
+
+        start = LoopCarry(state, obs, key, first_episode_start(num_envs))
+        carry, (dist_params, live) = episode_loop(env.spec, env.params, levels, start, env.spec.max_timesteps, act,
+                                                  record, first_episode)
+        return (dist_params, live), carry.extra.solved
+
+    (dist_params, live), solved = jax.jit(play)(levels, jax.random.PRNGKey(seed))
+    return AgentEpisodes(np.asarray(dist_params), np.asarray(live), np.asarray(solved))
+
+
+def action_mass(agent: Any, dist_params: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """The probability the agent's distributions `dist_params` [..., P] give to the set of `actions` [M, D]
+    together [...]."""
+    batch = dist_params.shape[:-1]
+    log_probs = jax.vmap(lambda action: agent.distribution.log_prob(
+        jnp.asarray(dist_params), jnp.broadcast_to(action, (*batch, action.shape[-1]))))(jnp.asarray(actions))
+    return np.asarray(jnp.exp(jax.nn.logsumexp(log_probs, axis=0)))
+
+
+def agent_record(agent: Any, played: AgentEpisodes, level: int, episodes: int, solving: np.ndarray,
+                 num_actions: int) -> dict[str, Any]:
+    """The agent's part of level `level`'s line: its solve rate over its episodes and, where holding an action
+    solves the level, the probability it gives those `solving` actions [M, D] together (mean over the steps of its
+    first episodes) at its first step, over its first `EARLY_STEPS` steps and over the whole episode, beside their
+    share of the action space (what a uniformly random policy gives them)."""
+    envs = slice(level * episodes, (level + 1) * episodes)
+    record: dict[str, Any] = {"episodes": episodes, "solve_rate": float(played.solved[envs].mean())}
+    if len(solving):
+        mass = action_mass(agent, played.dist_params[:, envs], solving)
+        live = played.live[:, envs]
+        record.update(solving_hold_share=len(solving) / num_actions,
+                      solving_hold_mass_first_step=float(mass[0].mean()),
+                      solving_hold_mass_early=float(mass[:EARLY_STEPS][live[:EARLY_STEPS]].mean()),
+                      solving_hold_mass_episode=float(mass[live].mean()))
+    return record
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="impulse bench open_loop", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -106,16 +196,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window-lengths", type=int, nargs="+", default=[2, 4, 8, 16, 32, 64, 128, 256])
     parser.add_argument("--batch", type=int, default=1024, help="episodes played at once")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--agent", type=Path, help="a run directory whose policy also plays each level "
+                        "(its environment settings but --size are used for every family)")
+    parser.add_argument("--agent-episodes", type=int, default=64, help="the agent's episodes per level")
     args = parser.parse_args(argv)
-    env = make_env(levels=args.levels, size=args.size)
+    if args.agent is not None:
+        if not (args.agent / "config.toml").is_file():
+            parser.error(f"--agent {args.agent}: no config.toml there; give a run directory")
+        env, agent, params = load_agent(args.agent, args.levels, args.size)
+        if env.spec.action != "multi_discrete":
+            parser.error(f"--agent {args.agent}: its actions are {env.spec.action}; the plans are multi-discrete")
+    else:
+        env, agent, params = make_env(levels=args.levels, size=args.size), None, None
     nvec, steps = env.action_space.nvec, env.spec.max_timesteps
     emit({"record": "config", **environment(), "levels": args.levels, "size": args.size, "random": args.random,
           "window_starts": args.window_starts, "window_lengths": args.window_lengths, "seed": args.seed,
-          "max_timesteps": steps})
+          "max_timesteps": steps, "agent": None if args.agent is None else str(args.agent),
+          "agent_episodes": args.agent_episodes if args.agent is not None else 0})
     play = player(env)
+    if agent is not None:
+        played = agent_episodes(env, agent, params, args.agent_episodes, args.seed)
     for level, name in enumerate(env.level_names):
         record: dict[str, Any] = {"record": "level", "level": name}
-        for family, plans in (("constant", constant_plans(nvec, steps)),
+        constant = constant_plans(nvec, steps)
+        for family, plans in (("constant", constant),
                               ("window", window_plans(nvec, steps, args.window_starts, args.window_lengths)),
                               ("random", random_plans(nvec, steps, args.random, args.seed))):
             solved = solves(play, level, plans.actions, args.batch)
@@ -124,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
                 record["random_solve_fraction"] = float(solved.mean()) if len(solved) else 0.0
             else:
                 record[family]["first"] = [plans.labels[i] for i in np.flatnonzero(solved)[:FIRST_SOLVERS]]
+            if family == "constant" and agent is not None:
+                record["agent"] = agent_record(agent, played, level, args.agent_episodes,
+                                               constant.actions[solved, 0], len(constant.actions))
         emit(record)
         progress(f"{name}: constant {record['constant']['solved']}/{record['constant']['episodes']}, window "
                  f"{record['window']['solved']}/{record['window']['episodes']}, random "
