@@ -40,6 +40,7 @@ from impulse.benchmarks._harness import emit, environment, progress
 from impulse.engine.env.api import Env, make_env
 from impulse.engine.env.env import reset_batch, reset_from_batch
 from impulse.engine.env.episodes import LoopCarry, Step, episode_loop, first_episode, first_episode_start
+from impulse.learner.agent import Agent, make_agent
 
 FIRST_SOLVERS = 5
 """Solving plans listed per family in a level's line."""
@@ -119,12 +120,11 @@ class AgentEpisodes(NamedTuple):
     solved: np.ndarray
 
 
-def load_agent(run_dir: Path, levels: str, size: str) -> tuple[Env, Any, Any]:
+def load_agent(run_dir: Path, levels: str, size: str) -> tuple[Env, Agent, Any]:
     """(env over `levels` in size class `size` with the run's other environment settings, the run's `Agent`, its
     newest policy)."""
     from impulse.deploy.config import load_run_config
     from impulse.deploy.run_config import RunConfig
-    from impulse.learner.agent import make_agent
     from impulse.learner.run import restore_policy
 
     config = load_run_config(RunConfig, run_dir)
@@ -135,7 +135,7 @@ def load_agent(run_dir: Path, levels: str, size: str) -> tuple[Env, Any, Any]:
     return env, agent, restore_policy(config, run_dir).items["train"].params
 
 
-def agent_episodes(env: Env, agent: Any, params: Any, episodes: int, seed: int) -> AgentEpisodes:
+def agent_episodes(env: Env, agent: Agent, params: Any, episodes: int, seed: int) -> AgentEpisodes:
     """`episodes` episodes of the agent's sampled policy from the start of each of the env's levels."""
     levels = jax.tree.map(lambda x: jnp.repeat(x, episodes, axis=0), env.levels)
     num_envs = env.num_levels * episodes
@@ -159,7 +159,7 @@ def agent_episodes(env: Env, agent: Any, params: Any, episodes: int, seed: int) 
     return AgentEpisodes(np.asarray(dist_params), np.asarray(live), np.asarray(solved))
 
 
-def action_mass(agent: Any, dist_params: np.ndarray, actions: np.ndarray) -> np.ndarray:
+def action_mass(agent: Agent, dist_params: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """The probability the agent's distributions `dist_params` [..., P] give to the set of `actions` [M, D]
     together [...]."""
     batch = dist_params.shape[:-1]
@@ -168,7 +168,7 @@ def action_mass(agent: Any, dist_params: np.ndarray, actions: np.ndarray) -> np.
     return np.asarray(jnp.exp(jax.nn.logsumexp(log_probs, axis=0)))
 
 
-def agent_record(agent: Any, played: AgentEpisodes, level: int, episodes: int, solving: np.ndarray,
+def agent_record(agent: Agent, played: AgentEpisodes, level: int, episodes: int, solving: np.ndarray,
                  num_actions: int) -> dict[str, Any]:
     """The agent's part of level `level`'s line: its solve rate over its episodes and, where holding an action
     solves the level, the probability it gives those `solving` actions [M, D] together (mean over the steps of its
