@@ -11,7 +11,8 @@
 # lr 1e-4, batch-scored SFL, the entity transformer; LEARNING_NETWORK=entity for the 221,521-parameter network),
 # fused then distributed, each for LEARNING_STEPS env steps or 210 s, whichever comes first: a run still training
 # at 210 s is interrupted, checkpoints and is scored, and its curve says how far it got.
-# `general` trains configs/general-s-gpu.toml for GENERAL_SECONDS (default 390; SIGINT then checkpoints), exports
+# `general` trains GENERAL_CONFIG (default configs/general-s-gpu.toml; from the policy of run GENERAL_INIT when set,
+# e.g. pretrained/general-s) for GENERAL_SECONDS (default 390; SIGINT then checkpoints), exports
 # the last checkpoint to $OUT/general-s and scores it on Kinetix S, our hand-made S and Kinetix M. The run's
 # metrics.jsonl and config.toml come back beside it; the export's checkpoint lies deeper than the 16 folders the
 # tool returns, so a next call on the warm machine tars /tmp/general-s into $OUT (docs/gpu.md).
@@ -53,7 +54,8 @@ elif [ "$part" = general ]; then
     run=/tmp/general-s
     echo "== [$(( $(date +%s) - started ))s] training for ${GENERAL_SECONDS:-390} s" >&2
     timeout -s INT --kill-after=40 "${GENERAL_SECONDS:-390}" python3 -m impulse.deploy.cli train \
-        --config configs/general-s-gpu.toml run_dir=$run >&2
+        --config "${GENERAL_CONFIG:-configs/general-s-gpu.toml}" ${GENERAL_INIT:+--init-from "$GENERAL_INIT"} \
+        run_dir=$run >&2
     echo "== training exit $? after $(( $(date +%s) - started ))s" >&2
     cp $run/config.toml $run/metrics.jsonl "$OUT/" 2>/dev/null
     python3 -m impulse.deploy.cli export --checkpoint $run --out /tmp/general-s-export \
