@@ -216,12 +216,12 @@ def main(argv: list[str] | None = None) -> int:
     play = player(env)
     if agent is not None:
         played = agent_episodes(env, agent, params, args.agent_episodes, args.seed)
+    constant = constant_plans(nvec, steps)
+    families = (("constant", constant), ("window", window_plans(nvec, steps, args.window_starts, args.window_lengths)),
+                ("random", random_plans(nvec, steps, args.random, args.seed)))  # the same plans on every level
     for level, name in enumerate(env.level_names):
         record: dict[str, Any] = {"record": "level", "level": name}
-        constant = constant_plans(nvec, steps)
-        for family, plans in (("constant", constant),
-                              ("window", window_plans(nvec, steps, args.window_starts, args.window_lengths)),
-                              ("random", random_plans(nvec, steps, args.random, args.seed))):
+        for family, plans in families:
             solved = solves(play, level, plans.actions, args.batch)
             record[family] = {"episodes": int(len(solved)), "solved": int(solved.sum())}
             if family == "random":
