@@ -8,11 +8,11 @@ actions, so every motor and thruster binding has its own dimension):
   rest, for every dimension, value, start in `--window-starts` and length in `--window-lengths`;
 - random: uniformly random actions every step (`--random` episodes), the exploration a fresh policy does.
 
-With `--agent RUN_DIR` (a trained policy, such as pretrained/general-s), the levels are played in that run's
-environment settings, and the agent plays `--agent-episodes` sampled episodes from each level's start. Its line
-then says how much probability the agent gives, at each step of its own episodes, to the actions whose holding
-solves the level (the constant family's solvers), against the share those actions have of the action space:
-whether the agent's moves lean towards a plan that works or away from it.
+With `--agent RUN_DIR` (a trained policy, such as pretrained/general-s; or one checkpoint, `RUN_DIR/checkpoints/N`),
+the levels are played in that run's environment settings, and the agent plays `--agent-episodes` sampled episodes
+from each level's start. Its line then says how much probability the agent gives, at each step of its own
+episodes, to the actions whose holding solves the level (the constant family's solvers), against the share those
+actions have of the action space: whether the agent's moves lean towards a plan that works or away from it.
 
 Output: one JSON line per level (`record` = "level") with the episodes and solves of each family, the solve
 fraction of random play, the first solving plans of the constant and window families and, with `--agent`, the
@@ -120,19 +120,22 @@ class AgentEpisodes(NamedTuple):
     solved: np.ndarray
 
 
-def load_agent(run_dir: Path, levels: str, size: str) -> tuple[Env, Agent, Any]:
+def load_agent(checkpoint: Path, levels: str, size: str) -> tuple[Env, Agent, Any]:
     """(env over `levels` in size class `size` with the run's other environment settings, the run's `Agent`, its
-    newest policy)."""
+    policy) of `checkpoint`: a run directory (its newest checkpoint) or one checkpoint's folder, as `impulse eval
+    --checkpoint` takes it."""
     from impulse.deploy.config import load_run_config
     from impulse.deploy.run_config import RunConfig
+    from impulse.deploy.runtime.run_dirs import locate_checkpoint
     from impulse.learner.run import restore_policy
 
+    run_dir, step = locate_checkpoint(checkpoint)
     config = load_run_config(RunConfig, run_dir)
     settings = {field: value for field, value in dataclasses.asdict(config.env).items()
                 if field not in ("levels", "size")}
     env = make_env(levels=levels, size=size, **settings)
     agent = make_agent(config.network, env.spec)
-    return env, agent, restore_policy(config, run_dir).items["train"].params
+    return env, agent, restore_policy(config, run_dir, step).items["train"].params
 
 
 def agent_episodes(env: Env, agent: Agent, params: Any, episodes: int, seed: int) -> AgentEpisodes:
@@ -196,14 +199,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window-lengths", type=int, nargs="+", default=[2, 4, 8, 16, 32, 64, 128, 256])
     parser.add_argument("--batch", type=int, default=1024, help="episodes played at once")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--agent", type=Path, help="a run directory whose policy also plays each level "
-                        "(its environment settings but --size are used for every family)")
+    parser.add_argument("--agent", type=Path, help="a run directory (its newest checkpoint) or one checkpoint's "
+                        "folder, whose policy also plays each level (its environment settings but --size are used "
+                        "for every family)")
     parser.add_argument("--agent-episodes", type=int, default=64, help="the agent's episodes per level")
     args = parser.parse_args(argv)
     if args.agent is not None:
-        if not (args.agent / "config.toml").is_file():
-            parser.error(f"--agent {args.agent}: no config.toml there; give a run directory")
-        env, agent, params = load_agent(args.agent, args.levels, args.size)
+        from impulse.learner.run import RunError
+
+        try:
+            env, agent, params = load_agent(args.agent, args.levels, args.size)
+        except (FileNotFoundError, RunError) as err:
+            parser.error(f"--agent {args.agent}: {err}")
         if env.spec.action != "multi_discrete":
             parser.error(f"--agent {args.agent}: its actions are {env.spec.action}; the plans are multi-discrete")
     else:

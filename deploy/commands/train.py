@@ -24,7 +24,13 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
-from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run, run_dir_of
+from impulse.deploy.runtime.run_dirs import (
+    create_run_dir,
+    locate_checkpoint,
+    open_run_for,
+    remove_unstarted_run,
+    run_dir_of,
+)
 
 log = logging.getLogger("impulse.train")
 
@@ -165,12 +171,12 @@ def _open_checkpoint(args: argparse.Namespace, command: str) -> tuple[RunConfig,
     """(config, run directory, checkpoint step or None for the newest) of `--checkpoint`, with the key=value
     overrides; None after printing the problem as `impulse COMMAND: ...`."""
     try:
-        run_dir = run_dir_of(args.checkpoint)
+        run_dir, step = locate_checkpoint(args.checkpoint)
         config = resolve_config(RunConfig, run_dir / "config.toml", args.overrides)
     except (FileNotFoundError, ConfigError) as err:
         print(f"impulse {command}: {err}", file=sys.stderr)
         return None
-    return config, run_dir, int(args.checkpoint.name) if args.checkpoint.name.isdigit() else None
+    return config, run_dir, step
 
 
 def run_eval(args: argparse.Namespace, config: RunConfig) -> int:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from impulse.deploy.runtime.run_dirs import run_dir_of
+from impulse.deploy.runtime.run_dirs import locate_checkpoint
 
 
 def load_pilot(checkpoint: str) -> Any:
@@ -22,10 +22,9 @@ def load_pilot(checkpoint: str) -> Any:
 
     path = Path(checkpoint)
     try:
-        run_dir = run_dir_of(path)
+        run_dir, step = locate_checkpoint(path)
         config = resolve_config(RunConfig, run_dir / "config.toml", [])
         trainer, agent, _, levels = build(config)
-        step = int(path.name) if path.name.isdigit() else None
         restored = restore_policy(config, run_dir, step, trainer, levels)
     except (FileNotFoundError, ConfigError, RunError, ValueError) as err:
         raise LevelInputError(f"cannot load an agent from {checkpoint}: {err}") from None

@@ -88,3 +88,11 @@ def run_dir_of(path: Path) -> Path:
         if (candidate / "config.toml").is_file():
             return candidate
     raise FileNotFoundError(f"no config.toml in {path} or above it: give a run directory")
+
+
+def locate_checkpoint(path: Path) -> tuple[Path, int | None]:
+    """(run directory, checkpoint step) of a path given as `--checkpoint`: a run directory (or a shipped agent),
+    whose newest checkpoint is meant (step None), or one checkpoint's folder `RUN/checkpoints/<step>`.
+    `FileNotFoundError` when no config.toml is found (`run_dir_of`)."""
+    run_dir = run_dir_of(path)
+    return run_dir, (int(path.name) if path != run_dir and path.name.isdigit() else None)

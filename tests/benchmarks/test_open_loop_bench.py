@@ -24,7 +24,7 @@ def test_the_plan_families_cover_the_action_space() -> None:
 
 
 def test_firing_the_thruster_solves_easy_thrust_right_and_resting_does_not(capsys: pytest.CaptureFixture[str]) -> None:
-    agent = REPO / "pretrained" / "general-s"
+    [agent] = (REPO / "pretrained" / "general-s" / "checkpoints").iterdir()  # one checkpoint's folder, by step
     assert main(["--levels", "handmade:s_easy_thrust_right", "--random", "4", "--window-starts", "0",
                  "--window-lengths", "256", "--batch", "64", "--agent", str(agent), "--agent-episodes", "8"]) == 0
     config, level = (json.loads(line) for line in capsys.readouterr().out.splitlines())
