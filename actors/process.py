@@ -291,14 +291,22 @@ class Actor:
             "learner_epoch": self.epoch,
             "in_flight": self.in_flight,
             "levels": self.levels.description,
-            "waiting": "weights" if self.params is None or self._awaits_next_weights() else (
-                "levels" if self.levels.waiting else "credit" if self.in_flight >= self.actors.credits else ""),
+            "waiting": self._waiting_for(),
             "rejected": self.bus.rejects.counts(),
             "weights_latency_ms": self.follow.latency_ms(),
             **self.counts,
             **self.follow.counts,
             **({"monitor": self.monitor.status()} if self.monitor is not None else {}),
         }
+
+    def _waiting_for(self) -> str:
+        """What the actor waits for, if anything: levels first, since before its first level batch (the curriculum
+        service still filling its buffer) it has not started following the learner's weights."""
+        if self.levels.waiting:
+            return "levels"
+        if self.params is None or self._awaits_next_weights():
+            return "weights"
+        return "credit" if self.in_flight >= self.actors.credits else ""
 
     def _publish_status_if_due(self) -> None:
         if self._status.due():

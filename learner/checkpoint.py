@@ -425,6 +425,36 @@ ABANDONED_READ_GRACE_S = 0.2
 """How long the reads orbax abandoned are given to finish (and report) before their reports are let through."""
 
 
+FINE_TUNING_COUNTERS = ("init_from", "init_from_step", "init_from_env_steps")
+"""The counters by which a fine-tuning run's checkpoints say where its starting policy came from."""
+
+
+class StartingPolicy(NamedTuple):
+    """A fine-tuning run's start: the parameters of another run's checkpoint and `origin`, the
+    `FINE_TUNING_COUNTERS` that the new run writes into each of its checkpoints."""
+
+    params: Any
+    origin: dict[str, Any]
+
+
+def read_starting_policy(source: Path, train_template: Any, config: CheckpointConfig) -> StartingPolicy:
+    """The policy parameters of `source`'s newest intact checkpoint (a run directory of either mode, or a shipped
+    agent such as pretrained/general-s), for `--init-from`. `train_template`: a `train` item of the new run's
+    network. The source is read as a reader reads it: a corrupt checkpoint there is skipped, never moved. Raises
+    `CheckpointError` (none usable, or another network)."""
+    with Checkpointer(source / config.directory, config) as checkpoints:
+        restored = checkpoints.restore({TRAIN: train_template}, set_aside=False)
+    origin = {"init_from": str(source), "init_from_step": restored.step,
+              "init_from_env_steps": int(restored.counters.get("env_steps", 0))}
+    return StartingPolicy(restored.items[TRAIN].params, origin)
+
+
+def fine_tuning_origin(counters: Mapping[str, Any]) -> dict[str, Any]:
+    """The `FINE_TUNING_COUNTERS` among a restored checkpoint's counters, so that a resumed fine-tuning run keeps
+    saying where it started."""
+    return {key: counters[key] for key in FINE_TUNING_COUNTERS if key in counters}
+
+
 @contextlib.contextmanager
 def _quiet_abandoned_reads(abandoned: Callable[[], bool]) -> Iterator[None]:
     """When one read of an item fails, orbax abandons the item's other reads and each of them later reports an

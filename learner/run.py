@@ -28,7 +28,16 @@ from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_lev
 from impulse.engine.memory import DoesNotFit, check_fits, warn_if_gpu_sized
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.learner.agent import Agent, make_agent
-from impulse.learner.checkpoint import CURRICULUM, ENVS, TRAIN, Checkpointer, CheckpointError, Restored
+from impulse.learner.checkpoint import (
+    CURRICULUM,
+    ENVS,
+    TRAIN,
+    Checkpointer,
+    CheckpointError,
+    Restored,
+    fine_tuning_origin,
+    read_starting_policy,
+)
 from impulse.learner.config import TrainingSetup
 from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
@@ -151,6 +160,7 @@ class FusedRun:
             raise RunError(str(err)) from err
         items, counters = restored.items, restored.counters
         self.update = int(counters["update"])
+        self.init_from = fine_tuning_origin(counters)
         if set(items) == {TRAIN}:
             self.carry = self.carry._replace(train=items[TRAIN])
             source = counters.get("imported_from", "a distributed run's learner")
@@ -165,15 +175,13 @@ class FusedRun:
         """Fine-tuning: the network parameters of `source`'s newest intact checkpoint (a run directory of either
         mode, or a shipped agent), with this run's fresh optimiser, environments and curriculum, from update 0."""
         try:
-            restored = restore_policy(self.config, source, trainer=self.trainer, train_levels=self.levels)
-        except RunError as err:
+            start = read_starting_policy(source, self.carry.train, self.config.checkpoint)
+        except CheckpointError as err:
             raise RunError(f"--init-from {source}: {err}") from err
-        self.carry = self.carry._replace(train=self.carry.train._replace(params=restored.items[TRAIN].params))
-        counters = restored.counters
-        self.init_from = {"init_from": str(source), "init_from_step": restored.step,
-                          "init_from_env_steps": int(counters.get("env_steps", 0))}
-        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source, restored.step,
-                 f"{self.init_from['init_from_env_steps']:,}")
+        self.carry = self.carry._replace(train=self.carry.train._replace(params=start.params))
+        self.init_from = start.origin
+        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source,
+                 start.origin["init_from_step"], f"{start.origin['init_from_env_steps']:,}")
 
     @property
     def env_steps(self) -> int:

@@ -64,7 +64,7 @@ from impulse.engine.memory import check_fits, warn_if_gpu_sized
 from impulse.engine.physics.building import empty_scene
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
-from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError
+from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError, fine_tuning_origin, read_starting_policy
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
 from impulse.learner.hosts import ONE_HOST, HostGroup, broadcast_from_leader, global_batch, local_copy
 from impulse.learner.run_directory import existing_run
@@ -154,10 +154,12 @@ class LearnerService:
 
     def __init__(self, ppo: PPOConfig, learner: LearnerConfig, checkpoint: CheckpointConfig, *, seed: int,
                  num_updates: int, batches_in_flight: int, status_every_s: float, run_dir: Path, config_toml: str,
-                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, wire_compact: bool = False,
-                 group: HostGroup = ONE_HOST):
+                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, init_from: Path | None = None,
+                 wire_compact: bool = False, group: HostGroup = ONE_HOST):
         """`num_updates`: the run's length; `batches_in_flight`: the most the actors may have sent unacknowledged
         (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints;
+        `init_from`: fine-tuning, a run directory or shipped agent whose policy a run with no checkpoint of its own
+        starts from (one that has checkpoints resumes them: a restarted learner goes on from its own);
         `wire_compact`: the actors send the compact trajectory format (`actors.wire_compact`); `group`: this
         process's place among the learner's hosts (`learner.hosts.join_hosts`), one process by default."""
         self.ppo, self.learner = ppo, learner
@@ -175,6 +177,7 @@ class LearnerService:
         params = agent.init(jax.random.PRNGKey(seed))
         self.train = TrainState(params, optimizer.init(params), np.asarray(0, np.int32))
         # Only the leader keeps checkpoints; it restores a resumed run and hands the state to the others.
+        self.checkpoint_config = checkpoint
         self.checkpoints = Checkpointer(run_dir / checkpoint.directory, checkpoint) if group.is_leader else None
         self.update = 0
         self.env_steps = 0
@@ -182,8 +185,10 @@ class LearnerService:
         self.counts: Counter[str] = Counter()
         self.peer_drops = DropTotals()
         self._rejected_before: Counter[str] = Counter()  # the learner's refusals before its restart
+        self.init_from: dict[str, Any] = {}
+        """Where the starting policy came from, when fine-tuning (written into every checkpoint's counters)."""
         if self.checkpoints is not None:
-            self._open_checkpoints(run_dir, resume)
+            self._open_checkpoints(run_dir, resume, init_from)
         self.train, self.update, self.env_steps, self.epoch = broadcast_from_leader(
             (self.train, self.update, self.env_steps, self.epoch), group)
         self.update, self.env_steps, self.epoch = int(self.update), int(self.env_steps), int(self.epoch)
@@ -238,9 +243,9 @@ class LearnerService:
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
         self._last_metrics: dict[str, float] = {}
 
-    def _open_checkpoints(self, run_dir: Path, resume: bool) -> None:
-        """Refuse a run directory that holds checkpoints unless resuming; restore the newest usable one; claim this
-        start's learner epoch."""
+    def _open_checkpoints(self, run_dir: Path, resume: bool, init_from: Path | None) -> None:
+        """Refuse a run directory that holds checkpoints unless resuming; restore the newest usable one, or with
+        none, start from `init_from`'s policy; claim this start's learner epoch."""
         assert self.checkpoints is not None
         if self.checkpoints.latest_step() is not None:
             if not resume:
@@ -250,6 +255,8 @@ class LearnerService:
         elif resume and self.checkpoints.set_aside():
             self.checkpoints.close()
             raise LearnerError(f"cannot resume: {self.checkpoints.nothing_usable()}")
+        elif init_from is not None:
+            self._start_from_policy(init_from)
         elif resume:
             log.info("nothing to resume in %s yet: starting fresh", self.checkpoints.directory)
         self.epoch = claim_epoch(run_dir, self.epoch)
@@ -268,9 +275,24 @@ class LearnerService:
         self.counts.update(plausible_counts(counters.get("drop_counts")))
         self._rejected_before.update(plausible_counts(counters.get("rejected")))
         self.peer_drops.restore(counters.get("peer_drops"))
+        self.init_from = fine_tuning_origin(counters)
         log.info("resumed from checkpoint %d (update %d, policy version %d, %s env steps, epoch %d)",
                  restored.step, self.update, int(self.train.policy_version),
                  f"{self.env_steps:,}", self.epoch + 1)
+
+    def _start_from_policy(self, source: Path) -> None:
+        """Fine-tuning: the parameters of `source`'s newest intact checkpoint, with this run's fresh optimiser,
+        from update 0."""
+        assert self.checkpoints is not None
+        try:
+            start = read_starting_policy(source, self.train, self.checkpoint_config)
+        except CheckpointError as err:
+            self.checkpoints.close()
+            raise LearnerError(f"--init-from {source}: {err}") from err
+        self.train = self.train._replace(params=start.params)
+        self.init_from = start.origin
+        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source,
+                 start.origin["init_from_step"], f"{start.origin['init_from_env_steps']:,}")
 
     @property
     def version(self) -> int:
@@ -552,7 +574,7 @@ class LearnerService:
             return
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
                     "policy_version": self.version, "drop_counts": dict(self.counts),
-                    "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **summary}
+                    "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **self.init_from, **summary}
         train = local_copy(self.train) if self.group.several else self.train
         self.checkpoints.save(self.update, {TRAIN: train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))

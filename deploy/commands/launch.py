@@ -5,8 +5,9 @@ and come back without breaking the others' connections. It starts the learner, `
 (`impulse learner --run RUN_DIR`, `impulse actor --run RUN_DIR --index N`) and, for runs on random levels, the
 curriculum service (`impulse curriculum serve --run RUN_DIR --resume`), shows their status lines, restarts a
 process that dies (the learner with `--resume`, from its newest checkpoint) after a back-off, and ends when the
-learner has finished its run. Ctrl-C (or SIGTERM) stops the actors first, then the curriculum and the learner,
-which write final checkpoints; a second Ctrl-C kills everything at once.
+learner has finished its run. `--init-from RUN_DIR` fine-tunes: the learner starts from that run's (or shipped
+agent's) policy until it has checkpoints of its own. Ctrl-C (or SIGTERM) stops the actors first, then the
+curriculum and the learner, which write final checkpoints; a second Ctrl-C kills everything at once.
 
 Before it writes or starts anything, the launcher checks what every process will need (`deploy.runtime.preflight`: level
 sets, the checkpoints a resume restores, credentials) and exits 1 with one error if something is wrong. A process
@@ -35,11 +36,11 @@ from impulse.bus.inbox import Received
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
-from impulse.deploy.config import write_resolved_config
+from impulse.deploy.config import ConfigError, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
-from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_source, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
@@ -63,6 +64,10 @@ LEARNER_STOP_TIMEOUT_S = 180.0
 def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", type=Path, metavar="RUN_DIR",
                         help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there")
+    parser.add_argument("--init-from", type=Path, metavar="RUN_DIR",
+                        help="fine-tune: a new run whose learner starts from the policy of RUN_DIR's newest "
+                        "checkpoint (a run directory or a shipped agent such as pretrained/general-s), with a fresh "
+                        "optimiser, actors and curriculum; the [network] section comes from RUN_DIR's config.toml")
     parser.add_argument("--status-every", type=float, default=10.0, metavar="SECONDS",
                         help="when the output is not a terminal, log the status lines this often (default 10)")
     parser.add_argument("--view", action="store_true",
@@ -80,6 +85,17 @@ def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = No
 
 
 def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
+    init_from = None
+    if args.init_from is not None:
+        if args.resume is not None:
+            print("impulse launch: --init-from starts a new run and --resume continues one: give one of them",
+                  file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            init_from, config = fine_tuning_source(args.init_from, config)
+        except (FileNotFoundError, ConfigError) as err:
+            print(f"impulse launch: --init-from: {err}", file=sys.stderr)
+            return EXIT_USAGE
     opened = open_run_for("launch", config, run_dir=args.resume, overrides=args.overrides)
     if opened is None:
         return EXIT_USAGE
@@ -107,7 +123,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         config = viewer_config(config)
     try:  # before anything is written or started: a problem every process would hit is one error, not a crash loop
         run_preflight(config, run_dir, resume=args.resume is not None,
-                      curriculum_service=config.uses_curriculum_service, cpu_only=True)
+                      curriculum_service=config.uses_curriculum_service, cpu_only=True, init_from=init_from)
     except PreflightError as err:
         print(f"impulse launch: {err}", file=sys.stderr)
         return EXIT_FAILED
@@ -115,13 +131,15 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     write_resolved_config(config, run_dir)
 
     resume_first = args.resume is not None
+    # On a restart too: a learner that died before its first checkpoint starts from the same policy again.
+    fine_tune = ["--init-from", str(init_from)] if init_from is not None else []
     children = []
     if streams:
         record = ["--record", str(args.record)] if args.record is not None else []
         record += [] if args.view else ["--headless"]
         children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "impulse.deploy.cli", "view", str(run_dir),
                                                        *record], run_dir / "logs" / "viewer.log"))
-    children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir,
+    children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir, *fine_tune,
                                                              *(["--resume"] if restart or resume_first else [])),
                       run_dir / "logs" / "learner.log"))
     if config.uses_curriculum_service:

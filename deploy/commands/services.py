@@ -17,12 +17,12 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from impulse.deploy.config import config_to_toml, write_resolved_config
+from impulse.deploy.config import ConfigError, config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
-from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_source, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 
 log = logging.getLogger("impulse.service")
@@ -43,6 +43,10 @@ def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
     add_service_arguments(parser)
     parser.add_argument("--resume", action="store_true",
                         help="continue from the newest checkpoint in the run directory (fresh if there is none)")
+    parser.add_argument("--init-from", type=Path, metavar="RUN_DIR",
+                        help="fine-tune: while the run has no checkpoint of its own, start from the policy of "
+                        "RUN_DIR's newest checkpoint (a run directory or a shipped agent such as "
+                        "pretrained/general-s), with a fresh optimiser; the [network] section comes from RUN_DIR")
     parser.add_argument("--hub", action="store_true",
                         help="also be the bus hub (listen on bus.hub) when no `impulse launch` provides one")
     parser.add_argument("--host-index", type=int, metavar="N",
@@ -61,6 +65,13 @@ def _resolve(args: argparse.Namespace, config: RunConfig, command: str) -> tuple
 
 
 def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
+    init_from = None
+    if args.init_from is not None:
+        try:
+            init_from, config = fine_tuning_source(args.init_from, config)
+        except (FileNotFoundError, ConfigError) as err:
+            print(f"impulse learner: --init-from: {err}", file=sys.stderr)
+            return EXIT_USAGE
     resolved = _resolve(args, config, "learner")
     if resolved is None:
         return EXIT_USAGE
@@ -109,7 +120,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
                 config.ppo, config.learner, config.checkpoint, seed=config.seed, num_updates=config.num_updates,
                 batches_in_flight=config.actors.num_actors * config.actors.credits,
                 status_every_s=config.actors.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
-                bus=bus, agent=agent, env_params=env_params, resume=args.resume,
+                bus=bus, agent=agent, env_params=env_params, resume=args.resume, init_from=init_from,
                 wire_compact=config.actors.wire_compact, group=group)
         except LearnerError as err:
             print(f"impulse learner: {err}", file=sys.stderr)

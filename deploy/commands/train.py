@@ -4,7 +4,6 @@ evaluation of a checkpoint."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import re
@@ -18,7 +17,6 @@ from typing import Any
 from impulse.deploy.config import (
     ConfigError,
     config_to_toml,
-    load_run_config,
     resolve_config,
     write_resolved_config,
 )
@@ -26,10 +24,10 @@ from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.run_dirs import (
     create_run_dir,
+    fine_tuning_source,
     locate_checkpoint,
     open_run_for,
     remove_unstarted_run,
-    run_dir_of,
 )
 
 log = logging.getLogger("impulse.train")
@@ -116,8 +114,7 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
                   file=sys.stderr)
             return EXIT_USAGE
         try:
-            init_from = run_dir_of(args.init_from)
-            config = dataclasses.replace(config, network=load_run_config(RunConfig, init_from).network)
+            init_from, config = fine_tuning_source(args.init_from, config)
         except (FileNotFoundError, ConfigError) as err:
             print(f"impulse train: --init-from: {err}", file=sys.stderr)
             return EXIT_USAGE

@@ -41,12 +41,13 @@ class PreflightError(Exception):
 
 
 def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_service: bool,
-                  cpu_only: bool = False) -> None:
+                  cpu_only: bool = False, init_from: Path | None = None) -> None:
     """Every check the run needs, cheapest first; raises `PreflightError` at the first problem.
 
     `resume`: the run continues from `run_dir`'s checkpoints (`--resume`). `curriculum_service`: the launch starts
     the curriculum service, which always resumes from its own checkpoints when there are any. `cpu_only`: keep JAX
-    in this process on the CPU (for the launcher; not for tests that share a process with others)."""
+    in this process on the CPU (for the launcher; not for tests that share a process with others). `init_from`:
+    the run directory or shipped agent whose policy a new run starts from (`--init-from`)."""
     from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
 
     roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else []),
@@ -64,6 +65,8 @@ def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_
     if curriculum_service:
         restores.append((curriculum_checkpoints, check_curriculum_checkpoint))
     restores = [(directory, check) for directory, check in restores if _holds_entries(directory)]
+    if init_from is not None and not resume:
+        restores.append((init_from / config.checkpoint.directory, check_fine_tuning_source))
     if not level_sets and not restores:
         return
     if cpu_only:
@@ -153,11 +156,29 @@ def check_learner_checkpoint(config: RunConfig, directory: Path) -> None:
     optimiser state, policy version), as `impulse learner --resume` will restore it. A corrupt newest checkpoint
     is moved aside by the restore, as the learner would do."""
     log.info("checking that the learner's checkpoint in %s fits this config's network", directory)
+    from impulse.learner.checkpoint import TRAIN
+
+    _restore(directory, config.checkpoint, TRAIN, _train_template(config), "cannot resume from the learner's")
+
+
+def check_fine_tuning_source(config: RunConfig, directory: Path) -> None:
+    """`--init-from`: the source's newest intact checkpoint (in `directory`) holds a policy of this config's
+    network, as the learner will read it: as a reader, which moves nothing in the source."""
+    log.info("checking the policy to start from in %s", directory)
+    from impulse.learner.checkpoint import TRAIN
+
+    if not _holds_entries(directory):
+        raise PreflightError(f"--init-from: no checkpoint in {directory}")
+    _restore(directory, config.checkpoint, TRAIN, _train_template(config),
+             "--init-from: cannot start from the source's", set_aside=False)
+
+
+def _train_template(config: RunConfig) -> Any:
+    """The shapes of the learner's training state (network, optimiser state, policy version) for `config`."""
     import jax
     import numpy as np
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
-    from impulse.learner.checkpoint import TRAIN
     from impulse.learner.update import TrainState, make_optimizer
 
     spec, _ = env_from_config(config.env)
@@ -169,8 +190,7 @@ def check_learner_checkpoint(config: RunConfig, directory: Path) -> None:
     num_updates = max(1, math.ceil(config.total_env_steps / (ppo.num_envs * ppo.num_steps)))
     params = jax.eval_shape(agent.init, jax.random.PRNGKey(config.seed))  # shapes only: nothing compiles
     opt_state = jax.eval_shape(make_optimizer(ppo, num_updates).init, params)
-    template = TrainState(params, opt_state, jax.ShapeDtypeStruct((), np.int32))
-    _restore(directory, config.checkpoint, TRAIN, template, "the learner's")
+    return TrainState(params, opt_state, jax.ShapeDtypeStruct((), np.int32))
 
 
 def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
@@ -186,26 +206,28 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
     curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     template = jax.eval_shape(curriculum.init, jax.random.PRNGKey(config.seed))
     _restore(directory, dataclasses.replace(config.checkpoint, keep_best=False), CURRICULUM, template,
-             "the curriculum's")
+             "cannot resume from the curriculum's")
 
 
-def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, template: Any, whose: str) -> None:
-    """Restore `item` of the newest checkpoint in `directory` with `template`; a `CheckpointError` (no usable
-    checkpoint, another network) becomes a `PreflightError` that names the directory."""
+def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, template: Any, what: str,
+             set_aside: bool = True) -> None:
+    """Restore `item` of the newest checkpoint in `directory` with `template` (`set_aside`: as
+    `Checkpointer.restore`); a `CheckpointError` (no usable checkpoint, another network) becomes a `PreflightError`
+    that begins with `what` and names the directory."""
     from impulse.learner.checkpoint import Checkpointer, CheckpointError
 
     try:
         with Checkpointer(directory, checkpoint_config) as checkpoints:
             if checkpoints.latest_step() is None:
                 return  # only a write that never finished: the service starts fresh, as it would here
-            checkpoints.restore({item: template})
+            checkpoints.restore({item: template}, set_aside=set_aside)
     except (CheckpointError, OSError) as err:
         detail = str(err)
         if len(detail) > LONGEST_DETAIL:
             detail = detail[:LONGEST_DETAIL - 3] + "..."
         if str(directory.absolute()) not in detail:
             detail = f"{directory}: {detail}"
-        raise PreflightError(f"cannot resume from {whose} checkpoint: {detail}") from None
+        raise PreflightError(f"{what} checkpoint: {detail}") from None
 
 
 def _check_handmade(key: str, picked: str, sizes: SceneSizes, size_name: str) -> None:

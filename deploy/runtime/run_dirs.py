@@ -96,3 +96,12 @@ def locate_checkpoint(path: Path) -> tuple[Path, int | None]:
     `FileNotFoundError` when no config.toml is found (`run_dir_of`)."""
     run_dir = run_dir_of(path)
     return run_dir, (int(path.name) if path != run_dir and path.name.isdigit() else None)
+
+
+def fine_tuning_source(path: Path, config: RunConfig) -> tuple[Path, RunConfig]:
+    """`--init-from PATH` (train, launch, learner): the source's run directory (`run_dir_of`) and `config` with the
+    source's [network] section, whatever the command line said, since the new run starts from its parameters.
+    `FileNotFoundError` or `ConfigError` when PATH holds no readable config.toml."""
+    source = run_dir_of(path)
+    return source, dataclasses.replace(config, network=load_run_config(RunConfig, source).network)
+

@@ -1,7 +1,8 @@
 """A trained policy shipped and fine-tuned: `impulse export` writes a run's policy alone into a small directory
 (config.toml, agent.json, a checkpoint with only the `train` item), `impulse eval` scores it, and `impulse train
---init-from` starts a new run from its parameters, with the source's network whatever the command line says (real
-`impulse train` and `impulse eval` processes, the other commands called in this process; real orbax checkpoints).
+--init-from` and `impulse launch --init-from` start new runs from its parameters, with the source's network
+whatever the command line says (real `impulse train`, `impulse launch` and `impulse eval` processes, the other
+commands called in this process; real orbax checkpoints).
 The source run's metrics also reach TensorBoard (read back with TensorBoard's reader), equal to its metrics.jsonl,
 and `impulse tensorboard` writes the same event files from that metrics.jsonl.
 
@@ -25,6 +26,7 @@ from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.run import build
 
+from tests.support.launch_procs import free_port
 from tests.support.paths import REPO
 from tests.support.scalars import expected_points, metrics_rows, tensorboard_points
 
@@ -127,7 +129,32 @@ def test_export_eval_and_fine_tune(tmp_path, capsys):
     fresh = jax.jit(built.trainer.init)(jax.random.PRNGKey(TUNE_SEED), built.levels).train.params
     assert max_distance(fresh, shipped_params) > 0.5, "a fresh network of the fine-tuning seed is far from it"
 
+    # The same in distributed mode: `impulse launch --init-from` (learner and one actor as processes on loopback).
+    launched = tmp_path / "launched"
+    fine = impulse("launch", "--init-from", str(shipped), f"run_dir={launched}", "--config", str(QUICK),
+                   f"name={launched.name}", f"bus.hub=tcp/127.0.0.1:{free_port()}", f"total_env_steps={STEPS}",
+                   "checkpoint.every_updates=1", "eval.attempts=0", "network.width=32", f"seed={TUNE_SEED}",
+                   "actors.num_actors=1", "--status-every", "5")
+    assert fine.returncode == 0, fine.stdout
+    assert "fine-tuning the policy of" in (launched / "logs" / "learner.log").read_text()
+    assert resolve_config(RunConfig, launched / "config.toml").network.width == 64
+    launched_params, launched_counters = policy_params(launched, template)
+    assert launched_counters["init_from_env_steps"] == 2 * STEPS and launched_counters["update"] == 1, (
+        launched_counters)
+    assert 0 < max_distance(launched_params, shipped_params) < 0.01, "one update from the shipped policy"
+
     capsys.readouterr()
     assert main(["train", "--init-from", str(tmp_path / "nowhere"), f"run_dir={tmp_path / 'x'}", *SETTINGS]) == 2
     refused = capsys.readouterr().err
     assert "--init-from" in refused and "config.toml" in refused, refused
+    assert main(["launch", "--init-from", str(shipped), "--resume", str(launched)]) == 2
+    refused = capsys.readouterr().err
+    assert "--init-from starts a new run and --resume continues one" in refused, refused
+    empty = tmp_path / "empty"  # a config.toml but no checkpoint: refused before anything starts
+    empty.mkdir()
+    (empty / "config.toml").write_text((shipped / "config.toml").read_text())
+    assert main(["launch", "--init-from", str(empty), f"run_dir={tmp_path / 'y'}", "--config", str(QUICK),
+                 f"bus.hub=tcp/127.0.0.1:{free_port()}"]) == 1
+    refused = capsys.readouterr().err
+    assert "--init-from: no checkpoint in" in refused, refused
+    assert not (tmp_path / "y").exists()
