@@ -36,11 +36,11 @@ from impulse.bus.inbox import Received
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
-from impulse.deploy.config import ConfigError, write_resolved_config
+from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
-from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_source, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
@@ -85,17 +85,10 @@ def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = No
 
 
 def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
-    init_from = None
-    if args.init_from is not None:
-        if args.resume is not None:
-            print("impulse launch: --init-from starts a new run and --resume continues one: give one of them",
-                  file=sys.stderr)
-            return EXIT_USAGE
-        try:
-            init_from, config = fine_tuning_source(args.init_from, config)
-        except (FileNotFoundError, ConfigError) as err:
-            print(f"impulse launch: --init-from: {err}", file=sys.stderr)
-            return EXIT_USAGE
+    fine_tuning = fine_tuning_for("launch", args.init_from, config, resume=args.resume)
+    if fine_tuning is None:
+        return EXIT_USAGE
+    init_from, config = fine_tuning
     opened = open_run_for("launch", config, run_dir=args.resume, overrides=args.overrides)
     if opened is None:
         return EXIT_USAGE

@@ -17,12 +17,12 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from impulse.deploy.config import ConfigError, config_to_toml, write_resolved_config
+from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
-from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_source, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 
 log = logging.getLogger("impulse.service")
@@ -65,13 +65,10 @@ def _resolve(args: argparse.Namespace, config: RunConfig, command: str) -> tuple
 
 
 def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
-    init_from = None
-    if args.init_from is not None:
-        try:
-            init_from, config = fine_tuning_source(args.init_from, config)
-        except (FileNotFoundError, ConfigError) as err:
-            print(f"impulse learner: --init-from: {err}", file=sys.stderr)
-            return EXIT_USAGE
+    fine_tuning = fine_tuning_for("learner", args.init_from, config)
+    if fine_tuning is None:
+        return EXIT_USAGE
+    init_from, config = fine_tuning
     resolved = _resolve(args, config, "learner")
     if resolved is None:
         return EXIT_USAGE

@@ -24,7 +24,7 @@ from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.run_dirs import (
     create_run_dir,
-    fine_tuning_source,
+    fine_tuning_for,
     locate_checkpoint,
     open_run_for,
     remove_unstarted_run,
@@ -107,17 +107,10 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse train: {err}", file=sys.stderr)
         return EXIT_USAGE
     enable_compile_cache()
-    init_from = None
-    if args.init_from is not None:
-        if args.resume is not None:
-            print("impulse train: --init-from starts a new run and --resume continues one: give one of them",
-                  file=sys.stderr)
-            return EXIT_USAGE
-        try:
-            init_from, config = fine_tuning_source(args.init_from, config)
-        except (FileNotFoundError, ConfigError) as err:
-            print(f"impulse train: --init-from: {err}", file=sys.stderr)
-            return EXIT_USAGE
+    fine_tuning = fine_tuning_for("train", args.init_from, config, resume=args.resume)
+    if fine_tuning is None:
+        return EXIT_USAGE
+    init_from, config = fine_tuning
     opened = open_run_for("train", config, run_dir=args.resume, overrides=args.overrides)
     if opened is None:
         return EXIT_USAGE

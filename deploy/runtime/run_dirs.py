@@ -98,10 +98,22 @@ def locate_checkpoint(path: Path) -> tuple[Path, int | None]:
     return run_dir, (int(path.name) if path != run_dir and path.name.isdigit() else None)
 
 
-def fine_tuning_source(path: Path, config: RunConfig) -> tuple[Path, RunConfig]:
-    """`--init-from PATH` (train, launch, learner): the source's run directory (`run_dir_of`) and `config` with the
-    source's [network] section, whatever the command line said, since the new run starts from its parameters.
-    `FileNotFoundError` or `ConfigError` when PATH holds no readable config.toml."""
-    source = run_dir_of(path)
-    return source, dataclasses.replace(config, network=load_run_config(RunConfig, source).network)
-
+def fine_tuning_for(command: str, init_from: Path | None, config: RunConfig, *,
+                    resume: Path | None = None) -> tuple[Path | None, RunConfig] | None:
+    """`impulse COMMAND --init-from PATH` (train, launch, learner): the source's run directory (`run_dir_of`) and
+    `config` with the source's [network] section, whatever the command line said, since the new run starts from
+    its parameters; `(None, config)` when no source is given. On a problem (no readable config.toml there, or
+    `--resume` as well: a new run against a continued one) its message is printed to stderr as
+    `impulse COMMAND: ...` and None is returned (the command then exits with its usage status)."""
+    if init_from is None:
+        return None, config
+    if resume is not None:
+        print(f"impulse {command}: --init-from starts a new run and --resume continues one: give one of them",
+              file=sys.stderr)
+        return None
+    try:
+        source = run_dir_of(init_from)
+        return source, dataclasses.replace(config, network=load_run_config(RunConfig, source).network)
+    except (FileNotFoundError, ConfigError) as err:
+        print(f"impulse {command}: --init-from: {err}", file=sys.stderr)
+        return None

@@ -37,7 +37,9 @@ def launch(run_dir: Path, *overrides: str, env: dict[str, str] | None = None,
 
 
 def config_for(run_dir: Path, *overrides: str) -> RunConfig:
-    return resolve_config(RunConfig, QUICK_LAUNCH, [f"run_dir={run_dir}", f"name={run_dir.name}", *overrides])
+    """The quick launch's config on a free hub port (the default one may be another run's on this machine)."""
+    return resolve_config(RunConfig, QUICK_LAUNCH, [f"run_dir={run_dir}", f"name={run_dir.name}",
+                                                    f"bus.hub=tcp/127.0.0.1:{free_port()}", *overrides])
 
 
 def zeros_like(template):
