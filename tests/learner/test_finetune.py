@@ -26,7 +26,7 @@ from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.run import build
 
-from tests.support.launch_procs import free_port
+from tests.support.launch_procs import TINY_BATCH, free_port
 from tests.support.paths import REPO
 from tests.support.scalars import expected_points, metrics_rows, tensorboard_points
 
@@ -129,12 +129,13 @@ def test_export_eval_and_fine_tune(tmp_path, capsys):
     fresh = jax.jit(built.trainer.init)(jax.random.PRNGKey(TUNE_SEED), built.levels).train.params
     assert max_distance(fresh, shipped_params) > 0.5, "a fresh network of the fine-tuning seed is far from it"
 
-    # The same in distributed mode: `impulse launch --init-from` (learner and one actor as processes on loopback).
+    # The same in distributed mode: `impulse launch --init-from` (learner and one actor as processes on loopback),
+    # one update of the distributed tests' tiny batch (their programs, through the compilation cache).
     launched = tmp_path / "launched"
     fine = impulse("launch", "--init-from", str(shipped), f"run_dir={launched}", "--config", str(QUICK),
-                   f"name={launched.name}", f"bus.hub=tcp/127.0.0.1:{free_port()}", f"total_env_steps={STEPS}",
-                   "checkpoint.every_updates=1", "eval.attempts=0", "network.width=32", f"seed={TUNE_SEED}",
-                   "actors.num_actors=1", "--status-every", "5")
+                   f"name={launched.name}", f"bus.hub=tcp/127.0.0.1:{free_port()}", *TINY_BATCH,
+                   f"total_env_steps={8 * 8}", "checkpoint.every_updates=1", "eval.attempts=0", "network.width=32",
+                   f"seed={TUNE_SEED}", "actors.num_actors=1", "--status-every", "5")
     assert fine.returncode == 0, fine.stdout
     assert "fine-tuning the policy of" in (launched / "logs" / "learner.log").read_text()
     assert resolve_config(RunConfig, launched / "config.toml").network.width == 64
