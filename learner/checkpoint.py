@@ -446,6 +446,8 @@ def read_starting_policy(source: Path, train_template: Any, config: CheckpointCo
         restored = checkpoints.restore({TRAIN: train_template}, set_aside=False)
     origin = {"init_from": str(source), "init_from_step": restored.step,
               "init_from_env_steps": int(restored.counters.get("env_steps", 0))}
+    log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source, restored.step,
+             f"{origin['init_from_env_steps']:,}")
     return StartingPolicy(restored.items[TRAIN].params, origin)
 
 

@@ -180,8 +180,6 @@ class FusedRun:
             raise RunError(f"--init-from {source}: {err}") from err
         self.carry = self.carry._replace(train=self.carry.train._replace(params=start.params))
         self.init_from = start.origin
-        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source,
-                 start.origin["init_from_step"], f"{start.origin['init_from_env_steps']:,}")
 
     @property
     def env_steps(self) -> int:

@@ -291,8 +291,6 @@ class LearnerService:
             raise LearnerError(f"--init-from {source}: {err}") from err
         self.train = self.train._replace(params=start.params)
         self.init_from = start.origin
-        log.info("fine-tuning the policy of %s (checkpoint %d, trained for %s env steps)", source,
-                 start.origin["init_from_step"], f"{start.origin['init_from_env_steps']:,}")
 
     @property
     def version(self) -> int:
