@@ -156,11 +156,15 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", HOST_PROCESSES_ENV: str(sharing)}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
-    log.info("run %s in %s: learner, %s%s%d actors; logs in %s", config.name, run_dir,
-             f"curriculum ({config.curriculum.method}), " if config.uses_curriculum_service else "",
-             f"evaluator ({config.evaluator.levels}), " if config.evaluator.levels else "",
-             f"recorder ({config.recorder.path}), " if config.recorder.path else "",
-             config.actors.num_actors, run_dir / "logs")
+    roles = ["learner"]
+    if config.uses_curriculum_service:
+        roles.append(f"curriculum ({config.curriculum.method})")
+    if config.evaluator.levels:
+        roles.append(f"evaluator ({config.evaluator.levels})")
+    if config.recorder.path:
+        roles.append(f"recorder ({config.recorder.path})")
+    roles.append(f"{config.actors.num_actors} actor{'s' if config.actors.num_actors != 1 else ''}")
+    log.info("run %s in %s: %s; logs in %s", config.name, run_dir, ", ".join(roles), run_dir / "logs")
     with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
         statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
         presence = bus.watch_alive(bus.keys.alive_pattern())

@@ -137,6 +137,8 @@ def test_export_eval_and_fine_tune(tmp_path, capsys):
                    f"total_env_steps={8 * 8}", "checkpoint.every_updates=1", "eval.attempts=0", "network.width=32",
                    f"seed={TUNE_SEED}", "actors.num_actors=1", "--status-every", "5")
     assert fine.returncode == 0, fine.stdout
+    assert f"run {launched.name} in {launched}: learner, 1 actor; logs in" in fine.stdout, fine.stdout
+    assert "Logging error" not in fine.stdout, fine.stdout
     assert "fine-tuning the policy of" in (launched / "logs" / "learner.log").read_text()
     assert resolve_config(RunConfig, launched / "config.toml").network.width == 64
     launched_params, launched_counters = policy_params(launched, template)
