@@ -2,13 +2,15 @@
 
 `buffer_summary` gives the scalar statistics the service publishes and the fused trainer logs: fill, score
 distribution, replay-weighted score and staleness, policy lag of the scores, turnover counters, solve-rate
-extremes, lineage depth and level complexity. `buffer_table` lists the buffered levels one per row, and
-`histogram` bins a column for display. `inspect_report` and `top_levels` are what `impulse curriculum inspect`
-shows, from a live service or from a checkpoint (the same report either way).
+extremes, lineage depth and level complexity; `metric_columns` picks the few that go into every metrics row.
+`buffer_table` lists the buffered levels one per row, and `histogram` bins a column for display.
+`inspect_report` and `top_levels` are what `impulse curriculum inspect` shows, from a live service or from a
+checkpoint (the same report either way).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import jax
@@ -101,6 +103,25 @@ def buffer_summary(state: CurriculumState, sizes: SceneSizes, policy_version: in
         summary["score_lag_mean"] = float(lag.mean())
         summary["score_lag_replay_weighted"] = float((weight * lag).sum())
     return summary
+
+
+METRIC_COLUMNS = ("buffer_fill", "score_mean", "score_replay_weighted", "learnable", "never_solved", "always_solved",
+                  "score_lag_mean", "staleness_replay_weighted", "count_inserted", "count_evicted", "staged")
+"""The buffer statistics a learner writes to every metrics.jsonl row, as `curriculum_<name>`: the fused trainer from
+its own buffer, the distributed learner from the curriculum service's status line, so that both modes' rows
+carry the same columns."""
+
+
+def metric_columns(summary: Mapping[str, Any]) -> dict[str, float]:
+    """The `curriculum_<name>` columns of METRIC_COLUMNS from a `buffer_summary` (or a status line that carries one,
+    as heard from another process). A statistic that is missing, not a number or not finite (nothing scored yet)
+    is left out of the row rather than written as NaN."""
+    columns = {}
+    for name in METRIC_COLUMNS:
+        value = summary.get(name)
+        if isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value):
+            columns[f"curriculum_{name}"] = float(value)
+    return columns
 
 
 def json_scalar(value: Any) -> Any:

@@ -21,7 +21,7 @@ from typing import Any
 import jax
 from impulse.bus.service import CycleReport, Progress
 from impulse.curriculum.algorithms import Curriculum
-from impulse.curriculum.stats import buffer_summary
+from impulse.curriculum.stats import buffer_summary, metric_columns
 from impulse.engine.env.spec import EnvParams, env_from_config
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
@@ -219,11 +219,8 @@ class FusedRun:
         return evaluation_columns(scored.table, scored.groups, self.update)
 
     def curriculum_metrics(self) -> dict[str, float]:
-        """A few buffer statistics for metrics.jsonl (prefixed `curriculum_`)."""
-        summary = buffer_summary(self.carry.curriculum, self.agent.spec.sizes, self.update)
-        keep = ("buffer_fill", "score_mean", "score_replay_weighted", "learnable", "never_solved", "always_solved",
-                "score_lag_mean", "staleness_replay_weighted", "count_inserted", "count_evicted", "staged")
-        return {f"curriculum_{k}": float(summary[k]) for k in keep if k in summary}
+        """A few buffer statistics for metrics.jsonl (`curriculum.stats.metric_columns`)."""
+        return metric_columns(buffer_summary(self.carry.curriculum, self.agent.spec.sizes, self.update))
 
     def save(self, summary: dict[str, float]) -> None:
         counters = {"update": self.update, "env_steps": self.env_steps, **self.init_from, **summary}

@@ -58,6 +58,7 @@ from impulse.bus.session import Bus
 from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
 from impulse.bus.trajectories import decode_trajectory
 from impulse.bus.weights import encode_weights
+from impulse.curriculum.stats import metric_columns
 from impulse.engine.env.spec import EnvParams
 from impulse.engine.levels.level import level_from_scene, stack_levels
 from impulse.engine.memory import check_fits, warn_if_gpu_sized
@@ -229,6 +230,7 @@ class LearnerService:
                                for role in (ACTOR, CURRICULUM, EVALUATOR)}
         self._evaluations = bus.inbox(keys.evaluations_all, 16, drop_oldest=True)
         self._evaluation_columns: dict[str, float] = {}  # the newest evaluation, for the next metrics row
+        self._curriculum_columns: dict[str, float] = {}  # the curriculum's newest buffer statistics, for every row
         self.evaluation: dict[str, Any] = {}  # ... and for the status line
         self._status = StatusPublisher(bus, status_every_s)
         self._credit_publishers: dict[str, Any] = {}
@@ -385,13 +387,18 @@ class LearnerService:
         return index is not None and self.group.serves_actor(index)
 
     def _hear_peers(self) -> None:
-        """The actors' and the curriculum's status lines, for their drop counters."""
+        """The actors' and the curriculum's status lines, for their drop counters, and the curriculum's buffer
+        statistics for the metrics rows (the same `curriculum_...` columns as the fused trainer's)."""
         for inbox in self._peer_statuses.values():
             for received in inbox.poll():
                 try:
-                    self.peer_drops.note(read_status(received, self.bus.keys))
+                    heard = read_status(received, self.bus.keys)
                 except Rejected as err:
                     self.bus.rejects.record(err.reason, received.key, err.detail)
+                    continue
+                self.peer_drops.note(heard)
+                if heard.role == CURRICULUM:
+                    self._curriculum_columns = metric_columns(heard.status)
 
     def _hear_evaluations(self) -> None:
         """The evaluator's scores of a policy: written to the next metrics row (`eval/...` columns, as in
@@ -532,6 +539,7 @@ class LearnerService:
             steps_per_s=self._rate() * self.steps_per_batch,
             queue=len(self._ready),
             **self.drop_metrics(),
+            **self._curriculum_columns,
             **self._evaluation_columns,
         )
         self._evaluation_columns = {}  # each evaluation in one row

@@ -16,7 +16,8 @@ checks to keep the suite short; real processes, real zenoh on loopback):
    the learner's curves and the curriculum's histograms, gallery and knob change. The memory check above runs
    with the streaming on;
 5. the evaluator the launcher started scores the learner's policies: the scores reach the learner's metrics.jsonl
-   rows, the status display and the recording (the learner's and the evaluator's curves)."""
+   rows, the status display and the recording (the learner's and the evaluator's curves); the rows also carry the
+   curriculum service's buffer statistics (`curriculum_...`, the fused trainer's columns)."""
 
 from __future__ import annotations
 
@@ -262,6 +263,10 @@ def test_slow_learner_back_pressure_live_curriculum_and_ctrl_c_checkpoints(tmp_p
         wait_for(lambda: watcher.poll().get("learner", {}).get("evaluation", {}).get("policy_version") is not None
                  and any("eval/level/s_easy_car_right" in row for row in metrics(run_dir)), 180,
                  "an evaluation in the learner's metrics", launch, log)
+        # The learner's rows also carry the curriculum service's buffer statistics, as the fused trainer's do.
+        wait_for(lambda: any(row.get("curriculum_buffer_fill", 0) > 0 and row.get("curriculum_count_inserted", 0) >= 1
+                             for row in metrics(run_dir)), 60, "the curriculum's statistics in the learner's metrics",
+                 launch, log)
 
         # Ctrl-C: actors stop first, then the curriculum and the learner checkpoint and exit.
         launch.send_signal(signal.SIGINT)
