@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 from impulse.actors.trajectory import Trajectory, TrajectoryBatch
 from impulse.learner.config import PPOConfig
-from impulse.learner.losses import PPOBatch, ppo_loss
+from impulse.learner.losses import PPOBatch, approx_kl, ppo_loss, weighted_mean
 from impulse.learner.returns import gae, vtrace
 
 Array = jax.Array
@@ -86,6 +86,15 @@ def targets_and_advantages(
     )
 
 
+def lag_metrics(log_ratio: Array, weight: Array, config: PPOConfig) -> dict[str, Array]:
+    """How far the batch is off-policy, from log_ratio = log pi_learner - log pi_behaviour of the taken actions
+    (the learner before the update): `behaviour_kl`, the estimated KL(behaviour || learner), and `trace_weight`,
+    the mean of min(c-bar, pi_learner / pi_behaviour), the factor by which V-trace cuts each step's trace
+    (1: no cut; gae_lambda multiplies it further). On-policy both are 0 and 1 up to rounding."""
+    return {"behaviour_kl": approx_kl(log_ratio, weight),
+            "trace_weight": weighted_mean(jnp.minimum(config.vtrace_c_bar, jnp.exp(log_ratio)), weight)}
+
+
 def ppo_update(
     state: TrainState,
     batch: TrajectoryBatch,
@@ -98,7 +107,8 @@ def ppo_update(
     minibatch_sharding: jax.sharding.Sharding | None = None,
 ) -> tuple[TrainState, dict[str, Array]]:
     """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps, plus
-    `policy_lag`, the versions between the batch's behaviour policy and `state`.
+    `policy_lag`, the versions between the batch's behaviour policy and `state`, and how far the batch is
+    off-policy (`lag_metrics`).
 
     `minibatch_sharding` (see `learner.sharding`) splits every minibatch's samples over devices, so that each
     device evaluates the loss on its share and only gradients cross between them; the result is the same."""
@@ -175,4 +185,5 @@ def ppo_update(
     metrics = jax.tree.map(jnp.mean, metrics)
     metrics["policy_lag"] = check_policy_lag(batch.behaviour_version, state.policy_version, 0).lag
     metrics["trained_fraction"] = batch.train_mask.mean()
+    metrics.update(lag_metrics(log_prob - trajectory.log_prob, batch.train_mask.astype(jnp.float32), config))
     return TrainState(params, opt_state, state.policy_version + 1), metrics

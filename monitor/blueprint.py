@@ -17,6 +17,7 @@ LEARNER_CURVES = {
     "policy": ("policy_loss", "entropy", "approx_kl", "clip_fraction"),
     "episodes": ("window/solve_rate", "window/episode_return"),
     "lag and queue": ("policy_lag", "queue"),
+    "off-policy": ("behaviour_kl", "trace_weight"),
 }
 DROPS = ("dropped_stale", "dropped_overflow", "dropped_old_epoch", "lost")
 CURRICULUM_CURVES = {

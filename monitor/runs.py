@@ -36,9 +36,10 @@ EPISODE_COLUMNS: tuple[str, ...] = (
 """The episodes of the batch trained on (`actors.trajectory.episode_metrics`)."""
 PPO_COLUMNS: tuple[str, ...] = (
     "total_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "trained_fraction",
-    "policy_lag",
+    "policy_lag", "behaviour_kl", "trace_weight",
 )
-"""The PPO update (`learner.update.ppo_update`); `policy_lag` is 0 in fused mode."""
+"""The PPO update (`learner.update.ppo_update`); in fused mode `policy_lag` is 0, `behaviour_kl` 0 and
+`trace_weight` 1 (up to rounding)."""
 SHARED_COLUMNS: tuple[str, ...] = PROGRESS_COLUMNS + EPISODE_COLUMNS + PPO_COLUMNS
 """The columns of every metrics.jsonl row in both modes, meaning the same in both (docs/metrics.md, "both"):
 what makes a fused and a distributed run comparable. tests/learner/test_learns.py (fused) and

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import pytest
 from impulse.learner.update import check_policy_lag
 
 
@@ -88,3 +89,8 @@ def test_the_clip_centred_on_the_learner():
     _, centred_metrics = update(lagging, "learner")
     assert float(classic_metrics["clip_fraction"]) > 0.2
     assert float(centred_metrics["clip_fraction"]) == 0.0 and float(centred_metrics["approx_kl"]) == 0.0
+    # How far off-policy each batch was, measured before the update: none for the learner's own, much for the other.
+    _, on_policy_metrics = update(on_policy, "learner")
+    assert abs(float(on_policy_metrics["behaviour_kl"])) < 1e-6
+    assert float(on_policy_metrics["trace_weight"]) == pytest.approx(1.0, abs=1e-6)
+    assert float(centred_metrics["behaviour_kl"]) > 0.05 and float(centred_metrics["trace_weight"]) < 0.9
