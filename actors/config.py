@@ -24,7 +24,8 @@ class ActorConfig:
     and replaces its one held-back batch with the newer one (every replaced batch is counted as dropped)."""
     credit_timeout_s: float = 30.0
     """No acknowledgement from the learner for this long while out of credit: the batches in flight are taken
-    as lost (a learner restarted without them) and the credits are reset."""
+    as lost (a learner restarted without them) and the credits are reset. While the learner's recent pace says a
+    batch may still be in its queue ((num_actors x credits + 1) of its updates), the actor waits that long instead."""
     memory_fraction: float = 0.0
     """Fraction of the GPU's memory each actor process preallocates (XLA_PYTHON_CLIENT_MEM_FRACTION), so several
     actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""

@@ -38,6 +38,8 @@ WEIGHTS_QUERY_EVERY_S = 2.0
 """While it has no weights, a follower asks the learner's queryable this often."""
 LATENCY_WINDOW = 100
 """Weight broadcasts whose publish-to-adopted latency `latency_ms` summarises."""
+PACE_WINDOW = 8
+"""Adoptions over which `seconds_per_version` measures the learner's pace."""
 
 
 class FollowEvents(NamedTuple):
@@ -112,6 +114,17 @@ class LearnerFollower:
         self._returned = False  # the learner came back: weights of another epoch may be adopted
         self._last_query = -float("inf")
         self._latency_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self._adoptions: deque[tuple[float, int]] = deque(maxlen=PACE_WINDOW)  # (when, version), this epoch
+
+    @property
+    def seconds_per_version(self) -> float | None:
+        """The learner's recent pace: seconds per policy version (one version per update), over the last
+        PACE_WINDOW adoptions of this epoch; None before two. Versions count updates, so the pace holds however
+        seldom this process looks (an actor adopts only between rollouts)."""
+        if len(self._adoptions) < 2:
+            return None
+        (first_at, first_version), (last_at, last_version) = self._adoptions[0], self._adoptions[-1]
+        return (last_at - first_at) / (last_version - first_version)
 
     @property
     def learner_finished(self) -> bool:
@@ -170,6 +183,9 @@ class LearnerFollower:
         self.params = jax.device_put(tree_from_arrays(message.arrays, self._template))
         if message.learner_epoch != self.epoch and self.epoch >= 0:
             log.info("the learner restarted (epoch %d -> %d)", self.epoch, message.learner_epoch)
+        if message.learner_epoch != self.epoch:
+            self._adoptions.clear()  # another learner: its pace is its own
+        self._adoptions.append((time.monotonic(), offered[1]))
         self.epoch, self.version = offered
         self.bus.stamp.acting_for(*offered)
         self.counts["weights_adopted"] += 1

@@ -32,8 +32,9 @@ that. Acknowledgements name the actor's incarnation (a random number drawn at st
 confused by acknowledgements meant for its predecessor; and they carry the learner's epoch, so when a restarted
 learner (new epoch) appears, whatever was in flight to the old one is written off at once, as it is when the
 learner's liveliness token goes and comes back (the link to it broke: a router restart, a network partition). If
-no acknowledgement arrives for `actors.credit_timeout_s` while out of credit, the batches in flight are written
-off too.
+no acknowledgement arrives while out of credit for `actors.credit_timeout_s`, or for longer while the learner's own
+pace says the batch may still be queued (`Actor.credit_deadline_s`: a slow learner, a loaded machine), the
+batches in flight are written off too.
 
 Stopping. The actor stops by itself when the learner has finished the run: its latest status (on the learner's own
 status key) says so and its liveliness token is gone (`LearnerFollower.learner_finished`).
@@ -232,17 +233,28 @@ class Actor:
     def in_flight(self) -> int:
         return self.seq - self.acked
 
+    def credit_deadline_s(self) -> float:
+        """How long to wait out of credit for an acknowledgement before writing the batches in flight off:
+        `actors.credit_timeout_s`, or, if longer, the time the learner takes at its recent pace for the updates
+        that may stand before this actor's batch in its queue (every actor's credits) and the batch's own. So a
+        learner that is merely slow (a loaded machine, a long first compile after a restart) does not have its
+        queue written off and overflowed, while one that lost the batch or left is still noticed."""
+        pace = self.follow.seconds_per_version
+        if pace is None:
+            return self.actors.credit_timeout_s
+        return max(self.actors.credit_timeout_s, (self.actors.num_actors * self.actors.credits + 1) * pace)
+
     def _has_credit(self) -> bool:
-        """Whether a batch may be sent now; out of credit for longer than the timeout with no acknowledgement,
-        the batches in flight are written off."""
+        """Whether a batch may be sent now; out of credit with no acknowledgement for longer than
+        `credit_deadline_s`, the batches in flight are written off."""
         if self.in_flight < self.actors.credits:
             return True
         now = time.monotonic()
         if self._blocked_since is None:
             self._blocked_since = now
-        if now - self._blocked_since > self.actors.credit_timeout_s:
-            log.warning("no acknowledgement for %.0f s: %d batches in flight written off",
-                        self.actors.credit_timeout_s, self.in_flight)
+        deadline = self.credit_deadline_s()
+        if now - self._blocked_since > deadline:
+            log.warning("no acknowledgement for %.0f s: %d batches in flight written off", deadline, self.in_flight)
             self._write_off()
             return True
         return False

@@ -1,8 +1,8 @@
 """An actor's credits and weights, driven cycle by cycle over a real bus (the test plays the learner): it never has
 more batches in flight than its credits, an acknowledgement frees one at once, and batches nobody acknowledges are
-written off after `actors.credit_timeout_s` instead of stalling the actor for ever; newer weights are adopted,
-while a replayed older frame and a frame with a flipped bit are refused and counted, and the version never goes
-back."""
+written off after `actors.credit_timeout_s` instead of stalling the actor for ever, or after longer when the
+learner's pace says they may still be queued; newer weights are adopted, while a replayed older frame and a frame
+with a flipped bit are refused and counted, and the version never goes back."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from functools import partial
 
 import jax
 import pytest
+from impulse.actors.follow import PACE_WINDOW
 from impulse.actors.levels import LocalLevels
 from impulse.actors.process import Actor
 from impulse.actors.wire import weights_hash
@@ -31,6 +32,7 @@ pytestmark = pytest.mark.heavy
 
 RUN = "credit-test"
 TIMEOUT_S = 1.5
+SLOW_PACE_S = 1.0
 
 
 def cycle_until(actor: Actor, condition, timeout_s: float, what: str) -> float:
@@ -100,5 +102,24 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
             cycle_until(actor, lambda: actor.follow.counts["weights_repeated"] >= 1, 30,
                         "version 7 again to be ignored")
             assert actor.version == 7 and actor.follow.counts["weights_adopted"] == 2
-        received = trajectories.poll()
-    assert [len(r.payload) > 0 for r in received] == [True] * 3
+            received = trajectories.poll()
+            assert [len(r.payload) > 0 for r in received] == [True] * 3
+
+            # A learner slower than the timeout: versions come SLOW_PACE_S apart, so a batch may wait (every
+            # actor's credits + its own) x SLOW_PACE_S in its queue, and the actor waits that long, not TIMEOUT_S.
+            for version in range(9, 9 + PACE_WINDOW):
+                weights.put(weights_frame(version))
+                cycle_until(actor, lambda v=version: actor.version == v, 30, f"weights version {version}")
+                pause_until = time.monotonic() + SLOW_PACE_S
+                while time.monotonic() < pause_until:
+                    actor.cycle()
+            assert 0.9 * SLOW_PACE_S <= actor.follow.seconds_per_version < 2 * SLOW_PACE_S
+            queue = config.actors.num_actors * config.actors.credits + 1
+            assert actor.credit_deadline_s() == pytest.approx(queue * actor.follow.seconds_per_version)
+            assert actor.credit_deadline_s() > 1.5 * TIMEOUT_S
+            credit.put(encode_credit(learner.stamp, actor.incarnation, actor.seq))
+            sent = actor.counts["sent"]
+            cycle_until(actor, lambda: actor.counts["sent"] == sent + 1, 30, "the batch after the acknowledgement")
+            written_off = actor.counts["written_off"]
+            waited = cycle_until(actor, lambda: actor.counts["written_off"] > written_off, 60, "the slow write-off")
+            assert waited >= 0.8 * actor.credit_deadline_s() > TIMEOUT_S, "waited for the slow learner's pace"
