@@ -18,7 +18,7 @@ import math
 import os
 import tomllib
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -83,11 +83,16 @@ class Run:
     rows: list[dict[str, Any]]
 
 
+Window = tuple[float, float]
+"""A stretch of a run along the comparison's `by` axis, both ends included (-inf or inf for an open end)."""
+
+
 @dataclass(frozen=True)
 class MetricSummary:
     """One metric of one run: its last finite value, its best (highest) value and where it was reached (in the
-    comparison's `by` units), and the first update at which it reached the threshold (None: not reached, or no
-    threshold asked for)."""
+    comparison's `by` units), the first update at which it reached the threshold (None: not reached, or no
+    threshold asked for), and over a window, the mean of its values there with the standard error of that mean
+    (over the values, which are correlated: a run's evaluation points follow one policy) and how many there were."""
 
     final: float | None
     best: float | None
@@ -95,6 +100,9 @@ class MetricSummary:
     reached_env_steps: int | None = None
     reached_s: float | None = None
     reached_update: int | None = None
+    window_mean: float | None = None
+    window_se: float | None = None
+    window_points: int = 0
 
 
 @dataclass(frozen=True)
@@ -295,25 +303,43 @@ def curve(run: Run, metric: str, by: Axis) -> tuple[list[float], list[float]]:
     return xs, ys
 
 
-def summarise_metric(run: Run, metric: str, by: Axis = "env_steps", threshold: float | None = None) -> MetricSummary:
-    """Final, best and (with a threshold) the first row at or above it, for one metric of one run."""
+def window_mean(xs: Sequence[float], ys: Sequence[float], window: Window) -> tuple[float | None, float | None, int]:
+    """(mean, standard error of the mean, count) of the values `ys` whose positions `xs` lie in `window`; the
+    standard error needs two values, the mean one."""
+    low, high = window
+    inside = [y for x, y in zip(xs, ys) if low <= x <= high]
+    if not inside:
+        return None, None, 0
+    mean = sum(inside) / len(inside)
+    if len(inside) < 2:
+        return mean, None, 1
+    variance = sum((y - mean) ** 2 for y in inside) / (len(inside) - 1)
+    return mean, math.sqrt(variance / len(inside)), len(inside)
+
+
+def summarise_metric(run: Run, metric: str, by: Axis = "env_steps", threshold: float | None = None,
+                     window: Window | None = None) -> MetricSummary:
+    """Final, best, (with a threshold) the first row at or above it and (with a window) the mean over the window,
+    for one metric of one run."""
     xs, ys = curve(run, metric, by)
     if not ys:
         return MetricSummary(None, None, None)
     best = max(range(len(ys)), key=lambda i: ys[i])
-    summary = MetricSummary(final=ys[-1], best=ys[best], best_at=xs[best])
+    mean, se, points = window_mean(xs, ys, window) if window is not None else (None, None, 0)
+    summary = MetricSummary(final=ys[-1], best=ys[best], best_at=xs[best], window_mean=mean, window_se=se,
+                            window_points=points)
     if threshold is None:
         return summary
     for row, seconds in zip(run.rows, elapsed_s(run)):
         value = finite_number(row.get(metric))
         if value is not None and value >= threshold:
-            return MetricSummary(summary.final, summary.best, summary.best_at, int(row.get("env_steps") or 0),
-                                 seconds, int(row["update"]))
+            return replace(summary, reached_env_steps=int(row.get("env_steps") or 0), reached_s=seconds,
+                           reached_update=int(row["update"]))
     return summary
 
 
 def summarise(run: Run, metrics: Sequence[str], by: Axis = "env_steps",
-              threshold: float | None = None) -> RunSummary:
+              threshold: float | None = None, window: Window | None = None) -> RunSummary:
     """One run's table row: its progress (updates, env steps, wall clock, share of the planned steps done) and each
     metric's summary."""
     last = run.rows[-1]
@@ -323,7 +349,7 @@ def summarise(run: Run, metrics: Sequence[str], by: Axis = "env_steps",
     return RunSummary(
         label=run.label, path=str(run.path), mode=run.mode, updates=int(last["update"]), env_steps=env_steps,
         wall_s=times[-1] if times else 0.0, done=min(env_steps / total, 1.0) if total else None,
-        metrics={metric: summarise_metric(run, metric, by, threshold) for metric in metrics},
+        metrics={metric: summarise_metric(run, metric, by, threshold, window) for metric in metrics},
     )
 
 

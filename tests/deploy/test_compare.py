@@ -91,10 +91,30 @@ def test_json_holds_the_same_numbers(runs, capsys):
     assert (a["label"], a["mode"], a["updates"], a["env_steps"], a["wall_s"], a["done"]) == (
         "a", "fused", 5, 20480, 40.0, 1.0)
     assert a["metrics"]["solve_rate"] == {"final": 0.8, "best": 0.9, "best_at": 4.0, "reached_env_steps": 12288,
-                                          "reached_s": 20.0, "reached_update": 3}
+                                          "reached_s": 20.0, "reached_update": 3, "window_mean": None,
+                                          "window_se": None, "window_points": 0}
     assert (b["mode"], b["done"], b["metrics"]["solve_rate"]["reached_env_steps"]) == ("distributed", 0.5, None)
     assert report["config_diff"]["ppo.learning_rate"] == {"a": 0.0001, "b": 0.001}
     assert "name" not in report["config_diff"] and "run_dir" not in report["config_diff"]
+
+
+def test_window_means_with_their_standard_errors(runs, capsys):
+    status, out, err = compare(capsys, *runs, "--metric", "solve_rate", "--by", "update", "--window", "2:4")
+    assert status == 0, err
+    assert re.split(r"\s{2,}", out.splitlines()[0].strip())[-1] == "mean 2-4"
+    # a: .2, .6, .9 (sample s.d. 0.3512 over 3); b: .3, .4, .45 (s.d. 0.07638 over 3).
+    assert cells(out, "a")[-1] == "0.5667 ± 0.2028 (n=3)"
+    assert cells(out, "b")[-1] == "0.3833 ± 0.0441 (n=3)"
+    status, out, _ = compare(capsys, *runs, "--metric", "solve_rate", "--metric", "eval/mean", "--by", "update",
+                             "--window", "4:", "--json")
+    report = json.loads(out)
+    assert report["window"] == [4.0, None]
+    a, b = (run["metrics"] for run in report["runs"])
+    assert (a["solve_rate"]["window_mean"], a["solve_rate"]["window_points"]) == (pytest.approx(0.85), 2)
+    assert a["solve_rate"]["window_se"] == pytest.approx(0.05)
+    assert (a["eval/mean"]["window_mean"], a["eval/mean"]["window_points"]) == (None, 0), "never evaluated"
+    assert (b["eval/mean"]["window_mean"], b["eval/mean"]["window_se"], b["eval/mean"]["window_points"]) == (
+        0.5, None, 1), "one value: a mean without a standard error"
 
 
 def test_plot_writes_a_png_of_the_curves(runs, capsys, tmp_path):
@@ -140,6 +160,9 @@ def test_clear_errors(runs, tmp_path, capsys):
     assert "eval/mean" in error and "queue" in error and "reward_per_step" in error, error
     assert "--by must be one of env_steps, time_s, update, got 'steps'" in one_line_error(capsys, *runs, "--by",
                                                                                           "steps")
+    assert "--window must be LOW:HIGH" in one_line_error(capsys, *runs, "--window", "500")
+    assert "--window must be LOW:HIGH with numbers, got 'a:b'" in one_line_error(capsys, *runs, "--window", "a:b")
+    assert "--window '5:1' is empty" in one_line_error(capsys, *runs, "--window", "5:1")
 
 
 def test_identical_lists_every_value_that_differs_bit_for_bit(tmp_path, capsys):
