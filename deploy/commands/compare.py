@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from impulse.monitor.runs import Axis, MetricSummary, RunSummary
+    from impulse.monitor.runs import Axis, MetricSummary, RunSummary, Window
 
 EXIT_USAGE = 2
 
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
     return 0
 
 
-def parse_window(text: str) -> tuple[float, float]:
+def parse_window(text: str) -> Window:
     """`--window LOW:HIGH` as (low, high); an empty end is open (-inf or inf). ValueError, naming the problem,
     for anything else."""
     low_text, colon, high_text = text.partition(":")
@@ -111,7 +111,7 @@ def parse_window(text: str) -> tuple[float, float]:
     return low, high
 
 
-def window_label(window: tuple[float, float], by: Axis) -> str:
+def window_label(window: Window, by: Axis) -> str:
     """The window as a column heading's range: 500-1.25k, 500-end, start-1.25k (in `by`'s units)."""
     low, high = window
     return (f"{'start' if math.isinf(low) else position(low, by)}-"
@@ -144,7 +144,7 @@ def check_identical(paths: Sequence[Path], updates: int) -> int:
 
 
 def as_json(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, threshold: float | None,
-            window: tuple[float, float] | None, diff: dict[str, list[Any]], labels: Sequence[str]) -> dict[str, Any]:
+            window: Window | None, diff: dict[str, list[Any]], labels: Sequence[str]) -> dict[str, Any]:
     """The comparison as JSON-ready data: the options (an open window end as null), one object per run, and
     {key: {label: value}} of the config differences (null where a run's config lacks the key)."""
     from impulse.monitor.runs import MISSING
@@ -199,7 +199,7 @@ def position(value: float | None, by: Axis) -> str:
 
 
 def table(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, threshold: float | None,
-          window: tuple[float, float] | None = None) -> str:
+          window: Window | None = None) -> str:
     """The comparison as an aligned text table, one row per run (text left, numbers right)."""
     header = ["run", "mode", "done", "updates", "env steps", "wall"]
     for metric in metrics:
