@@ -56,7 +56,11 @@ class PPOConfig:
     clip_value: bool = True
     """Clip the value prediction to within clip_eps of the behaviour value, as the policy ratio is clipped."""
     correction: Literal["vtrace", "none"] = "vtrace"
-    """Off-policy correction for trajectories from a lagging policy; "none" is plain on-policy PPO."""
+    """How value targets and advantages are estimated. "vtrace": V-trace from the learner's current values, each
+    step's trace cut by min(c-bar, pi/mu) for data from a lagging policy; on-policy its targets are GAE's
+    lambda-returns, but its advantages (r_t + gamma v_{t+1} - V(x_t), as in IMPALA) are not GAE's. "none": GAE
+    from the values the behaviour policy recorded, as plain PPO. Either way the policy loss keeps the importance
+    weight `proximal` asks for, so "none" does not drop the correction of the policy gradient."""
     vtrace_rho_bar: float = 1.0
     """V-trace: importance weights in the value targets' TD errors are clipped at this (rho-bar)."""
     vtrace_c_bar: float = 1.0

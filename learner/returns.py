@@ -67,7 +67,9 @@ def vtrace(
     V(x_t)); v_s - V(x_s) = delta_s + discount_s c_s (v_{s+1} - V(x_{s+1})), with v_T = bootstrap_value.
     Advantages: rho^pg_t (r_t + discount_t v_{t+1} - V(x_t)), with rho^pg_t = min(pg_rho_bar, pi/mu) as in the
     paper; `pg_rho_bar=None` leaves them unweighted, for losses that apply the ratio themselves (PPO's surrogate
-    already multiplies by pi/mu). On-policy (log_rhos = 0) with bars >= 1, targets equal GAE's lambda-returns.
+    already multiplies by pi/mu). On-policy (log_rhos = 0) with bars >= 1, targets equal GAE's lambda-returns;
+    the advantages do not equal GAE's for lambda < 1: they are delta_t + discount_t (v_{t+1} - V(x_{t+1})), where
+    GAE discounts the same tail by a further lambda.
     Returns (targets v [T, B], advantages [T, B])."""
     rhos = jnp.exp(log_rhos)
     clipped_rhos = jnp.minimum(rho_bar, rhos)

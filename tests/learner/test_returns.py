@@ -147,6 +147,20 @@ def test_vtrace_on_policy_targets_are_gae_lambda_returns(lam: float) -> None:
     np.testing.assert_allclose(targets, gae_targets, rtol=1e-5, atol=1e-5)
 
 
+def test_vtrace_on_policy_advantages_skip_lambda_on_the_first_step() -> None:
+    # On-policy the targets are GAE's, but IMPALA's advantage r_t + discount_t v_{t+1} - V(x_t) discounts the
+    # tail after step t by discount_t alone, where GAE's discounts it by discount_t * lambda.
+    rewards, values, bootstrap, discounts, _ = random_batch(6)
+    zeros = np.zeros_like(rewards)
+    _, advantages = vtrace(*as_jax(rewards, values, bootstrap, discounts, zeros), lambda_=0.9, pg_rho_bar=None)
+    _, gae_advantages = gae_reference(rewards, values, bootstrap, discounts, 0.9)
+    next_values = np.concatenate([values[1:], bootstrap[None]])
+    deltas = rewards + discounts * next_values - values
+    next_gae = np.concatenate([gae_advantages[1:], np.zeros((1, B))])
+    np.testing.assert_allclose(advantages, deltas + discounts * next_gae, rtol=1e-5, atol=1e-5)
+    assert np.abs(np.asarray(advantages) - gae_advantages).max() > 0.05
+
+
 def test_vtrace_by_hand_with_clipping() -> None:
     # T = 2, one env, discount 1, lambda 1, rho_bar = c_bar = 1. rhos = (2, 0.5) -> clipped (1, 0.5).
     rewards = jnp.array([[1.0], [1.0]])
