@@ -56,6 +56,8 @@ CURRICULUM = "curriculum"
 VIEWER = "viewer"
 EVALUATOR = "evaluator"
 RECORDER = "recorder"
+ACTOR_PREFIX = "actor-"
+"""The launcher's actors are named `actor-<index>`: the only children that count as actors."""
 POLL_S = 0.2
 ACTOR_STOP_TIMEOUT_S = 20.0
 LEARNER_STOP_TIMEOUT_S = 180.0
@@ -147,9 +149,9 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         children.append(Child(RECORDER, lambda restart: _service_argv("recorder", run_dir),
                               run_dir / "logs" / "recorder.log"))
     for index in range(config.actors.num_actors):
-        children.append(Child(f"actor-{index}", lambda restart, i=index: _service_argv("actor", run_dir, "--index",
-                                                                                        str(i)),
-                              run_dir / "logs" / f"actor-{index}.log"))
+        name = f"{ACTOR_PREFIX}{index}"
+        children.append(Child(name, lambda restart, i=index: _service_argv("actor", run_dir, "--index", str(i)),
+                              run_dir / "logs" / f"{name}.log"))
     # Every process but the viewer and the recorder runs JAX programs sized by the batch; on a CPU they share the
     # host's memory.
     sharing = sum(child.name not in (VIEWER, RECORDER) for child in children)
@@ -181,7 +183,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                                                                                   config.monitor.web_port)
             log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
-        actors = [c for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER, EVALUATOR)]
+        actors = actor_group(children)
         failed: list[Child] = []  # given up on, and the run cannot go on without them
         with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
             while not stop.stop:
@@ -201,7 +203,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                         continue
                     display.forget()
                     if child.gave_up:
-                        failed = _gave_up(child, actors)
+                        failed = give_up_on(child, actors)
                         if failed:
                             break
                         continue
@@ -223,8 +225,7 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                 time.sleep(POLL_S)
             interrupted = stop.stop
             # The actors and the evaluator first: they follow the learner.
-            actor_names = [c.name for c in children if c.name not in (LEARNER, CURRICULUM, VIEWER, RECORDER)]
-            supervisor.stop(actor_names, ACTOR_STOP_TIMEOUT_S)
+            supervisor.stop([c.name for c in followers_group(children)], ACTOR_STOP_TIMEOUT_S)
             if config.recorder.path:
                 supervisor.stop([RECORDER], ACTOR_STOP_TIMEOUT_S)  # after the actors: it writes what it heard
             if config.uses_curriculum_service:
@@ -253,7 +254,19 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     return 0 if finished or interrupted else EXIT_FAILED
 
 
-def _gave_up(child: Child, actors: list[Child]) -> list[Child]:
+def actor_group(children: list[Child]) -> list[Child]:
+    """The children that are actors: the run stops once every one of them has given up. The evaluator, the
+    recorder and the viewer are not among them (a run whose actors are gone does not go on for its recorder)."""
+    return [child for child in children if child.name.startswith(ACTOR_PREFIX)]
+
+
+def followers_group(children: list[Child]) -> list[Child]:
+    """The children stopped first: the actors and the evaluator, which follow the learner (the recorder is stopped
+    after them, since it writes what they sent; then the curriculum, the learner and the viewer)."""
+    return [child for child in children if child.name.startswith(ACTOR_PREFIX) or child.name == EVALUATOR]
+
+
+def give_up_on(child: Child, actors: list[Child]) -> list[Child]:
     """Say that the launcher gave up on `child`; returns the children without which the run cannot go on (the
     learner, the curriculum service, or every actor once all have given up), or [] when it goes on without it."""
     if child.last_exit == EXIT_CANNOT_RUN:
