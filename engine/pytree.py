@@ -8,6 +8,7 @@ import dataclasses
 from typing import Any, TypeVar
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 T = TypeVar("T")
@@ -44,3 +45,22 @@ def tree_from_arrays(arrays: dict[str, np.ndarray], template: Any) -> Any:
     """The pytree of `template`'s structure with the arrays of the same names (checked by a schema first)."""
     paths, treedef = jax.tree_util.tree_flatten_with_path(template)
     return jax.tree.unflatten(treedef, [arrays[path_name(path)] for path, _ in paths])
+
+
+def all_finite(tree: Any) -> jax.Array:
+    """A boolean scalar: whether every floating-point leaf of `tree` holds finite numbers only (no NaN, no
+    infinity); integer leaves are not looked at. Traceable, so the PPO update can refuse its own result."""
+    checks = [jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(tree) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    return jnp.stack(checks).all() if checks else jnp.asarray(True)
+
+
+def count_non_finite(tree: Any) -> tuple[int, int]:
+    """(non-finite floats, floats) over the floating-point leaves of `tree`, on the host: what an error message
+    says about parameters that must not be checkpointed, exported or published."""
+    bad = total = 0
+    for leaf in jax.device_get(jax.tree.leaves(tree)):
+        array = np.asarray(leaf)
+        if array.dtype.kind == "f":
+            total += array.size
+            bad += int(array.size - np.count_nonzero(np.isfinite(array)))
+    return bad, total

@@ -76,6 +76,10 @@ class PPOConfig:
     max_policy_lag: int = 4
     """Trajectories older than this many policy versions are dropped rather than corrected; 0 keeps only those
     acted by the learner's current weights."""
+    max_non_finite_updates: int = 5
+    """An update whose loss, gradients or new parameters hold a NaN or an infinity is skipped (parameters and
+    optimiser state stay as they were) and counted (`skipped/non_finite`); after this many in a row the run stops
+    with an error naming the likely cause. 0: never stop (every such update is still skipped)."""
 
     @property
     def steps_per_update(self) -> int:
@@ -94,7 +98,7 @@ class PPOConfig:
             check_range(f"ppo.{name}", getattr(self, name), above=0)
         for name in ("gamma", "gae_lambda"):
             check_range(f"ppo.{name}", getattr(self, name), at_least=0, at_most=1)
-        for name in ("ent_coef", "vf_coef", "vtrace_c_bar", "max_policy_lag"):
+        for name in ("ent_coef", "vf_coef", "vtrace_c_bar", "max_policy_lag", "max_non_finite_updates"):
             check_range(f"ppo.{name}", getattr(self, name), at_least=0)
         if self.num_envs % self.num_minibatches:
             raise ValueError(

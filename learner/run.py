@@ -42,6 +42,7 @@ from impulse.learner.config import TrainingSetup
 from impulse.learner.evaluate import RecordedEpisodes, record_episodes
 from impulse.learner.fused import FusedCarry, FusedTrainer
 from impulse.learner.networks import describe_parameters
+from impulse.learner.non_finite import SKIPPED_COLUMN, NonFiniteGuard, NonFiniteParameters, refuse_non_finite
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import LevelSets, evaluation_columns, format_scores, load_level_sets, score_policy
 
@@ -114,6 +115,7 @@ class FusedRun:
             describe_parameters(self.carry.train.params),
         )
         self.update = 0
+        self.guard = NonFiniteGuard(config.ppo)
         self.init_from: dict[str, Any] = {}
         """Where the starting policy came from, when fine-tuning (written into every checkpoint's counters)."""
         if resume:
@@ -159,7 +161,13 @@ class FusedRun:
         except CheckpointError as err:
             raise RunError(str(err)) from err
         items, counters = restored.items, restored.counters
+        try:
+            refuse_non_finite(items[TRAIN].params, f"to resume from checkpoint {restored.step}")
+        except NonFiniteParameters as err:
+            raise RunError(f"{err}: it was written before Impulse refused such parameters; resume from an older "
+                           "checkpoint (move the newer ones out of the checkpoints folder)") from None
         self.update = int(counters["update"])
+        self.guard.skipped = int(counters.get(SKIPPED_COLUMN, 0))
         self.init_from = fine_tuning_origin(counters)
         if set(items) == {TRAIN}:
             self.carry = self.carry._replace(train=items[TRAIN])
@@ -176,7 +184,8 @@ class FusedRun:
         mode, or a shipped agent), with this run's fresh optimiser, environments and curriculum, from update 0."""
         try:
             start = read_starting_policy(source, self.carry.train, self.config.checkpoint)
-        except CheckpointError as err:
+            refuse_non_finite(start.params, "to start from its policy")
+        except (CheckpointError, NonFiniteParameters) as err:
             raise RunError(f"--init-from {source}: {err}") from err
         self.carry = self.carry._replace(train=self.carry.train._replace(params=start.params))
         self.init_from = start.origin
@@ -197,10 +206,13 @@ class FusedRun:
         return self.update >= self.target
 
     def cycle(self) -> CycleReport:
+        self.guard.check()  # NonFiniteUpdates: too many skipped updates in a row
         start = time.perf_counter()
         self.carry, metrics = self._iterate(self.carry, self.levels)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         self.update += 1
+        self.guard.note(self.update, metrics)
+        metrics.update(self.guard.columns())
         metrics["steps_per_s"] = self.steps_per_update / (time.perf_counter() - start)
         if self.carry.curriculum is not None:
             metrics.update(self.curriculum_metrics())
@@ -223,7 +235,9 @@ class FusedRun:
         return metric_columns(buffer_summary(self.carry.curriculum, self.agent.spec.sizes, self.update))
 
     def save(self, summary: dict[str, float]) -> None:
-        counters = {"update": self.update, "env_steps": self.env_steps, **self.init_from, **summary}
+        refuse_non_finite(self.carry.train.params, f"checkpoint {self.update}")
+        counters = {"update": self.update, "env_steps": self.env_steps, SKIPPED_COLUMN: self.guard.skipped,
+                    **self.init_from, **summary}
         self.checkpoints.save(self.update, fused_checkpoint_items(self.carry), counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 
@@ -281,6 +295,10 @@ def export_policy(config: TrainingSetup, run_dir: Path, out_dir: Path, config_to
     a small run directory that `impulse eval`, `impulse train --init-from` and `--resume` read (the latter two go
     on training it on fresh environments). Returns the counters written: the source's, with `note` added."""
     restored = restore_policy(config, run_dir, step)
+    try:
+        refuse_non_finite(restored.items[TRAIN].params, f"to export checkpoint {restored.step}")
+    except NonFiniteParameters as err:
+        raise RunError(str(err)) from None
     counters = {key: value for key, value in restored.counters.items() if key in ("update", "env_steps",
                                                                                "policy_version", "solve_rate")}
     counters.update(note or {}, exported_from_step=restored.step)

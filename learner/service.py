@@ -68,6 +68,7 @@ from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError, fine_tuning_origin, read_starting_policy
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
 from impulse.learner.hosts import ONE_HOST, HostGroup, broadcast_from_leader, global_batch, local_copy
+from impulse.learner.non_finite import SKIPPED_COLUMN, NonFiniteGuard, NonFiniteParameters, refuse_non_finite
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
 from impulse.learner.sharding import DataParallel, DeviceError, check_divisible, learner_devices
@@ -183,6 +184,7 @@ class LearnerService:
         self.update = 0
         self.env_steps = 0
         self.epoch = 0
+        self.guard = NonFiniteGuard(ppo)
         self.counts: Counter[str] = Counter()
         self.peer_drops = DropTotals()
         self._rejected_before: Counter[str] = Counter()  # the learner's refusals before its restart
@@ -270,8 +272,14 @@ class LearnerService:
         except CheckpointError as err:
             raise LearnerError(str(err)) from err
         counters = restored.counters
+        try:
+            refuse_non_finite(restored.items[TRAIN].params, f"to resume from checkpoint {restored.step}")
+        except NonFiniteParameters as err:
+            raise LearnerError(f"{err}: it was written before Impulse refused such parameters; resume from an "
+                               "older checkpoint (move the newer ones out of the checkpoints folder)") from None
         self.train = restored.items[TRAIN]
         self.update = int(counters["update"])
+        self.guard.skipped = int(counters.get(SKIPPED_COLUMN, 0))
         self.env_steps = int(counters["env_steps"])
         self.epoch = int(counters.get("learner_epoch", 0))
         self.counts.update(plausible_counts(counters.get("drop_counts")))
@@ -288,7 +296,8 @@ class LearnerService:
         assert self.checkpoints is not None
         try:
             start = read_starting_policy(source, self.train, self.checkpoint_config)
-        except CheckpointError as err:
+            refuse_non_finite(start.params, "to start from its policy")
+        except (CheckpointError, NonFiniteParameters) as err:
             self.checkpoints.close()
             raise LearnerError(f"--init-from {source}: {err}") from err
         self.train = self.train._replace(params=start.params)
@@ -306,8 +315,9 @@ class LearnerService:
         self.bus.stamp.acting_for(self.epoch, self.version)
         if self._weights_publisher is None:
             return
-        params = local_copy(self.train.params)
-        self._weights_frame = encode_weights(self.bus.stamp, tree_arrays(params), self._weights_hash)
+        arrays = tree_arrays(local_copy(self.train.params))
+        refuse_non_finite(arrays, f"to publish policy version {self.version}")
+        self._weights_frame = encode_weights(self.bus.stamp, arrays, self._weights_hash)
         self._weights_publisher.put(self._weights_frame)
         self.counts["weights_published"] += 1
 
@@ -499,11 +509,13 @@ class LearnerService:
             "finished": self.finished(),
             "peer_drops": self.peer_drops.totals(),
             "evaluation": self.evaluation,
+            "skipped_non_finite": self.guard.skipped,
             **{name: 0 for name in DROP_COUNTS},
             **dict(self.counts),
         }
 
     def cycle(self) -> CycleReport | None:
+        self.guard.check()  # NonFiniteUpdates: too many skipped updates in a row
         if self._status.due():
             self._status.publish(self.status())
         self._answer_queries()
@@ -534,7 +546,9 @@ class LearnerService:
         # The batch's own episode counts on one host (host arrays, as it arrived); the group's on several.
         episodes = local_copy(placed.episodes) if self.group.several else batch.episodes
         metrics = {k: float(v) for k, v in local_copy({**losses, **episode_metrics(episodes)}).items()}
+        self.guard.note(self.update, metrics)
         metrics.update(
+            **self.guard.columns(),
             actor=float(batch.actor_id),
             steps_per_s=self._rate() * self.steps_per_batch,
             queue=len(self._ready),
@@ -578,10 +592,12 @@ class LearnerService:
         self.note_window(summary)
         if self.checkpoints is None:
             return
+        train = local_copy(self.train) if self.group.several else self.train
+        refuse_non_finite(train.params, f"checkpoint {self.update}")
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
+                    SKIPPED_COLUMN: self.guard.skipped,
                     "policy_version": self.version, "drop_counts": dict(self.counts),
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **self.init_from, **summary}
-        train = local_copy(self.train) if self.group.several else self.train
         self.checkpoints.save(self.update, {TRAIN: train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
 

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from impulse.actors.trajectory import Trajectory, TrajectoryBatch
+from impulse.engine.pytree import all_finite
 from impulse.learner.config import PPOConfig
 from impulse.learner.losses import PPOBatch, approx_kl, ppo_loss, weighted_mean
 from impulse.learner.returns import gae, vtrace
@@ -95,6 +96,24 @@ def lag_metrics(log_ratio: Array, weight: Array, config: PPOConfig) -> dict[str,
             "trace_weight": weighted_mean(jnp.minimum(config.vtrace_c_bar, jnp.exp(log_ratio)), weight)}
 
 
+def keep_if_finite(new: Any, old: Any, fine: Array) -> tuple[Any, Any, Array]:
+    """(new or old parameters, new or old optimiser state, 1.0 if the update was skipped else 0.0): `new` = (params,
+    opt_state) unless `fine` is false or a NaN or an infinity is in them, in which case the update is undone as a
+    whole. One bad batch or learning rate then costs one update, not the run: a non-finite parameter would spread
+    to every later update, checkpoint and actor."""
+    keep = fine & all_finite(new)
+    params, opt_state = jax.tree.map(lambda fresh, kept: jnp.where(keep, fresh, kept), new, old)
+    return params, opt_state, 1.0 - keep.astype(jnp.float32)
+
+
+def acts_finitely(apply_fn, distribution, params: Any, obs: Any, action: Array) -> Array:
+    """Whether `params` give a value and a log-probability of `action` that are numbers on `obs`: parameters can
+    be finite and still useless (a learning rate of 1e38 moves them to about 1e38, whose outputs overflow), and an
+    actor acting with them would send only batches the learner must refuse."""
+    dist_params, value = apply_fn(params, obs)
+    return jnp.isfinite(value).all() & ~jnp.isnan(distribution.log_prob(dist_params, action)).any()
+
+
 def ppo_update(
     state: TrainState,
     batch: TrajectoryBatch,
@@ -106,9 +125,12 @@ def ppo_update(
     config: PPOConfig,
     minibatch_sharding: jax.sharding.Sharding | None = None,
 ) -> tuple[TrainState, dict[str, Array]]:
-    """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps, plus
-    `policy_lag`, the versions between the batch's behaviour policy and `state`, and how far the batch is
-    off-policy (`lag_metrics`).
+    """One PPO update on a [T, E] batch. Returns the new state and mean metrics over all minibatch steps (the
+    loss terms and `grad_norm`, the gradients' global norm before clipping), plus `policy_lag`, the versions
+    between the batch's behaviour policy and `state`, how far the batch is off-policy (`lag_metrics`), and
+    `non_finite`: 1.0 when the update was skipped because something in it or in the policy it made was not finite
+    (`keep_if_finite`, `acts_finitely`; the policy version still advances, to the same parameters, so both modes
+    count updates alike).
 
     `minibatch_sharding` (see `learner.sharding`) splits every minibatch's samples over devices, so that each
     device evaluates the loss on its share and only gradients cross between them; the result is the same."""
@@ -160,6 +182,7 @@ def ppo_update(
     def minibatch_step(carry, minibatch):
         params, opt_state = carry
         (_, metrics), grads = grad_fn(params, minibatch)
+        metrics["grad_norm"] = optax.tree.norm(grads)  # before clipping
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), metrics
 
@@ -183,6 +206,12 @@ def ppo_update(
         epoch, (state.params, state.opt_state), jax.random.split(key, config.update_epochs)
     )
     metrics = jax.tree.map(jnp.mean, metrics)
+    # Skipped if anything is not finite: the loss metrics (grad_norm among them, so the gradients count), the new
+    # parameters and optimiser state, or the new policy's outputs on the batch's last observations.
+    fine = all_finite(metrics) & acts_finitely(apply_fn, distribution, params, batch.bootstrap_obs,
+                                               trajectory.action[-1])
+    params, opt_state, metrics["non_finite"] = keep_if_finite((params, opt_state), (state.params, state.opt_state),
+                                                              fine)
     metrics["policy_lag"] = check_policy_lag(batch.behaviour_version, state.policy_version, 0).lag
     metrics["trained_fraction"] = batch.train_mask.mean()
     metrics.update(lag_metrics(log_prob - trajectory.log_prob, batch.train_mask.astype(jnp.float32), config))

@@ -240,7 +240,10 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     if failed:
         # A new run refused by what it needs (every process given up on said it cannot run with this
         # configuration) before it trained is taken back; the refusal, with the sizes to use, is on stderr.
-        refused = created and all(child.last_exit == EXIT_CANNOT_RUN for child in failed)
+        # (A learner that stopped on non-finite updates exits the same way, after writing metrics rows: kept.)
+        metrics = run_dir / "metrics.jsonl"
+        trained = metrics.is_file() and metrics.stat().st_size > 0
+        refused = created and not trained and all(child.last_exit == EXIT_CANNOT_RUN for child in failed)
         removed = refused and remove_unstarted_run(run_dir, run_dir / config.checkpoint.directory)
         print(_failure_message(failed, logs_kept=not removed), file=sys.stderr)
         if removed:

@@ -99,6 +99,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.memory import DoesNotFit
     from impulse.learner.agent import make_agent
+    from impulse.learner.non_finite import NonFiniteUpdates
     from impulse.learner.run import final_evaluation
     from impulse.learner.service import LEARNER_ID, LearnerError, LearnerService
 
@@ -135,6 +136,9 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         except DoesNotFit as err:
             print(f"impulse learner: {err}", file=sys.stderr)
             _remove_refused_run(created, run_dir, config)
+            return EXIT_CANNOT_RUN
+        except NonFiniteUpdates as err:  # the same settings would fail the same way after a restart
+            print(f"impulse learner: stopped: {err}", file=sys.stderr)
             return EXIT_CANNOT_RUN
         finished = service.finished()
         params = service.train.params

@@ -98,6 +98,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace, config: RunConfig) -> int:
+    from impulse.learner.non_finite import NonFiniteUpdates
     from impulse.learner.run import RunError  # JAX loads only when a run starts
     from impulse.monitor.scalars import ScalarSinkError, check_sinks
 
@@ -125,6 +126,9 @@ def run_train(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse train: {err}", file=sys.stderr)
         if created and remove_unstarted_run(run_dir, run_dir / config.checkpoint.directory):
             print(f"impulse train: removed {run_dir}, created for this run: nothing was trained", file=sys.stderr)
+        return EXIT_FAILED
+    except NonFiniteUpdates as err:
+        print(f"impulse train: stopped: {err}", file=sys.stderr)
         return EXIT_FAILED
     log.info(
         "done: %d updates, %s env steps, %.0f env steps/s (rollout and update, after compiling), compile %.1f s",
