@@ -11,6 +11,12 @@ given a plain value, meaning that field (`curriculum=sfl` is `curriculum.method=
 `1e9` is accepted for an int. TOML has no null, so an optional field is set to None with the word `none` (the
 string "none" in a file), and `config_to_toml` writes None the same way; a resolved config therefore reads back to
 an equal instance.
+
+Input is read defensively, since a config file or an override is whatever a person typed or pointed at: a file must
+be a regular file (a directory, a FIFO or a device such as /dev/zero is refused before it is opened) of at most
+`MAX_CONFIG_BYTES`, read as bytes and decoded as UTF-8; an override at most `MAX_OVERRIDE_BYTES` of UTF-8 text.
+Every such problem, a NUL character in a value included, is a one-line `ConfigError` that names the file (with the
+byte offset, or the line and column) or the override, never a traceback.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import dataclasses
 import difflib
 import functools
 import os
+import stat
 import tomllib
 import types
 import typing
@@ -33,6 +40,16 @@ T = TypeVar("T")
 
 NONE_WORD = "none"
 CONFIG_FILENAME = "config.toml"
+
+MAX_CONFIG_BYTES = 1 << 20
+"""A config file larger than this (1 MiB; the shipped ones are a few KiB) is refused: at most this many bytes and
+one more are read, so a path such as /dev/zero that slips past the regular-file check still ends at once."""
+MAX_OVERRIDE_BYTES = 1 << 16
+"""The longest `key=value` override accepted, in bytes of UTF-8 (64 KiB; the kernel caps one argument at 128 KiB)."""
+_SHOWN_CHARS = 100
+"""How much of a long key, value or override an error message quotes."""
+_SHOWN_PATH_CHARS = 400
+"""How much of a long path an error message quotes."""
 
 
 class ConfigError(ValueError):
@@ -57,10 +74,10 @@ def resolve_config(cls: type[T], toml_path: Path | None = None, overrides: Itera
     """Build a `cls` instance from its defaults, the TOML file (if any), then the overrides, in that order."""
     tree: dict[str, Any] = {}
     if toml_path is not None:
-        _merge(cls, cls, tree, _read_toml(Path(toml_path)), "", source=f"from {toml_path}")
+        _merge(cls, cls, tree, _read_toml(Path(toml_path)), "", source=f"from {_shown_path(toml_path)}")
     for item in overrides:
         key, raw = _split_override(item)
-        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from override '{item}'", raw=raw)
+        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from override '{_shown(item)}'", raw=raw)
     return _build(cls, tree, "", base=None)
 
 
@@ -71,7 +88,7 @@ def apply_overrides(instance: T, overrides: Iterable[str], source: str = "overri
     tree: dict[str, Any] = {}
     for item in overrides:
         key, raw = _split_override(item)
-        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from {source} '{item}'", raw=raw)
+        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from {source} '{_shown(item)}'", raw=raw)
     return _build(cls, tree, "", base=instance)
 
 
@@ -119,22 +136,103 @@ def write_resolved_config(instance: Any, run_dir: Path | str) -> Path:
 # ---- reading sources -------------------------------------------------------------------------------------------
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
+def read_config_bytes(path: Path, limit: int = MAX_CONFIG_BYTES) -> bytes:
+    """The bytes of the config file `path`, or a ConfigError saying why it cannot be one.
+
+    The path is checked with `stat` before it is opened, so that a directory, a FIFO (which would block the open) or
+    a device such as /dev/zero (which never ends) is refused by name; it is then opened without blocking, checked
+    again on the open file (the path may have changed in between), and at most `limit` + 1 bytes are read, so that
+    nothing can make this read forever or fill the memory.
+    """
+    shown = _shown_path(path)
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
+        info = os.stat(path)
     except FileNotFoundError:
-        raise ConfigError(f"config file not found: {path}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+        raise ConfigError(f"config file not found: {shown}") from None
+    except NotADirectoryError:
+        raise ConfigError(f"config file not found: {shown} (a part of the path is a file)") from None
+    except ValueError:  # os.stat refuses a path with a NUL character
+        raise ConfigError(f"config file '{shown}': a path cannot hold a NUL character") from None
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {shown}: {e.strerror or e}") from None
+    _check_regular(info, shown, limit)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {shown}: {e.strerror or e}") from None
+    with os.fdopen(fd, "rb") as f:
+        _check_regular(os.fstat(fd), shown, limit)
+        try:
+            data = f.read(limit + 1)
+        except OSError as e:
+            raise ConfigError(f"cannot read config file {shown}: {e.strerror or e}") from None
+    if len(data) > limit:
+        raise ConfigError(f"config file {shown} is larger than {limit:,} bytes: is it a TOML config file?")
+    return data
+
+
+def _check_regular(info: os.stat_result, shown: str, limit: int) -> None:
+    """Refuse what `info` describes unless it is a regular file of at most `limit` bytes (as its size reads)."""
+    if stat.S_ISDIR(info.st_mode):
+        raise ConfigError(f"config file {shown} is a directory: give a TOML file")
+    if not stat.S_ISREG(info.st_mode):
+        raise ConfigError(f"config file {shown} is not a regular file (a device, pipe or socket): give a TOML file")
+    if info.st_size > limit:
+        raise ConfigError(f"config file {shown} is {info.st_size:,} bytes, larger than {limit:,}: is it a TOML "
+                          "config file?")
+
+
+def read_config_text(path: Path, limit: int = MAX_CONFIG_BYTES) -> str:
+    """The text of the config file `path` (`read_config_bytes`) decoded as UTF-8; a ConfigError names the first byte
+    that is not UTF-8 by its offset and line."""
+    data = read_config_bytes(path, limit)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"config file {_shown_path(path)} is not UTF-8 text: byte 0x{data[e.start]:02x} at offset "
+                          f"{e.start} (line {line}): {e.reason}") from None
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    text = read_config_text(path)
+    shown = _shown_path(path)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:  # its message ends with "(at line L, column C)"
+        raise ConfigError(f"{shown}: invalid TOML: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"{shown}: invalid TOML: arrays or inline tables nested too deeply") from None
+    except ValueError as e:  # an integer of more digits than Python converts from text
+        raise ConfigError(f"{shown}: invalid TOML: {_shown(str(e))}") from None
 
 
 def _split_override(item: str) -> tuple[str, str]:
+    _check_override_text(item)
     key, sep, raw = item.partition("=")
     key = key.strip()
     if not sep or not key:
-        raise ConfigError(f"override '{item}' is not of the form key=value")
+        raise ConfigError(f"override '{_shown(item)}' is not of the form key=value")
     return key, raw.strip()
+
+
+def _check_override_text(item: str) -> None:
+    """Refuse an override that is not UTF-8 text (the command line gives undecodable bytes as lone surrogates), that
+    holds a NUL character, or that is longer than MAX_OVERRIDE_BYTES."""
+    if not isinstance(item, str):
+        raise ConfigError(f"override {item!r} is not text")
+    try:
+        data = item.encode("utf-8", "surrogateescape")
+        data.decode("utf-8")
+    except UnicodeEncodeError as e:
+        raise ConfigError(f"override '{_shown(item)}' is not UTF-8 text (character {e.start})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"override '{_shown(item)}' is not UTF-8 text: byte 0x{data[e.start]:02x} at offset "
+                          f"{e.start}") from None
+    if len(data) > MAX_OVERRIDE_BYTES:
+        raise ConfigError(f"override '{_shown(item)}' is {len(data):,} bytes long; at most {MAX_OVERRIDE_BYTES:,}")
+    if "\x00" in item:
+        raise ConfigError(f"override '{_shown(item)}' holds a NUL character")
 
 
 def _parse_value(raw: str) -> Any:
@@ -143,7 +241,7 @@ def _parse_value(raw: str) -> Any:
         return raw
     try:
         return tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (ValueError, RecursionError):  # not TOML (TOMLDecodeError), too many digits, nested too deeply
         return raw
 
 
@@ -170,13 +268,15 @@ def _merge(
                 node = tree[key] = {}
             _merge(root, sub, node, value, dotted + ".", source)
         else:
+            if _holds_nul(value):
+                raise ConfigError(f"config key '{_shown(dotted)}' holds a NUL character ({source})")
             tree[key] = _Value(value, source, raw)
 
 
 def _merge_dotted(root: type, tree: dict[str, Any], key: str, value: Any, source: str, raw: str) -> None:
     parts = key.split(".")
     if any(not p.strip() for p in parts):
-        raise ConfigError(f"malformed config key '{key}' in {source}")
+        raise ConfigError(f"malformed config key '{_shown(key)}' in {source}")
     cls, prefix = root, ""
     for part in parts[:-1]:
         types_ = _field_types(cls)
@@ -185,7 +285,8 @@ def _merge_dotted(root: type, tree: dict[str, Any], key: str, value: Any, source
             raise ConfigError(_unknown_key_message(root, cls, dotted, source))
         sub = _dataclass_in(types_[part])
         if sub is None:
-            raise ConfigError(f"unknown config key '{key}' ({source}): '{dotted}' is a value, not a table")
+            raise ConfigError(f"unknown config key '{_shown(key)}' ({source}): '{_shown(dotted)}' is a value, not a "
+                              "table")
         node = tree.get(part)
         if not isinstance(node, dict):
             node = tree[part] = {}
@@ -211,7 +312,7 @@ def _unknown_key_message(root: type, cls: type, dotted: str, source: str) -> str
         for leaf in difflib.get_close_matches(name, list(leaves), n=3, cutoff=0.8):
             suggestions += leaves[leaf]
     suggestions = list(dict.fromkeys(suggestions))[:5]
-    message = f"unknown config key '{dotted}' ({source})"
+    message = f"unknown config key '{_shown(dotted)}' ({source})"
     if suggestions:
         return message + "; did you mean " + " or ".join(f"'{s}'" for s in suggestions) + "?"
     where = f" in [{prefix[:-1]}]" if prefix else ""
@@ -243,7 +344,7 @@ def _build(cls: type[T], tree: dict[str, Any], prefix: str, base: Any) -> T:
             kwargs[f.name] = default
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, ArithmeticError) as e:
         raise ConfigError(f"invalid config [{prefix[:-1] or cls.__name__}]: {e}") from None
 
 
@@ -263,7 +364,7 @@ def _check(tp: Any, node: _Value, key: str) -> Any:
         return _convert(tp, node.value, node.raw)
     except _Mismatch:
         pass
-    message = f"config key '{key}' expects {_describe(tp)}, got {node.value!r} ({node.source})"
+    message = f"config key '{key}' expects {_describe(tp)}, got {_shown(repr(node.value))} ({node.source})"
     options = [o for o in _literal_options(tp) if isinstance(o, str)]
     if isinstance(node.value, str) and options:
         close = difflib.get_close_matches(node.value, options, n=1, cutoff=0.5)
@@ -312,7 +413,10 @@ def _convert(tp: Any, value: Any, raw: str | None) -> Any:
         raise _Mismatch
     if tp is float:
         if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
+            try:
+                return float(value)
+            except OverflowError:  # an int too large for a float
+                raise _Mismatch from None
         raise _Mismatch
     if tp is str:
         if isinstance(value, str):
@@ -398,6 +502,30 @@ def _all_paths(cls: type) -> tuple[str, ...]:
         if sub is not None:
             paths += [f"{name}.{p}" for p in _all_paths(sub)]
     return tuple(paths)
+
+
+def _holds_nul(value: Any) -> bool:
+    """Whether a leaf value (or a list of them) holds a string with a NUL character, which no path, name or key
+    expression may hold and which TOML can only give as the escape \\u0000."""
+    if isinstance(value, str):
+        return "\x00" in value
+    if isinstance(value, list | tuple):
+        return any(_holds_nul(v) for v in value)
+    return False
+
+
+def _shown(text: str, limit: int = _SHOWN_CHARS) -> str:
+    """`text` as an error message may quote it: on one line (unprintable characters, newlines and NULs among them,
+    written as escapes) and clipped to about `limit` characters."""
+    if not text.isprintable():
+        text = "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in text)
+    if len(text) > limit:
+        text = f"{text[:limit]}... ({len(text):,} characters)"
+    return text
+
+
+def _shown_path(path: Path | str) -> str:
+    return _shown(str(path), _SHOWN_PATH_CHARS)
 
 
 def _plain(value: Any) -> Any:

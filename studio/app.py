@@ -26,6 +26,12 @@ the server keeps running):
   when no curriculum service answers (one handler each, for every route);
 - `WebSocket /ws/play`: play and watch (`protocol`).
 
+Every request and handshake first passes `security.Guard`: the Host allow-list, the access token, the same-origin
+and content-type checks and the body cap (`MAX_BODY_BYTES`: a larger Content-Length is refused before reading, any
+other body is counted as it streams in; 413 either way). `UVICORN_SETTINGS` are the server settings `impulse
+studio` serves with (the same cap on WebSocket messages). A save that cannot be written (a full disk, a read-only
+folder) answers 507 naming the file and the free space.
+
 Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
 compilation) never stalls the others.
 """
@@ -48,6 +54,7 @@ from impulse.studio.console import CurriculumLink, CurriculumRefused
 from impulse.studio.editing import apply_edits
 from impulse.studio.level_io import (
     LevelInputError,
+    StorageError,
     level_document,
     level_problems,
     load_document,
@@ -58,11 +65,11 @@ from impulse.studio.level_io import (
 from impulse.studio.library import SAVED, Library, UnknownLevel, level_counts
 from impulse.studio.protocol import PilotLoader, PlayConnection
 from impulse.studio.scene import actuator_settings, scene_json
-from impulse.studio.security import Guard
+from impulse.studio.security import BodyTooLarge, Guard
 from impulse.studio.solve_rates import DEFAULT_ATTEMPTS, SolveRates
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
@@ -72,7 +79,10 @@ log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY_BYTES = 8 * 2**20
-"""The largest request the studio reads (Kinetix's largest level files are about 50 KB)."""
+"""The largest request body or WebSocket message the studio reads (Kinetix's largest level files are about 50 KB)."""
+UVICORN_SETTINGS: dict[str, Any] = {"ws_max_size": MAX_BODY_BYTES}
+"""Settings for `uvicorn.run` / `uvicorn.Config` beyond host and port, for every server of the studio: a WebSocket
+message over the cap closes the socket (code 1009) without being held whole."""
 
 
 MAX_BUFFER_ROWS = 256
@@ -94,7 +104,7 @@ def _error(status: int, message: str, problems: list[str] | None = None) -> JSON
     return JSONResponse({"error": message, "problems": problems or []}, status_code=status)
 
 
-def _json(text: str | bytes) -> Any:
+def _json(text: str | bytes | bytearray) -> Any:
     """The JSON value in a request body or a socket message; `RequestError` saying why it is not JSON."""
     try:
         return json.loads(text)
@@ -105,9 +115,14 @@ def _json(text: str | bytes) -> Any:
 
 
 async def _body(request: Request) -> dict[str, Any]:
-    raw = await request.body()
-    if len(raw) > MAX_BODY_BYTES:
-        raise RequestError(f"the request is {len(raw):,} bytes; the studio reads at most {MAX_BODY_BYTES:,}")
+    """The request's JSON object, read in chunks as it streams in: `BodyTooLarge` (413) as soon as it passes
+    `MAX_BODY_BYTES`, so no more than that is ever held (`security.Guard` counts too, and refuses a larger
+    Content-Length before anything is read)."""
+    raw = bytearray()
+    async for chunk in request.stream():
+        raw += chunk
+        if len(raw) > MAX_BODY_BYTES:
+            raise BodyTooLarge(MAX_BODY_BYTES)
     body = _json(raw)
     if not isinstance(body, dict):
         raise RequestError(f"the request body must be a JSON object, got {type(body).__name__}")
@@ -139,12 +154,17 @@ def make_app(
     sources: Sequence[str] = (),
     *,
     token: str | None = None,
+    host: str = "127.0.0.1",
+    allow_hosts: Sequence[str] = (),
     load_pilot: PilotLoader | None = None,
     agents: Sequence[str] = (),
     curriculum: CurriculumLink | None = None,
 ) -> Starlette:
     """The studio app: levels from the hand-made and Kinetix sets, `levels_dir` (where it saves) and `sources`
-    (folders, files or glob patterns); `token` required on every request when given; `load_pilot` loads a
+    (folders, files or glob patterns); `token` required on every request when given (`impulse studio` always
+    gives one; None is for callers that serve nothing on a socket, such as Starlette's TestClient); `host` the
+    address it is served on and `allow_hosts` more names it answers to (`security.Guard`: every other Host is
+    refused, against DNS rebinding); `load_pilot` loads a
     checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `curriculum` links to
     a running run's curriculum service (the Curriculum page and "Send to run"; None: no run)."""
     # A linked run's buffer is a gallery set too: a folder of level files that each listing rewrites from the
@@ -279,6 +299,8 @@ def make_app(
             try:
                 if received.get("text") is None:
                     raise RequestError("messages are JSON text, not binary")
+                if len(received["text"]) > MAX_BODY_BYTES:  # uvicorn refuses these first (UVICORN_SETTINGS)
+                    raise RequestError(f"a message may be at most {MAX_BODY_BYTES:,} characters")
                 message = _json(received["text"])
                 seq = message.get("seq") if isinstance(message, dict) else None
                 reply = await run_in_threadpool(connection.handle, message)
@@ -300,6 +322,18 @@ def make_app(
 
     async def bad_request(request: Request, err: Exception) -> Response:
         return _error(400, str(err))
+
+    async def too_large(request: Request, err: Exception) -> Response:
+        # Closing the connection leaves the rest of the upload unread (uvicorn would otherwise read and drop it).
+        return JSONResponse({"error": str(err), "problems": []}, status_code=413, headers={"Connection": "close"})
+
+    async def gone(request: Request, err: Exception) -> Response:
+        # The client left mid-request (an upload given up on): nothing failed, and nobody reads the reply.
+        return Response(status_code=400)
+
+    async def storage_failed(request: Request, err: Exception) -> Response:
+        log.warning("studio: %s", err)
+        return _error(507, str(err))
 
     async def no_run(request: Request, err: Exception) -> Response:
         return _error(409, str(err))
@@ -336,9 +370,10 @@ def make_app(
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
     app = Starlette(routes=routes, exception_handlers={
-        LevelInputError: bad_input, RequestError: bad_request, NoRun: no_run, UnknownLevel: not_found,
+        LevelInputError: bad_input, RequestError: bad_request, BodyTooLarge: too_large, StorageError: storage_failed,
+        ClientDisconnect: gone, NoRun: no_run, UnknownLevel: not_found,
         CurriculumRefused: curriculum_refused, CurriculumUnreachable: curriculum_unreachable, Exception: failed,
     })
-    app.add_middleware(Guard, token=token)
+    app.add_middleware(Guard, token=token, host=host, allow_hosts=tuple(allow_hosts), max_body_bytes=MAX_BODY_BYTES)
     app.state.buffer_folder = buffer_folder  # removed with the app
     return app

@@ -4,13 +4,17 @@ The page holds a level as the JSON object of a Kinetix level file (what `GET /ap
 posted back is written to a temporary file and read by `engine.levels.kinetix_json` exactly as a file on disk is,
 so the studio accepts what `impulse levels validate` accepts and refuses what it refuses, with the same messages;
 there is no second reader. Saving writes the normalised Kinetix format (`save_kinetix_level`), so a level saved
-here loads in Kinetix and in every Impulse command.
+here loads in Kinetix and in every Impulse command. A file that cannot be written (a full disk, a read-only
+folder, an I/O error) is a `StorageError` naming the file and the free space on its disk; a save writes a
+temporary file beside the level and renames it into place (`save_kinetix_level`), so a failed save leaves no
+partial file.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -43,6 +47,27 @@ class LevelInputError(ValueError):
         return self.message if not self.problems else f"{self.message}: " + "; ".join(self.problems)
 
 
+class StorageError(Exception):
+    """A level file (or the temporary copy a check reads) that could not be written: the message names the file,
+    the system's reason and the free space where it was going; `errno` is the system's error number."""
+
+    def __init__(self, path: Path, err: OSError):
+        super().__init__(f"cannot write {path}: {err.strerror or err} ({_free_space(path)})")
+        self.path = path
+        self.errno = err.errno
+
+
+def _free_space(path: Path) -> str:
+    """The free space on the disk that holds `path` (or its nearest existing folder), as a phrase."""
+    for folder in (path, *path.parents):
+        if folder.exists():
+            try:
+                return f"{shutil.disk_usage(folder).free / 1e6:,.1f} MB free on its disk"
+            except OSError:
+                break
+    return "free space unknown"
+
+
 def parse_size(size: Any) -> SceneSizes | None:
     """The Kinetix size called `size` ("s", "m", "l"), or None for "the level's own size"."""
     if size in (None, ""):
@@ -59,9 +84,17 @@ def _with_file(document: Any, use):
     """`use(path)` with `document` written as a level file to a temporary folder (removed afterwards)."""
     if not isinstance(document, dict):
         raise LevelInputError(f"a level must be a JSON object (a Kinetix level file), got {type(document).__name__}")
-    with tempfile.TemporaryDirectory(prefix="impulse-studio-") as folder:
+    text = json.dumps(document)
+    try:
+        scratch = tempfile.TemporaryDirectory(prefix="impulse-studio-")
+    except OSError as err:
+        raise StorageError(Path(tempfile.gettempdir()), err) from None
+    with scratch as folder:
         path = Path(folder) / "level.json"
-        path.write_text(json.dumps(document))
+        try:
+            path.write_text(text)
+        except OSError as err:
+            raise StorageError(path, err) from None
         return use(path)
 
 
@@ -113,7 +146,7 @@ def check_name(name: Any) -> str:
 def save_document(document: Any, name: Any, folder: Path, size: Any = None) -> tuple[Path, KinetixLevel]:
     """Check the document as `impulse levels validate --size` does and save it as `folder/<name>.json` (in `size`,
     else its own size). Returns (the file, the level as saved); `LevelInputError` with every problem, and nothing
-    written, when it is invalid."""
+    written, when it is invalid; `StorageError`, and nothing written, when the file cannot be written."""
     name = check_name(name)
     sizes = parse_size(size)
     problems = level_problems(document, sizes)
@@ -123,6 +156,6 @@ def save_document(document: Any, name: Any, folder: Path, size: Any = None) -> t
     path = folder / f"{name}.json"
     try:
         save_kinetix_level(path, loaded.level, loaded.sizes, loaded.params, loaded.frame_skip, loaded.options)
-    except OSError as err:
-        raise LevelInputError(f"cannot write {path}: {err.strerror or err}") from None
+    except OSError as err:  # the temporary file is removed: no partial level is left
+        raise StorageError(path, err) from None
     return path, loaded

@@ -9,6 +9,8 @@ import shutil
 import sys
 
 EXIT_USAGE = 2
+MAX_SHOWN_KEY = 100
+"""How much of a long KEY that matches nothing the error message quotes (it is one line)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +34,8 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         names += sorted({name.split(".")[0] for name in names if "." in name})
         near = difflib.get_close_matches(args.key, names, n=3)
         hint = f"; did you mean {', '.join(near)}?" if near else ""
-        print(f"impulse config describe: no key or section {args.key!r}{hint}", file=sys.stderr)
+        shown = args.key if len(args.key) <= MAX_SHOWN_KEY else args.key[:MAX_SHOWN_KEY] + "..."
+        print(f"impulse config describe: no key or section {shown!r}{hint}", file=sys.stderr)
         return EXIT_USAGE
     print(as_text(selected, width=max(shutil.get_terminal_size().columns - 4, 40)))
     return 0

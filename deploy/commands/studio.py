@@ -1,8 +1,10 @@
 """`impulse studio`: serve Impulse Studio (`studio.app`), the browser app to browse, edit and play levels and watch
 an agent play them.
 
-Bound to 127.0.0.1 by default. Any other address makes the studio reachable from the network, so it then needs
-`--token T`, which every request must carry (the printed address has it; `studio.security`). Starlette and uvicorn
+Bound to 127.0.0.1 by default. Every request must carry an access token: a random one made at each start, or
+`--token T` (required when binding any other address, which makes the studio reachable from the network); the
+printed address has it. Requests naming a host other than the studio's own names (`localhost`, its loopback and
+bound addresses, `--allow-host` names) are refused, against DNS rebinding (`studio.security`). Starlette and uvicorn
 are imported when the command runs, never with the CLI. The studio cannot import `deploy`, so watching an agent
 gets its checkpoint loader from here: the run's config.toml resolved as `impulse eval` resolves it, and the policy
 restored by `learner.run.restore_policy`. Exit status 2 for usage errors (a token missing or malformed, a port in
@@ -41,12 +43,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "when the run has a curriculum service, the Curriculum page shows its buffer and knobs "
                         "and the editor can send levels into its buffer")
     parser.add_argument("--token", metavar="T",
-                        help="access token every request must carry (required when --host is not loopback); 8 or "
-                        "more letters, digits or ._~-")
+                        help="access token every request must carry (default: a random one made at each start, "
+                        "shown in the printed address; required when --host is not loopback); 8 to 200 letters, "
+                        "digits or ._~-")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                        help="another host name the studio answers to (repeatable): a name you reach it by other "
+                        "than localhost, 127.0.0.1, [::1] and --host, such as this machine's name on the network; "
+                        "requests naming any other host are refused (DNS rebinding)")
 
 
 def _problem(args: argparse.Namespace) -> str | None:
-    from impulse.studio.security import is_loopback
+    from impulse.studio.security import host_name, is_loopback
 
     if not 0 < args.port < 65536:
         return f"--port must be 1 to 65535, got {args.port}"
@@ -55,6 +62,9 @@ def _problem(args: argparse.Namespace) -> str | None:
     if not is_loopback(args.host) and args.token is None:
         return (f"--host {args.host} makes the studio reachable from other machines: give --token T as well (every "
                 "request must then carry it), or leave --host at 127.0.0.1")
+    for name in args.allow_host:
+        if host_name(name) is None:
+            return f"--allow-host {name!r}: not a host name or address (letters, digits, '-', '_' and '.')"
     if args.run is not None and not args.run.exists():
         return f"--run {args.run}: no such directory"
     return None
@@ -109,19 +119,21 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         return EXIT_USAGE
     try:
         import uvicorn
-        from impulse.studio.app import make_app
+        from impulse.studio.app import UVICORN_SETTINGS, make_app
     except ImportError as err:
         print(f"impulse studio: {err.name or err} is not installed: pip install -e . (or starlette and "
               "'uvicorn[standard]')", file=sys.stderr)
         return EXIT_USAGE
     from impulse.deploy.runtime.compile_cache import enable_compile_cache
     from impulse.deploy.runtime.pilots import load_pilot
+    from impulse.studio.security import new_token, studio_address
 
     enable_compile_cache()
-    app = make_app(args.levels_dir, tuple(args.levels), token=args.token, load_pilot=load_pilot,
-                   agents=_offered(args), curriculum=_curriculum_of(args.run))
-    shown = f"[{args.host}]" if ":" in args.host else args.host
-    address = f"http://{shown}:{args.port}/" + (f"?token={args.token}" if args.token else "")
+    token = args.token or new_token()
+    app = make_app(args.levels_dir, tuple(args.levels), token=token, host=args.host,
+                   allow_hosts=tuple(args.allow_host), load_pilot=load_pilot, agents=_offered(args),
+                   curriculum=_curriculum_of(args.run))
+    address = studio_address(args.host, args.port, token)
     print(f"Impulse Studio: open {address}  (levels are saved in {args.levels_dir}; Ctrl-C stops)", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_config=None, log_level="warning")
+    uvicorn.run(app, host=args.host, port=args.port, log_config=None, log_level="warning", **UVICORN_SETTINGS)
     return 0

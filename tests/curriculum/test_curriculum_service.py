@@ -205,7 +205,7 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
         # The studio's editor sends a level the same way (`impulse studio --run RUN_DIR`: POST /api/inject), and
         # its Curriculum page shows the buffer, draws its levels and changes knobs through the service.
         link = CurriculumLink(hub.config, RUN, SPEC)
-        with TestClient(make_app(tmp_path / "levels", curriculum=link)) as client:
+        with TestClient(make_app(tmp_path / "levels", curriculum=link), base_url="http://127.0.0.1") as client:
             assert client.get("/api/agents").json()["inject_run"] == RUN
             hop = json.loads(handmade.level_file("s_hop_over").read_text())
             sent = serve_until(service, lambda: client.post("/api/inject", json={"level": hop}))
@@ -244,7 +244,7 @@ def test_a_level_sent_in_enters_the_buffer_or_is_refused_with_the_reason(hub, tm
         assert service.injected == 2
         # A run whose service does not answer: every curriculum route says so (503), and the studio goes on.
         silent = CurriculumLink(hub.config, "no-such-run", SPEC, timeout_s=1.0)
-        with TestClient(make_app(tmp_path / "levels", curriculum=silent)) as client:
+        with TestClient(make_app(tmp_path / "levels", curriculum=silent), base_url="http://127.0.0.1") as client:
             for reply in (client.get("/api/curriculum?top=5"), client.post("/api/inject", json={"level": hop}),
                           client.post("/api/curriculum/knobs", json={}), client.get("/api/levels?set=run:no-such-run")):
                 assert reply.status_code == 503 and "no-such-run" in reply.json()["error"], reply.text

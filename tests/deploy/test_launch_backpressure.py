@@ -21,14 +21,17 @@ checks to keep the suite short; real processes, real zenoh on loopback):
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
 import urllib.error
 import urllib.request
+from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 import pytest
@@ -129,10 +132,12 @@ def check_live_curriculum(run_dir, watcher: StatusWatcher, tmp_path) -> None:
     assert len(list((tmp_path / "top").glob("*.png"))) == len(report["top"])
 
 
-def studio_request(base: str, path: str, body: dict | None = None) -> tuple[int, dict | bytes]:
-    """(status, JSON reply or raw bytes) of one request to a studio, as its page makes them."""
+def studio_request_with(base: str, path: str, body: dict | None = None, token: str = "") -> tuple[int, dict | bytes]:
+    """(status, JSON reply or raw bytes) of one request to a studio, as its page makes them (with the studio's
+    per-start `token`)."""
     data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(base + path, data=data, headers={"Content-Type": "application/json"})
+    request = urllib.request.Request(base + path, data=data, headers={"Content-Type": "application/json",
+                                                                     "X-Impulse-Token": token})
     try:
         with urllib.request.urlopen(request, timeout=60) as response:
             status, raw, kind = response.status, response.read(), response.headers.get_content_type()
@@ -153,6 +158,9 @@ def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
     base = f"http://127.0.0.1:{port}"
     try:
         wait_for(lambda: "Impulse Studio: open" in log_path.read_text(), 60, "the studio to start", studio, log_path)
+        url = re.search(r"open (\S+)", log_path.read_text()).group(1)  # the printed address, with its token
+        token = parse_qs(urlsplit(url).query)["token"][0]
+        studio_request = functools.partial(studio_request_with, token=token)
         deadline = time.monotonic() + 30
         while True:
             try:
@@ -176,7 +184,7 @@ def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
         got = curriculum_cli(run_dir, "get")  # the service's own answer
         assert got.returncode == 0 and "sfl_ratio = 0.5" in got.stdout, got
 
-        check_curriculum_page(base, run_dir)
+        check_curriculum_page(url, run_dir)
 
         thrust = REPO / "engine" / "levels" / "handmade" / "s_easy_thrust_right.json"
         status, reply = studio_request(base, "/api/inject", {"level": json.loads(thrust.read_text())})
@@ -190,14 +198,14 @@ def check_studio_console(run_dir, watcher: StatusWatcher, tmp_path) -> None:
             studio.kill()
 
 
-def check_curriculum_page(base: str, run_dir) -> None:
+def check_curriculum_page(url: str, run_dir) -> None:
     """The studio's Curriculum page in a real browser, against the launched run's service: the buffer table with a
     thumbnail per level, and a knob changed from the page, which the service then reports."""
     reason = missing_browser()
     if reason is not None:
         print(f"the Curriculum page was not driven in a browser: {reason}")
         return
-    with browser_page(base) as page:
+    with browser_page(url) as page:
         page.wait_for_function("!document.getElementById('tab-curriculum').hidden")
         page.click("#tab-curriculum")
         page.wait_for_function("document.querySelectorAll('#curriculum-table tbody tr').length > 0")

@@ -1,5 +1,6 @@
 """Impulse Studio in a real headless browser (Debian's chromium, driven by Playwright), against the studio served by
-uvicorn on a free port: the gallery shows the hand-made levels; the editor opens one, adds a red circle with a
+uvicorn on a free port with an access token (the page opened at the address `impulse studio` prints, the token
+in its query): the gallery shows the hand-made levels; the editor opens one, adds a red circle with a
 click, drags it, undoes and redoes, saves, and the saved file read back through the API is the level the page
 holds; a motorised joint pins the circle to the floor (two clicks), its motor is switched off and on in the
 joints table, and in play the arrow key turns the pinned circle; the play page, with the right arrow held, drives
@@ -13,11 +14,9 @@ a temporary folder. Skipped, saying why, where chromium or Playwright is missing
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
-import socket
-import threading
-import time
 import urllib.request
 from pathlib import Path
 
@@ -27,18 +26,13 @@ from impulse.bus.session import Bus
 from impulse.engine.levels.level import level_id_values
 
 from tests.support.browser import browser_page, missing_browser
+from tests.support.studio_server import Served, free_port, serving
 
 pytestmark = pytest.mark.heavy
 
 RUN = "studio-console"
 AGENT = Path(__file__).resolve().parents[2] / "pretrained" / "general-s"
 """The shipped agent, which the Play page offers to watch."""
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -54,30 +48,22 @@ def hub():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, hub):
-    """(base address, levels folder) of a studio served by uvicorn in a thread of this process, linked to run RUN's
-    curriculum service on `hub`."""
-    uvicorn = pytest.importorskip("uvicorn")
+    """(the served studio, its levels folder): a studio with a fresh access token, served by uvicorn in a thread of
+    this process, linked to run RUN's curriculum service on `hub`."""
+    pytest.importorskip("uvicorn")
     from impulse.deploy.runtime.pilots import load_pilot
     from impulse.studio.app import make_app
     from impulse.studio.console import CurriculumLink
+    from impulse.studio.security import new_token
 
     from tests.support.curriculum_service import SPEC
 
     levels_dir = tmp_path_factory.mktemp("studio-levels")
-    port = free_port()
-    app = make_app(levels_dir, curriculum=CurriculumLink(hub.config, RUN, SPEC), load_pilot=load_pilot,
+    token = new_token()
+    app = make_app(levels_dir, token=token, curriculum=CurriculumLink(hub.config, RUN, SPEC), load_pilot=load_pilot,
                    agents=[str(AGENT)])
-    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, log_level="warning")
-    served = uvicorn.Server(config)
-    thread = threading.Thread(target=served.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not served.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}", levels_dir
-    served.should_exit = True
-    thread.join(timeout=10)
+    with serving(app, token) as served:
+        yield served, levels_dir
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +71,7 @@ def page(server):
     reason = missing_browser()
     if reason is not None:
         pytest.skip(reason)
-    with browser_page(server[0]) as page:
+    with browser_page(server[0].url) as page:  # the printed address: the token in the query, then the cookie
         yield page
 
 
@@ -96,16 +82,31 @@ def shots(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
-def get_json(url: str) -> dict:
-    with urllib.request.urlopen(url, timeout=30) as response:
+def get_json(studio: Served, path: str) -> dict:
+    """GET `path` of the studio with its token, as a script other than the page would."""
+    request = urllib.request.Request(studio.base + path, headers={"X-Impulse-Token": studio.token})
+    with urllib.request.urlopen(request, timeout=30) as response:
         return json.loads(response.read())
 
 
+def post_naming_host(studio: Served, host: str, path: str, body: dict) -> int:
+    """The status of a POST to the studio whose Host and Origin name `host`, as a page of that site would send it
+    once its name resolves to 127.0.0.1 (DNS rebinding), here even with the right token."""
+    connection = http.client.HTTPConnection("127.0.0.1", studio.port, timeout=30)
+    try:
+        connection.request("POST", path, body=json.dumps(body), headers={
+            "Host": f"{host}:{studio.port}", "Origin": f"http://{host}:{studio.port}",
+            "Content-Type": "application/json", "X-Impulse-Token": studio.token})
+        return connection.getresponse().status
+    finally:
+        connection.close()
+
+
 def test_gallery_editor_save_and_reload(server, page, shots: Path) -> None:
-    base, levels_dir = server
+    studio, levels_dir = server
     card = page.locator('.card[data-name="s_easy_thrust_right"]')
     card.wait_for()
-    assert page.locator(".card").count() == len(get_json(f"{base}/api/levels?set=handmade")["levels"])
+    assert page.locator(".card").count() == len(get_json(studio, "/api/levels?set=handmade")["levels"])
     page.fill("#gallery-filter", "car")
     assert page.locator(".card:visible").count() >= 2 and not card.is_visible()
     page.fill("#gallery-filter", "s_")
@@ -142,7 +143,7 @@ def test_gallery_editor_save_and_reload(server, page, shots: Path) -> None:
     page.wait_for_function("document.getElementById('message').textContent.startsWith('saved as')")
     page.screenshot(path=str(shots / "editor.png"))
     assert (levels_dir / "browser_circle.json").is_file()
-    reloaded = get_json(f"{base}/api/level?set=saved&name=browser_circle")
+    reloaded = get_json(studio, "/api/level?set=saved&name=browser_circle")
     assert reloaded == page.evaluate("studio.editor.doc")
     roles = sorted(c["role"] for c in reloaded["env_state"]["circle"] if c["active"])
     assert roles == [2, 3]  # the level's blue ball and the new red circle
@@ -218,7 +219,7 @@ def test_watching_the_shipped_agent_play(server, page) -> None:
 
 
 
-def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, page, shots: Path,
+def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, server, page, shots: Path,
                                                                               tmp_path: Path) -> None:
     from impulse.curriculum.stats import live_knob_values
 
@@ -245,6 +246,11 @@ def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hu
         page.fill("#knob-replay_prob", "0.7")
         page.click("#curriculum-apply")
         page.wait_for_function("document.getElementById('message').textContent.startsWith('changed replay_prob')")
+        assert live_knob_values(service.curriculum.config, service.state)["replay_prob"] == pytest.approx(0.7)
+        assert service.status()["knob_changes"] == 1
+        # A rebinding page's request for the live knobs is refused by its Host, and the service never sees it.
+        rebound = post_naming_host(server[0], "evil.example", "/api/curriculum/knobs", {"set": ["replay_prob=0.03"]})
+        assert rebound == 403
         assert live_knob_values(service.curriculum.config, service.state)["replay_prob"] == pytest.approx(0.7)
         assert service.status()["knob_changes"] == 1
         page.fill("#knob-replay_prob", "7")  # out of range: the service refuses it with its reason

@@ -3,7 +3,8 @@ thumbnails; a level's JSON round trip (GET, save, GET again gives the same level
 Kinetix's); the editor's operations and the size limit; bad input answered with a 4xx and a message naming the
 problem while the server goes on; the play socket (a motor moves the car, a bad message is an error and the
 socket stays usable); the access token and the same-origin check; and `impulse studio`'s refusal to listen on the
-network without a token."""
+network without a token. The client names the studio's host as a browser would (127.0.0.1): the studio refuses
+any other (tests/studio/test_security.py tests that, and the rest of the guard, over real HTTP)."""
 
 from __future__ import annotations
 
@@ -39,9 +40,18 @@ def levels_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("studio-levels")
 
 
+PLAY = "ws://127.0.0.1/ws/play"
+"""The play socket's address for the TestClient (whose own default host, testserver, the studio refuses)."""
+
+
+def studio_client(app) -> TestClient:
+    """A TestClient for a studio app, sending `Host: 127.0.0.1` (its default name, testserver, is refused)."""
+    return TestClient(app, base_url="http://127.0.0.1")
+
+
 @pytest.fixture(scope="module")
 def client(levels_dir: Path) -> TestClient:
-    with TestClient(make_app(levels_dir)) as client:
+    with studio_client(make_app(levels_dir)) as client:
         yield client
 
 
@@ -238,7 +248,7 @@ def test_editing_joints_thrusters_materials_sizes_and_triangles(client: TestClie
     assert float(first.inverse_mass[wheel] / bodies.inverse_mass[wheel]) == pytest.approx(6.75, rel=1e-4)
     assert not bool(original.active[wheel])
 
-    with client.websocket_connect("/ws/play") as socket:  # the motor turns the pinned wheel; the pin holds it
+    with client.websocket_connect(PLAY) as socket:  # the motor turns the pinned wheel; the pin holds it
         socket.send_json({"type": "load", "level": state["level"]})
         start = socket.receive_json()["scene"]["circles"]
         for _ in range(10):
@@ -263,7 +273,7 @@ def test_moving_a_car_moves_its_wheels_along(client: TestClient) -> None:
 
 
 def test_play_socket_steps_the_level_and_a_motor_moves_the_car(client: TestClient) -> None:
-    with client.websocket_connect("/ws/play") as socket:
+    with client.websocket_connect(PLAY) as socket:
         socket.send_json({"type": "step", "action": NOOP, "seq": 1})
         early = socket.receive_json()
         assert early["type"] == "error" and "no level loaded" in early["message"] and early["seq"] == 1
@@ -301,7 +311,7 @@ def test_play_socket_steps_the_level_and_a_motor_moves_the_car(client: TestClien
 def test_play_socket_plays_an_edited_level_until_it_is_solved(client: TestClient) -> None:
     """The editor's unsaved level plays as sent; the car solves its level and the reply says so."""
     level = level_json(client, "handmade", CAR)
-    with client.websocket_connect("/ws/play") as socket:
+    with client.websocket_connect(PLAY) as socket:
         socket.send_json({"type": "load", "level": level})
         assert socket.receive_json()["level"]["size"] == "S"
         for _ in range(200):
@@ -314,7 +324,7 @@ def test_play_socket_plays_an_edited_level_until_it_is_solved(client: TestClient
 
 def test_the_token_is_required_on_every_request_and_socket(levels_dir: Path) -> None:
     token = "s3cret-token"
-    with TestClient(make_app(levels_dir, token=token)) as guarded:
+    with studio_client(make_app(levels_dir, token=token)) as guarded:
         refused = guarded.get("/api/sets")
         assert refused.status_code == 401 and "token" in refused.json()["error"]
         assert guarded.get("/").status_code == 401
@@ -324,13 +334,13 @@ def test_the_token_is_required_on_every_request_and_socket(levels_dir: Path) -> 
         assert page.status_code == 200 and "impulse_studio_token" in page.headers["set-cookie"]
         assert guarded.get("/static/app.js").status_code == 200  # the cookie carries the token now
         guarded.cookies.clear()
-        with pytest.raises(WebSocketDisconnect), guarded.websocket_connect("/ws/play") as socket:
+        with pytest.raises(WebSocketDisconnect), guarded.websocket_connect(PLAY) as socket:
             socket.receive_json()
-        with guarded.websocket_connect(f"/ws/play?token={token}") as socket:
+        with guarded.websocket_connect(f"{PLAY}?token={token}") as socket:
             socket.send_json({"type": "reset"})
             assert "no level loaded" in socket.receive_json()["message"]
         with pytest.raises(WebSocketDisconnect), guarded.websocket_connect(
-                f"/ws/play?token={token}", headers={"origin": "http://evil.example"}) as socket:
+                f"{PLAY}?token={token}", headers={"origin": "http://evil.example"}) as socket:
             socket.receive_json()
 
 
@@ -339,6 +349,8 @@ def test_studio_refuses_the_network_without_a_token_and_imports_no_web_stack_wit
     assert "--token" in capsys.readouterr().err
     assert main(["studio", "--host", "0.0.0.0", "--token", "short"]) == 2
     assert "8 to 200" in capsys.readouterr().err
+    assert main(["studio", "--allow-host", "evil example/"]) == 2
+    assert "--allow-host 'evil example/': not a host name" in capsys.readouterr().err
     source = (REPO / "deploy" / "commands" / "studio.py").read_text()
     top_level = {alias.name.split(".")[0] for node in ast.parse(source).body if isinstance(node, ast.Import)
                  for alias in node.names}
@@ -372,9 +384,9 @@ def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_p
             raise LevelInputError(f"cannot load an agent from {path}: no config.toml")
         return tiny_pilot
 
-    with TestClient(make_app(levels_dir, load_pilot=load, agents=["tiny"])) as client:
+    with studio_client(make_app(levels_dir, load_pilot=load, agents=["tiny"])) as client:
         assert client.get("/api/agents").json() == {"enabled": True, "checkpoints": ["tiny"], "inject_run": None}
-        with client.websocket_connect("/ws/play") as socket:
+        with client.websocket_connect(PLAY) as socket:
             socket.send_json({"type": "load", "set": "handmade", "name": CAR})
             assert socket.receive_json()["agent"] is None
             socket.send_json({"type": "agent", "checkpoint": "elsewhere"})
@@ -407,5 +419,5 @@ def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_p
         assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=2").json() == rates  # kept
         assert client.get("/api/solve_rates?set=handmade&checkpoint=elsewhere").status_code == 422
         assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=0").status_code == 422
-    with TestClient(make_app(levels_dir)) as client:
+    with studio_client(make_app(levels_dir)) as client:
         assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny").status_code == 409
