@@ -90,10 +90,12 @@ REASONS = (
     "stale",
     "duplicate",
     "digest",
+    "foreign_learner",
 )
 """Why a message was refused. `decode` uses the first ten and digest; `schema.check` adds non_finite, schema,
 tree_hash (and bad_dtype, bad_shape); stale and duplicate are for consumers that track policy versions and
-sequence numbers (an older version than one already held, a sequence number or version seen before)."""
+sequence numbers (an older version than one already held, a sequence number or version seen before);
+foreign_learner is for weights from a learner instance other than the one a follower follows (`actors.follow`)."""
 
 _U32_MAX = (1 << 32) - 1
 _U64_MAX = (1 << 64) - 1

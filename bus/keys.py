@@ -25,6 +25,7 @@ share one credential): it tells actors apart, it does not authenticate one.
     <root>/evaluator/results/<id>       evaluations of the learner's policy on level sets
     <root>/<role>/status/<id>           status lines (every process)
     <root>/<role>/alive/<id>            liveliness tokens (every process)
+    <root>/learner/alive/instance-<n>   the learner process's instance token (its nonce, also in its weights)
 """
 
 from __future__ import annotations
@@ -49,8 +50,15 @@ OPERATOR = "operator"
 tool, the launcher or a watcher. What each role may ask and hear, and the roles added beside them, are
 `bus.roles`; across machines each role has credentials of its own (`bus.router`)."""
 
+RECORDER = "recorder"
+"""The recorder's `<role>` chunk: it publishes only its status and liveliness, which the learner hears."""
+
 STATUS = "status"
 ALIVE = "alive"
+INSTANCE = "instance-"
+"""Prefix of the learner's second liveliness token, `<root>/learner/alive/instance-<nonce>`: the random nonce one
+learner process draws at start and puts in every weights frame, so that a follower adopts weights only from the
+learner whose token it follows (`Keys.learner_instance`, `actors.follow`)."""
 
 _FORBIDDEN = frozenset("/*$#?@")
 
@@ -199,6 +207,17 @@ class Keys:
     def parse_alive(self, key: str) -> tuple[str, str]:
         """(role, ident) of a liveliness key of this run; ValueError if `key` is not one."""
         return self._parse(key, ALIVE, "liveliness")
+
+    def learner_instance(self, nonce: str) -> str:
+        """Liveliness token of one learner process (its start's nonce), beside its `alive(LEARNER, ...)` token."""
+        return self.alive(LEARNER, INSTANCE + check_name(nonce, "learner nonce"))
+
+    @staticmethod
+    def instance_nonce(ident: str) -> str | None:
+        """The nonce of a learner instance token's id (`instance-<nonce>`), or None for any other id."""
+        if not ident.startswith(INSTANCE):
+            return None
+        return ident[len(INSTANCE):] or None
 
     def _parse(self, key: str, topic: str, what: str) -> tuple[str, str]:
         rest = key[len(self.root) + 1 :] if key.startswith(self.root + "/") else ""

@@ -235,6 +235,11 @@ class Bus:
         finally:
             querier.undeclare()
 
+    def declare_token(self, key: str) -> None:
+        """Declare one more liveliness token (beside this process's own `alive_key`), kept until `close`."""
+        self._check_open()
+        self._remember(self.session.liveliness().declare_token(key))
+
     def watch_alive(self, pattern: str) -> AliveWatcher:
         """Watch liveliness tokens under `pattern` (see `Keys.alive_pattern`); tokens alive now come first."""
         self._check_open()

@@ -19,6 +19,8 @@ class Stamp:
     """The learner's epoch: the learner's own, or that of the weights an actor acts with."""
     policy_version: int = 0
     """The learner's policy version, or that of the weights an actor acts with."""
+    nonce: str = ""
+    """The learner process's instance nonce (`bus.keys.INSTANCE`), which its weights frames carry; "" elsewhere."""
     _sequences: dict[Kind, int] = field(default_factory=dict, repr=False)
 
     def acting_for(self, epoch: int, policy_version: int) -> None:

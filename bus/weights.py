@@ -3,8 +3,9 @@ joiners, and the `learner/weights/latest` queryable).
 
 The arrays are the flattened parameters; the header carries the learner's epoch and the policy version; the meta
 carries the parameters' tree hash (an actor refuses another network's weights, `bus.schema`) and the learner's
-clock at publication (actors measure the broadcast's latency). Weights are a control frame: a digest covers every
-byte (`bus.codec`), and actors adopt only newer ones (`actors.process`).
+clock at publication (actors measure the broadcast's latency) and its instance nonce (followers adopt weights only
+from the learner instance whose liveliness token they follow). Weights are a control frame: a digest covers every
+byte (`bus.codec`), and actors adopt only newer ones (`actors.follow`).
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ from impulse.bus.stamp import Stamp
 
 PUBLISHED_AT = "published_at"
 """Meta: the learner's wall-clock time at publication."""
+LEARNER_NONCE = "learner_nonce"
+"""Meta: the publishing learner process's instance nonce (`bus.keys.INSTANCE`)."""
 
 
 def encode_weights(stamp: Stamp, arrays: Mapping[str, np.ndarray], tree_hash: str) -> bytes:
     """The stamp's policy version (of its epoch) as a weights frame, stamped with the time now."""
     return bytes(encode(Kind.WEIGHTS, arrays, run=stamp.run, policy_version=stamp.policy_version,
-                        learner_epoch=stamp.epoch, meta={TREE_HASH_META: tree_hash, PUBLISHED_AT: time.time()}))
+                        learner_epoch=stamp.epoch, meta={TREE_HASH_META: tree_hash, PUBLISHED_AT: time.time(),
+                                                         LEARNER_NONCE: stamp.nonce}))
 
 
 class Weights(NamedTuple):
@@ -34,6 +38,8 @@ class Weights(NamedTuple):
 
     message: Message
     published_at: float | None
+    nonce: str | None = None
+    """The instance nonce of the learner that published it (None if the frame names none)."""
 
     @property
     def order(self) -> tuple[int, int]:
@@ -45,4 +51,6 @@ def decode_weights(payload: bytes, run: str) -> Weights:
     """The weights a frame carries; raises `bus.codec.Rejected` for a malformed, foreign or corrupted one."""
     message = decode(payload, run=run, kinds=Kind.WEIGHTS)
     published = message.meta.get(PUBLISHED_AT)
-    return Weights(message, published if isinstance(published, float) and math.isfinite(published) else None)
+    nonce = message.meta.get(LEARNER_NONCE)
+    return Weights(message, published if isinstance(published, float) and math.isfinite(published) else None,
+                   nonce if isinstance(nonce, str) and nonce else None)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import secrets
 import time
 from collections import Counter, deque
 from pathlib import Path
@@ -51,7 +52,7 @@ from impulse.actors.wire import TrajectoryWire, weights_hash
 from impulse.bus.codec import Message, Rejected
 from impulse.bus.credits import encode_credit
 from impulse.bus.evaluations import decode_evaluation
-from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
+from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER, RECORDER
 from impulse.bus.roles import LEARNER_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
@@ -83,6 +84,10 @@ RATE_WINDOW = 20
 """Updates over which the status line's updates/s and consumed steps/s are measured (compile time excluded)."""
 EPOCH_FILE = "learner-epoch"
 """In the run directory: the last learner epoch claimed (`claim_epoch`)."""
+STALE_ALARM_AFTER = 20
+"""Batches dropped as stale in a row (none trained on between them) after which the learner warns that the actors
+do not act with its weights, and publishes them again; repeated at most every STALE_ALARM_EVERY_S."""
+STALE_ALARM_EVERY_S = 60.0
 DROP_COUNTS = ("dropped_stale", "dropped_old_epoch", "dropped_overflow", "dropped_inbox_full", "lost")
 """The learner's own drop counters: acted by weights too old, or of an earlier learner epoch; pushed out of the
 ready queue; refused by a full trajectory inbox; missing from an actor's sequence (lost on the way)."""
@@ -225,11 +230,14 @@ class LearnerService:
         self._ready_limit = capacity
         self.ingested = Ingested()
         # Only the leader publishes weights: the learner's other processes hold the same ones.
+        if group.is_leader:  # followers adopt weights only from the learner instance whose token they follow
+            bus.stamp.nonce = secrets.token_hex(8)
+            bus.declare_token(keys.learner_instance(bus.stamp.nonce))
         self._weights_publisher = bus.latest_publisher(keys.weights_policy) if group.is_leader else None
         self._weights_queries = bus.queryable(keys.weights_latest, 16) if group.is_leader else None
         self._alive = bus.watch_alive(keys.alive_pattern(ACTOR))
         self._peer_statuses = {role: bus.inbox(keys.status_pattern(role), 256, drop_oldest=True)
-                               for role in (ACTOR, CURRICULUM, EVALUATOR)}
+                               for role in (ACTOR, CURRICULUM, EVALUATOR, RECORDER)}
         self._evaluations = bus.inbox(keys.evaluations_all, 16, drop_oldest=True)
         self._evaluation_columns: dict[str, float] = {}  # the newest evaluation, for the next metrics row
         self._curriculum_columns: dict[str, float] = {}  # the curriculum's newest buffer statistics, for every row
@@ -245,6 +253,9 @@ class LearnerService:
         self._weights_frame = b""
         self._weights_hash = weights_hash(self.train.params)  # shapes and dtypes only
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
+        self.stale_streak = 0  # batches dropped as stale since the last one trained on
+        self._stale_versions: Counter[int] = Counter()  # ... and the versions that acted them
+        self._stale_alarm_at = -float("inf")
         self._last_metrics: dict[str, float] = {}
 
     def _open_checkpoints(self, run_dir: Path, resume: bool, init_from: Path | None) -> None:
@@ -397,8 +408,9 @@ class LearnerService:
         return index is not None and self.group.serves_actor(index)
 
     def _hear_peers(self) -> None:
-        """The actors' and the curriculum's status lines, for their drop counters, and the curriculum's buffer
-        statistics for the metrics rows (the same `curriculum_...` columns as the fused trainer's)."""
+        """The status lines of the actors, the curriculum, the evaluator and the recorder, for their drop counters,
+        and the curriculum's buffer statistics for the metrics rows (the same `curriculum_...` columns as the fused
+        trainer's)."""
         for inbox in self._peer_statuses.values():
             for received in inbox.poll():
                 try:
@@ -451,7 +463,7 @@ class LearnerService:
                 self.counts["dropped_old_epoch"] += 1
                 continue
             if self._lag(message.policy_version) is None:
-                self.counts["dropped_stale"] += 1
+                self._drop_stale(message.policy_version)
                 continue
             started = time.perf_counter()
             try:
@@ -464,12 +476,30 @@ class LearnerService:
                 self.ingested.unpack_seconds += time.perf_counter() - started
             lag = self._lag(int(batch.behaviour_version))
             if lag is None:
-                self.counts["dropped_stale"] += 1
+                self._drop_stale(int(batch.behaviour_version))
                 continue
+            self.stale_streak = 0
+            self._stale_versions.clear()
             self.lags[lag] += 1
             self.actor_lag[actor] = lag
             return actor, message, batch
         return None
+
+    def _drop_stale(self, behaviour_version: int) -> None:
+        """Count a batch dropped as too old (or ahead of this learner); after STALE_ALARM_AFTER in a row, warn and
+        publish the weights again (a follower that refuses them all re-syncs by query: `actors.follow`)."""
+        self.counts["dropped_stale"] += 1
+        self.stale_streak += 1
+        self._stale_versions[behaviour_version] += 1
+        now = time.monotonic()
+        if self.stale_streak >= STALE_ALARM_AFTER and now - self._stale_alarm_at >= STALE_ALARM_EVERY_S:
+            self._stale_alarm_at = now
+            self.counts["stale_alarms"] += 1
+            acted = ", ".join(str(v) for v, _ in self._stale_versions.most_common(3))
+            log.warning("the last %d batches were all dropped as stale: they were acted by policy versions %s while "
+                        "this learner is at %d (ppo.max_policy_lag=%d); the actors are not acting with its weights: "
+                        "publishing them again", self.stale_streak, acted, self._version, self.ppo.max_policy_lag)
+            self._publish_weights()
 
     def _lag(self, behaviour_version: int) -> int | None:
         """How many versions behind the learner's policy `behaviour_version` is, or None if that is too far
@@ -510,6 +540,8 @@ class LearnerService:
             "peer_drops": self.peer_drops.totals(),
             "evaluation": self.evaluation,
             "skipped_non_finite": self.guard.skipped,
+            "stale_streak": self.stale_streak,
+            "nonce": self.bus.stamp.nonce,
             **{name: 0 for name in DROP_COUNTS},
             **dict(self.counts),
         }

@@ -33,7 +33,7 @@ from pathlib import Path
 
 from impulse.bus.codec import Rejected
 from impulse.bus.inbox import Received
-from impulse.bus.keys import OPERATOR
+from impulse.bus.keys import OPERATOR, Keys
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
 from impulse.deploy.config import write_resolved_config
@@ -191,7 +191,8 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     _read_status(received, bus, statuses)
                 for key, alive in presence.poll():
                     role, ident = bus.keys.parse_alive(key)
-                    if role != OPERATOR:  # command-line tools and watchers come and go
+                    # Command-line tools and watchers come and go; a learner's instance token goes with its own.
+                    if role != OPERATOR and Keys.instance_nonce(ident) is None:
                         log.info("%s %s the bus", ident, "joined" if alive else "left")
                         display.forget()
                 for child, code in supervisor.exited():

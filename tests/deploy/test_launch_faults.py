@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.keys import LEARNER, SCHEMA_MAJOR
+from impulse.bus.weights import LEARNER_NONCE
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.engine.env.spec import env_from_config
@@ -146,12 +147,20 @@ class MalformedTrajectories:
 
 
 def inject_foreign_weights_and_credit(watcher: StatusWatcher) -> None:
-    """Weights of another network and a garbage credit, on the keys the actors listen to."""
+    """On the keys the actors listen to: weights of another network (in the learner's name), a stray frame of the
+    right network far ahead of the learner from another learner instance (issue 53, finding 5: before, both
+    actors adopted it and refused every genuine frame after it), and a garbage credit."""
     bus, run = watcher.bus, watcher.run
+    [current] = bus.get(bus.keys.weights_latest, timeout_s=10)
+    genuine = decode(current, run=run, kinds=Kind.WEIGHTS)
     weights = bus.publisher(bus.keys.weights_policy)
     assert bus.wait_matching(weights, 10)
     weights.put(bytes(encode(Kind.WEIGHTS, {"w": np.zeros(3, np.float32)}, run=run, policy_version=10**6,
-                             meta={"tree_hash": "another network"})))
+                             learner_epoch=genuine.learner_epoch,
+                             meta={"tree_hash": "another network", LEARNER_NONCE: genuine.meta[LEARNER_NONCE]})))
+    weights.put(bytes(encode(Kind.WEIGHTS, dict(genuine.arrays), run=run, policy_version=10**6,
+                             learner_epoch=genuine.learner_epoch,
+                             meta={"tree_hash": genuine.meta["tree_hash"], LEARNER_NONCE: "stray"})))
     credit = bus.publisher(bus.keys.credit("actor-1"))
     assert bus.wait_matching(credit, 10)
     credit.put(np.random.default_rng(1).bytes(64))
@@ -165,8 +174,8 @@ def inject_replays_and_forgeries(watcher: StatusWatcher, versions: VersionWatch,
                                  launch: subprocess.Popen, log: Path) -> None:
     """An old weights frame replayed, the current one with a flipped bit, and a forged "finished" learner status:
     anyone on the open bus can publish on any key. Each weights frame is sent again, once a second, until both
-    actors have refused it: an actor keeps only the newest weights waiting, so the learner's next weights may
-    replace a frame before an actor between two rollouts has read it."""
+    actors have refused it (each frame an actor's inbox holds is checked, and those it had to drop are counted as
+    overwritten, so a resend is only needed when a frame was overwritten)."""
     bus = watcher.bus
     [current] = bus.get(bus.keys.weights_latest, timeout_s=10)
     flipped = bytearray(current)
@@ -244,8 +253,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
         streams = {i: watcher.poll()[f"actor-{i}"]["monitor"] for i in (0, 1)}
         assert all(not s["viewer"] and s["frames_logged"] == 0 and s["no_viewer"] >= 1 for s in streams.values()), (
             streams)
-        wait_for(lambda: all(refusals(versions.poll().get(f"actor-{i}", {})).get("tree_hash", 0) >= 1
-                             for i in (0, 1)), 30, "both actors to count the foreign weights", launch, log)
+        wait_for(lambda: all(refusals(versions.poll().get(f"actor-{i}", {})).get(reason, 0) >= 1
+                             for i in (0, 1) for reason in ("tree_hash", "foreign_learner")), 30,
+                 "both actors to count the foreign and the stray weights", launch, log)
         assert refusals(watcher.poll()["actor-1"]).get("bad_magic", 0) >= 1, "actor-1 counts the garbage credit"
 
         # A replay of old weights and a corrupted copy of the newest are refused; the versions never go back; a
@@ -290,6 +300,9 @@ def test_launch_learns_through_bad_messages_and_killed_processes(tmp_path):
     assert all(last.get(f"rejected/{reason}", 0) >= 1 for reason in set(malformed.frames) - {"old_epoch"}), last
     assert last["drops/dropped_old_epoch"] >= 1 and "drops/dropped_inbox_full" in last, last
     assert last.get("rejected/actor/stale", 0) >= 2 and last.get("rejected/actor/digest", 0) >= 2, last
+    assert last.get("rejected/actor/foreign_learner", 0) >= 2, last
+    assert last.get("rejected/recorder/bad_shape", 0) >= 1, last  # the recorder's refusals reach the rows too
+    assert max(versions.highest.values()) <= UPDATES, versions.highest  # the stray frame was never adopted
     scores = json.loads((run_dir / "eval.json").read_text())
     assert scores["s_easy_car_right"]["solve_rate"] >= 0.8, scores
     config = resolve_config(RunConfig, run_dir / "config.toml")
