@@ -10,6 +10,7 @@ control (`bus.keys`); the `name` a status carries is for display only.
 
 from __future__ import annotations
 
+import os
 import time
 from collections import Counter
 from typing import Any, NamedTuple
@@ -40,6 +41,8 @@ class StatusPublisher:
         """Send `status` (JSON-serialisable values) now."""
         self._last = time.monotonic()
         stamp = self._bus.stamp
+        # Which process sent it, and when: a display tells a restarted process's first line from its predecessor's.
+        status = {**status, "pid": os.getpid(), "sent_at": time.time()}
         frame = encode(Kind.METRICS, {}, run=stamp.run, seq=stamp.next_seq(Kind.METRICS), meta=status)
         self._publisher.put(frame)
 

@@ -281,10 +281,12 @@ class CurriculumService:
         inside XLA aborts at the interpreter's teardown: `impulse curriculum serve` then ends without one)."""
         if self.maker is not None:
             self.maker.close()
-        self.save()
-        if self.scoring_under_way:
-            log.info("waiting up to %.0f s for the candidate scoring under way", SCORING_JOIN_S)
-            self._scoring.join(SCORING_JOIN_S)
+        try:
+            self.save()
+        finally:  # a save that fails (a full disk) still lets the scoring thread finish first
+            if self.scoring_under_way:
+                log.info("waiting up to %.0f s for the candidate scoring under way", SCORING_JOIN_S)
+                self._scoring.join(SCORING_JOIN_S)
 
     def cycle(self) -> CycleReport | None:
         """Apply waiting results (or a finished candidate scoring), answer waiting queries; what was done

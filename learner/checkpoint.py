@@ -13,6 +13,17 @@ A background write that fails (orbax raises its error at the next save or wait) 
 error is logged with its step, counted in `Checkpointer.failed_saves`, and the run goes on with the next save; the
 checkpoints before it stay as they were.
 
+A full disk (ENOSPC, EDQUOT, EIO; tensorstore says it as `RESOURCE_EXHAUSTED ... [os_error_code='28']`) is not
+let pass that way: what orbax had written of the failed checkpoint (its `<step>.orbax-checkpoint-tmp` directory,
+which it leaves behind and which holds the space) is removed, orbax forgets the step, and `save` (or `wait`,
+`close`) raises `engine.io_errors.DiskFullError`, naming the checkpoint's path and the space left, so that the run
+loop can wait for space and save again (`deploy.runtime.runloop`). The newest complete checkpoint stays the newest:
+a restore, in this process or the next, never sees a partial one. While the disk is short of room (less than twice
+a checkpoint's size free, or the last write failed for lack of it), `save` waits for its own write, so that its
+failure is raised by that save (and the loop's last one is known to be on disk before the process ends) rather
+than by the next. Orbax's own report of such a failure (an ERROR with a long traceback, into a log on the same full
+disk) is left out: the one line of `DiskFullError` says it.
+
 Kept: the newest `keep_last` checkpoints and, when a metric is given, the best one by that metric.
 
 Verification on restore. Orbax itself only lists finalised steps (its temporary directories are ignored); it checks
@@ -61,6 +72,7 @@ from typing import Any, NamedTuple
 
 import jax
 import orbax.checkpoint as ocp
+from impulse.engine.io_errors import DiskFullError, check_space, disk_full_code, disk_full_error, disk_usage, writing
 from impulse.learner.config import CheckpointConfig
 from orbax.checkpoint.checkpoint_managers import preservation_policy
 
@@ -78,6 +90,10 @@ LEGACY_ITEM = "state"
 CORRUPT_SUFFIX = "-corrupt"
 WHOLE_STEP = "*"
 """`CorruptCheckpointError.item` when the checkpoint as a whole is damaged (no item in it at all)."""
+ORBAX_TMP = ".orbax-checkpoint-tmp"
+"""What orbax adds to the name of a checkpoint (and of its items) while it is being written."""
+ROOM_MARGIN_BYTES = 1 << 20
+"""Free space beyond twice a checkpoint's arrays under which a save waits for its write (metadata, JSON items)."""
 
 READ_ERRORS = (ValueError, OSError, KeyError, EOFError)
 """What reading damaged checkpoint files raises: tensorstore's errors (`OUT_OF_RANGE`, `DATA_LOSS`, ...) and JSON
@@ -154,6 +170,8 @@ class Checkpointer:
         self._json_reader = ocp.JsonCheckpointHandler()
         self._reads_abandoned = False  # an array read failed during this restore (`_quiet_abandoned_reads`)
         self.failed_saves = 0  # background writes that failed (module docstring)
+        self._writing: int | None = None  # the step being written in the background
+        self._short_of_space = False  # the last write failed for lack of disk: saves wait for their writes
 
     def save(
         self,
@@ -165,7 +183,9 @@ class Checkpointer:
     ) -> None:
         """Start writing checkpoint `step` in the background (the arrays are copied off the device first).
         `items` maps item names (`ARRAY_ITEMS`: `train` for trainers, `curriculum` alone for the curriculum service)
-        to pytrees."""
+        to pytrees. Raises `DiskFullError` when the disk is full (this write's, or the previous background write's,
+        found here): what was written of it is gone, the checkpoints before it are intact, and the same save can be
+        made again (the module docstring)."""
         unknown = set(items) - set(ARRAY_ITEMS)
         if unknown or not items:
             raise ValueError(f"checkpoint items must be among {ARRAY_ITEMS}, got {sorted(items)}")
@@ -178,16 +198,59 @@ class Checkpointer:
             counters=ocp.args.JsonSave(counters),
             config=ocp.args.JsonSave({"toml": config_toml}),
         )
+        self.wait()  # the previous write: orbax would raise its failure from `save`, without saying which it was
+        if self._short_of_space:
+            self._remove_partial()
+        nbytes = sum(getattr(leaf, "nbytes", 8) for leaf in jax.tree.leaves(host))
+        usage = disk_usage(self.directory)
+        careful = self._short_of_space or (usage is not None and usage.free < 2 * nbytes + ROOM_MARGIN_BYTES)
         try:
-            self._manager.save(step, args=args, metrics=metrics)
-        except Exception as err:  # noqa: BLE001 - orbax raises an earlier background write's failure here, once
-            self._count_failed_save(err)
-            self._manager.save(step, args=args, metrics=metrics)
+            with writing(self.directory / str(step)):
+                check_space(self.directory, nbytes)  # the test hook (`engine.io_errors`); nothing otherwise
+                self._manager.save(step, args=args, metrics=metrics)
+        except DiskFullError as err:
+            self.failed_saves += 1
+            self._after_disk_full(err)
+            raise
+        self._writing = step
+        if careful:
+            self.wait()  # raises this write's DiskFullError, cleaned up after
+            self._space_again()
 
-    def _count_failed_save(self, err: Exception) -> None:
+    def _failed_write(self, err: Exception, step: int | None) -> None:
+        """A background write failed: count it; for lack of disk, clean up after it and raise `DiskFullError`;
+        otherwise log it (the run goes on with the next save)."""
         self.failed_saves += 1
+        full = disk_full_error(self.directory if step is None else self.directory / str(step), err)
+        if full is not None:
+            _SHORT_OF_SPACE.add(id(self))  # before the failed write's other tasks report (`_hushed_reports`)
+            time.sleep(ABANDONED_READ_GRACE_S)  # they may still be finishing: what they write is removed too
+            self._after_disk_full(full)
+            raise full from err
         log.error("a checkpoint failed to write in the background (%s: %s); the checkpoints before it are intact, "
                   "%d failed so far", type(err).__name__, err, self.failed_saves)
+
+    def _after_disk_full(self, err: DiskFullError) -> None:
+        """Remove what orbax wrote of checkpoints it did not finish and make it list the steps on disk again, so
+        the failed step is neither the latest nor taken for saved; the next saves wait for their writes, and
+        until one lands the failed writes' leftover reports are dropped (`_hushed_reports`)."""
+        _SHORT_OF_SPACE.add(id(self))
+        _install_hush()
+        self._remove_partial(say=not self._short_of_space)  # said once, not at every retry
+        self._manager.reload()
+        self._short_of_space = True
+
+    def _space_again(self) -> None:
+        self._short_of_space = False
+        _SHORT_OF_SPACE.discard(id(self))
+
+    def _remove_partial(self, say: bool = False) -> None:
+        """Remove orbax's temporary directories (checkpoints it did not finish: they hold space, and nothing reads
+        them). Only when no write is under way; a late file of the failed write is removed by the next save."""
+        for partial in sorted(self.directory.glob(f"*{ORBAX_TMP}*")):
+            shutil.rmtree(partial, ignore_errors=True)
+            if say:
+                log.info("removed %s, what was written of a checkpoint the full disk cut short", partial)
 
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
@@ -261,17 +324,23 @@ class Checkpointer:
                               + "\n  ".join(failures))
 
     def wait(self) -> None:
-        """Block until background writes are on disk (or have failed: logged and counted, not raised)."""
+        """Block until background writes are on disk, or have failed: logged and counted, and for lack of disk
+        raised as `DiskFullError` once what was written of it is removed (the module docstring)."""
+        step, self._writing = self._writing, None
         try:
             self._manager.wait_until_finished()
-        except Exception as err:  # noqa: BLE001 - see `save`
-            self._count_failed_save(err)
+        except Exception as err:  # noqa: BLE001 - orbax raises a background write's failure here, once
+            self._failed_write(err, step)
 
     def close(self) -> None:
-        self.wait()
-        self._manager.close()
-        self._tree_reader.close()
-        self._json_reader.close()
+        """Wait for the writes (raising `DiskFullError` if the last one did not fit), then release everything."""
+        try:
+            self.wait()
+            self._space_again()
+        finally:
+            self._manager.close()
+            self._tree_reader.close()
+            self._json_reader.close()
 
     def __enter__(self) -> Checkpointer:
         return self
@@ -505,14 +574,63 @@ class _AbandonedReadTaskFilter(logging.Filter):
         return not (_is_failed_array_read(error) and "never retrieved" in str(record.msg))
 
 
-def _install_asyncio_filter() -> None:
-    """Attach `_AbandonedReadTaskFilter` to the `asyncio` logger once per process."""
-    asyncio_log = logging.getLogger("asyncio")
-    if not any(isinstance(f, _AbandonedReadTaskFilter) for f in asyncio_log.filters):
-        asyncio_log.addFilter(_AbandonedReadTaskFilter())
+class _DiskFullReportFilter(logging.Filter):
+    """Drops orbax's own reports of a write that failed for lack of disk (ERRORs on the `absl` logger, each with
+    a traceback of some fifty lines, into a log that is likely on the same full disk): `Checkpointer` raises
+    `DiskFullError` for it, whose one line says which checkpoint and how much space is left. Every other record
+    passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.ERROR:
+            return True
+        error = record.exc_info[1] if record.exc_info else None
+        return disk_full_code(error) is None and disk_full_code(Exception(record.getMessage())) is None
 
 
-_install_asyncio_filter()
+def _install_log_filters() -> None:
+    """Attach `_AbandonedReadTaskFilter` to the `asyncio` logger, and `_DiskFullReportFilter` to it and to `absl`
+    (orbax's: a write's tasks that failed for lack of disk report there as 'never retrieved'), once per process."""
+    for name, kind in (("asyncio", _AbandonedReadTaskFilter), ("asyncio", _DiskFullReportFilter),
+                       ("absl", _DiskFullReportFilter)):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, kind) for f in logger.filters):
+            logger.addFilter(kind())
+
+
+_SHORT_OF_SPACE: set[int] = set()
+"""The checkpointers whose last write failed for lack of disk and none has landed since (`_hushed_reports`)."""
+
+
+def _hushed_reports(previous: Callable[[Any], None]) -> Callable[[Any], None]:
+    """`sys.unraisablehook` for the reports that orbax's abandoned work leaves: when a write fails (for lack of
+    disk, at every retry), its other tasks complete after orbax closed their event loop, and each is reported,
+    seconds later, as a traceback of 'Event loop is closed' (dozens per failure, into a log on the same full disk;
+    the failure itself is said by orbax's exception, `DiskFullError`'s one line here). Those reports are always
+    dropped; while a checkpointer is short of space, the other reports of abandoned work
+    (`_is_abandoned_read`) too. Everything else goes on to `previous`."""
+
+    def hook(unraisable: Any) -> None:
+        if _is_closed_loop_report(unraisable) or (_SHORT_OF_SPACE and _is_abandoned_read(unraisable)):
+            return
+        previous(unraisable)
+
+    hook.hushes = True  # type: ignore[attr-defined]
+    return hook
+
+
+def _is_closed_loop_report(unraisable: Any) -> bool:
+    error = unraisable.exc_value
+    return isinstance(error, RuntimeError) and str(error) == "Event loop is closed"
+
+
+def _install_hush() -> None:
+    """Put `_hushed_reports` in front of the current `sys.unraisablehook`, once."""
+    if not getattr(sys.unraisablehook, "hushes", False):
+        sys.unraisablehook = _hushed_reports(sys.unraisablehook)
+
+
+_install_log_filters()
+_install_hush()
 
 
 def _read_error(err: BaseException) -> BaseException | None:

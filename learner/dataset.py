@@ -29,6 +29,13 @@ Safe against a kill at any moment: a shard is written whole under `<path>/.parti
 writer left in `.partial/` is removed when the dataset is opened for writing again, and numbering goes on after
 the highest shard. Disk use is bounded (`DatasetWriter`'s `max_bytes`): when the next shard would pass it, the
 writer either stops recording or deletes the oldest shards.
+
+A full disk (`engine.io_errors.DiskFullError`: ENOSPC, EDQUOT, EIO) is not the dataset's limit but the file
+system's: the shard it cut short is removed from `.partial/`, the writer says once, in one line, what failed and
+how much space is left, keeps the episodes in memory (up to HELD_WHILE_FULL_BYTES; older ones are dropped and
+counted in `episodes_dropped_disk_full`) and tries the shard again every RETRY_FULL_S seconds, reminding every
+REMIND_FULL_S; once a shard fits, recording goes on where it was. Episodes still held when the writer's last flush
+(`flush(final=True)`) fails are lost, and said so.
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+from impulse.engine.io_errors import DiskFullError, check_space, size_text, writing
 from impulse.engine.levels.level import level_id_values
 
 log = logging.getLogger(__name__)
@@ -58,6 +66,12 @@ CHUNK_ROWS = 4096
 """Rows per zarr chunk along the first axis."""
 METADATA_BYTES = 1024
 """What a shard's size estimate adds per array and group for zarr's metadata (a zarr.json of about 700 bytes)."""
+HELD_WHILE_FULL_BYTES = 256 * 2**20
+"""While the disk is full, the episodes' bytes a writer keeps for the shard it writes once there is space."""
+RETRY_FULL_S = 10.0
+"""While the disk is full, how often a flush tries the shard again."""
+REMIND_FULL_S = 60.0
+"""While the disk is full, how often the writer says that it is still waiting."""
 
 
 class DatasetError(ValueError):
@@ -80,6 +94,12 @@ class Episode(NamedTuple):
     @property
     def length(self) -> int:
         return int(self.steps["reward"].shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes of its arrays (steps and level)."""
+        level = self.level.values() if self.level is not None else ()
+        return sum(int(array.nbytes) for array in (*self.steps.values(), *level))
 
 
 class EpisodeIndex(NamedTuple):
@@ -268,11 +288,12 @@ class DatasetWriter:
                 raise DatasetError(f"{self.path} was recorded with env {attrs.get('env')}, not this run's {env}; "
                                    "record into another folder")
         else:
-            self.path.mkdir(parents=True, exist_ok=True)
-            root = zarr.open_group(self.path, mode="w")
-            root.attrs.update({"format": DATASET_FORMAT, "version": DATASET_VERSION, "env": env,
-                               "network": network, "created": time.time()})
-            root.create_group(SHARDS)
+            with writing(self.path):
+                self.path.mkdir(parents=True, exist_ok=True)
+                root = zarr.open_group(self.path, mode="w")
+                root.attrs.update({"format": DATASET_FORMAT, "version": DATASET_VERSION, "env": env,
+                                   "network": network, "created": time.time()})
+                root.create_group(SHARDS)
         partial = self.path / PARTIAL
         if partial.exists():
             left = sorted(entry.name for entry in partial.iterdir())
@@ -285,8 +306,11 @@ class DatasetWriter:
         self.pending: list[Episode] = []
         self.full = False
         self.counts = {"episodes_written": 0, "steps_written": 0, "shards_written": 0, "shards_dropped": 0,
-                       "episodes_dropped_full": 0}
+                       "episodes_dropped_full": 0, "episodes_dropped_disk_full": 0}
         self.last_flush = time.monotonic()
+        self.disk_full: DiskFullError | None = None
+        """Why the last shard could not be written for lack of disk (None once one is)."""
+        self._retry_at = self._remind_at = 0.0
 
     @property
     def pending_steps(self) -> int:
@@ -300,11 +324,15 @@ class DatasetWriter:
             else:
                 self.pending.append(episode)
 
-    def flush(self) -> Path | None:
-        """Write the waiting episodes as one shard; returns its folder (None when nothing was written)."""
-        self.last_flush = time.monotonic()
-        episodes, self.pending = self.pending, []
+    def flush(self, final: bool = False) -> Path | None:
+        """Write the waiting episodes as one shard; returns its folder (None when nothing was written). While the
+        disk is full (the module docstring) the episodes stay waiting and the shard is tried at most every
+        RETRY_FULL_S; `final` (the writer's last flush) tries it at once, and what it cannot write is lost."""
+        now = self.last_flush = time.monotonic()
+        episodes = self.pending
         if not episodes:
+            return None
+        if self.disk_full is not None and not final and now < self._retry_at:
             return None
         steps = {name: np.concatenate([episode.steps[name] for episode in episodes]) for name in episodes[0].steps}
         lengths = np.asarray([episode.length for episode in episodes], np.int32)
@@ -325,25 +353,60 @@ class DatasetWriter:
         rows = list(heard.values())
         levels = {leaf: np.stack([row[leaf] for row in rows]) for leaf in rows[0]} if rows else {}
         arrays = [*steps.values(), *table.values(), *levels.values()]
-        if not self._make_room(sum(array.nbytes for array in arrays) + METADATA_BYTES * (len(arrays) + 8)):
+        needed = sum(array.nbytes for array in arrays) + METADATA_BYTES * (len(arrays) + 8)
+        if not self._make_room(needed):
+            self.pending = []
             self.counts["episodes_dropped_full"] += len(episodes)
             return None
         name = f"{self.next_shard:08d}"
         partial = self.path / PARTIAL / name
-        group = _zarr().open_group(partial, mode="w")
-        group.attrs.update({"episodes": len(episodes), "steps": int(lengths.sum()),
-                            "solved": int(table["solved"].sum()), "written_at": time.time()})
-        _write_arrays(group, STEPS, steps)
-        _write_arrays(group, EPISODES, table)
-        _write_arrays(group, LEVELS, levels)
-        final = self.path / SHARDS / name
-        os.replace(partial, final)
+        final_path = self.path / SHARDS / name
+        try:
+            with writing(partial):
+                check_space(self.path, needed)  # the test hook (`engine.io_errors`); nothing otherwise
+                group = _zarr().open_group(partial, mode="w")
+                group.attrs.update({"episodes": len(episodes), "steps": int(lengths.sum()),
+                                    "solved": int(table["solved"].sum()), "written_at": time.time()})
+                _write_arrays(group, STEPS, steps)
+                _write_arrays(group, EPISODES, table)
+                _write_arrays(group, LEVELS, levels)
+                os.replace(partial, final_path)
+        except DiskFullError as err:
+            shutil.rmtree(partial, ignore_errors=True)  # what fitted of it only takes space
+            self._disk_full(err, final)
+            return None
+        self.pending = []
+        if self.disk_full is not None:
+            log.info("recording goes on: shard %s written, the disk has room again", name)
+            self.disk_full = None
         self.next_shard += 1
-        self.bytes_used += folder_bytes(final)
+        self.bytes_used += folder_bytes(final_path)
         self.counts["episodes_written"] += len(episodes)
         self.counts["steps_written"] += int(lengths.sum())
         self.counts["shards_written"] += 1
-        return final
+        return final_path
+
+    def _disk_full(self, err: DiskFullError, final: bool) -> None:
+        """A shard did not fit on the disk: say so (once, then every REMIND_FULL_S), keep the episodes for the
+        next try within HELD_WHILE_FULL_BYTES (the oldest dropped first), or lose them if this was the last."""
+        now = time.monotonic()
+        if final:
+            log.error("recording: %s; the %d episodes held are lost", err, len(self.pending))
+            self.counts["episodes_dropped_disk_full"] += len(self.pending)
+            self.pending = []
+        elif self.disk_full is None:
+            log.error("recording: %s; the episodes wait in memory (up to %s) and the shard is tried again every "
+                      "%.0f s", err, size_text(HELD_WHILE_FULL_BYTES), RETRY_FULL_S)
+            self._remind_at = now + REMIND_FULL_S
+        elif now >= self._remind_at:
+            log.warning("recording still waits for disk space (%d episodes held): %s", len(self.pending), err)
+            self._remind_at = now + REMIND_FULL_S
+        self.disk_full = err
+        self._retry_at = now + RETRY_FULL_S
+        held = sum(episode.nbytes for episode in self.pending)
+        while self.pending and held > HELD_WHILE_FULL_BYTES:
+            held -= self.pending.pop(0).nbytes
+            self.counts["episodes_dropped_disk_full"] += 1
 
     def _make_room(self, needed: int) -> bool:
         """Whether a shard of about `needed` bytes may be written (deleting the oldest shards first if so

@@ -210,9 +210,11 @@ class RecorderService:
         return CycleReport(env_steps=steps, updates=0, metrics={"episodes": float(len(episodes)),
                                                                  "solve_rate": solved / len(episodes)})
 
-    def _flush(self) -> None:
+    def _flush(self, final: bool = False) -> None:
+        """Write the whole episodes held as a shard (on a full disk the writer keeps them and tries again later;
+        `final`: the last try, `learner.dataset`)."""
         episodes = len(self.writer.pending)
-        shard = self.writer.flush()
+        shard = self.writer.flush(final=final)
         if shard is not None:
             log.info("wrote shard %s: %d episodes (%.1f MB of %.1f GB used)", shard.name, episodes,
                      self.writer.bytes_used / 1e6, self.writer.max_bytes / 1e9)
@@ -252,5 +254,5 @@ class RecorderService:
 
     def close(self) -> None:
         """Write the whole episodes held, and tell whoever watches where it got to."""
-        self._flush()
+        self._flush(final=True)
         self._status.publish(self.status())

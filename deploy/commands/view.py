@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from pathlib import Path
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
 from impulse.deploy.runtime.runloop import StopFlag
-from impulse.deploy.runtime.supervisor import die_with_parent
+from impulse.deploy.runtime.supervisor import guarded
 
 log = logging.getLogger("impulse.view")
 
@@ -91,8 +92,8 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
     with StopFlag("stopping the viewer") as stop, open(logs / "viewer.log", "ab") as output:
         try:
             for command in plan.commands:
-                processes.append(subprocess.Popen(command, stdout=output, stderr=subprocess.STDOUT,
-                                                  preexec_fn=die_with_parent))
+                argv, env = guarded(command, dict(os.environ))  # dies with this process, no preexec_fn fork
+                processes.append(subprocess.Popen(argv, stdout=output, stderr=subprocess.STDOUT, env=env))
                 if len(processes) == 1 and not _wait_for_server(monitor.url, processes[0], stop):
                     print(f"impulse view: the Rerun server did not come up on {monitor.url}; see {output.name}",
                           file=sys.stderr)

@@ -1,7 +1,9 @@
 """What a person watching a training run sees, and what a script reading it afterwards parses.
 
-`MetricsFile` appends one JSON object per line and flushes it, so a crash loses at most the line being written;
-after a resume it first sets aside the rows of the updates the run redoes (`rewind_metrics`). `ProgressLine`
+`MetricsFile` appends one JSON object per line, each written whole or not at all (`engine.io_errors.append_whole`),
+so a crash loses at most the line being written and a write that fails on a full disk (`DiskFullError`) leaves the
+file as it was, ready for the same row to be written again; after a resume it first sets aside the rows of the
+updates the run redoes (`rewind_metrics`). `ProgressLine`
 redraws one status line on a terminal (steps/s, return, solve rate, ETA) and falls back to a log line every few
 seconds when the output is not a terminal (CI logs, `nohup`).
 """
@@ -11,10 +13,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import sys
 import time
 from pathlib import Path
 from typing import Any, TextIO
+
+from impulse.engine.io_errors import append_whole, check_space, writing
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +55,15 @@ def rewind_metrics(path: Path, through_update: int) -> int:
     if not superseded:
         return 0
     aside = path.with_name(f"{path.stem}{SUPERSEDED_SUFFIX}{path.suffix}")
-    with aside.open("a") as out:
+    with writing(aside), aside.open("a") as out:
         out.writelines(line if line.endswith("\n") else line + "\n" for line in superseded)
     scratch = path.with_name(f".{path.name}.tmp")
-    scratch.write_text("".join(kept))
+    try:
+        with writing(scratch):
+            scratch.write_text("".join(kept))
+    except OSError:
+        scratch.unlink(missing_ok=True)  # what was written of it would only take space
+        raise
     scratch.replace(path)
     log.info("%s: %d rows after update %d (redone by this resumed run) moved to %s", path, len(superseded),
              through_update, aside.name)
@@ -62,21 +72,33 @@ def rewind_metrics(path: Path, through_update: int) -> int:
 
 class MetricsFile:
     """metrics.jsonl in the run directory, appended to row by row. Opened with `through_update` (a resumed run's
-    checkpoint), it first sets aside the rows of later updates (`rewind_metrics`): each update has one row."""
+    checkpoint), it first sets aside the rows of later updates (`rewind_metrics`): each update has one row.
+
+    Each row goes to the file in one unbuffered append, whole or not at all: a row that does not fit on the disk
+    raises `DiskFullError` (naming the file and the space left) and leaves the file as it was, so writing the same
+    row again once there is space adds it exactly once."""
 
     def __init__(self, path: str | Path, through_update: int | None = None):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if through_update is not None:
-            rewind_metrics(self.path, through_update)
-        self._file = self.path.open("a")
+        with writing(self.path):
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if through_update is not None:
+                rewind_metrics(self.path, through_update)
+            self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
 
     def write(self, record: dict[str, Any]) -> None:
-        self._file.write(json.dumps({k: _plain(v) for k, v in record.items()}) + "\n")
-        self._file.flush()
+        """Append `record` as one JSON line (non-finite numbers as null); `DiskFullError` if it does not fit."""
+        if self._fd is None:
+            raise ValueError(f"{self.path} is closed")
+        line = (json.dumps({k: _plain(v) for k, v in record.items()}) + "\n").encode()
+        with writing(self.path):
+            check_space(self.path, len(line))
+            append_whole(self._fd, line)
 
     def close(self) -> None:
-        self._file.close()
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def _duration(seconds: float) -> str:

@@ -14,7 +14,21 @@ none should copy:
   one that "already holds checkpoints");
 - `metrics.jsonl` (one line per cycle that did something; a resumed run first sets aside the rows of the updates
   it redoes), the same rows to the scalar sinks (TensorBoard, W&B: `monitor.scalars`) and the progress line;
-- starting the service (`Service.start`) under the stop signal, and closing it, once, whatever ended the loop.
+- starting the service (`Service.start`) under the stop signal, and closing it, once, whatever ended the loop;
+- a full disk (below).
+
+A full disk (ENOSPC, EDQUOT or EIO: `engine.io_errors.DiskFullError`, whose message names the path and the space
+left on its file system). When a metrics.jsonl row or a checkpoint cannot be written, the loop logs that one line
+and waits: it runs no further cycle (so no update is made whose row or checkpoint could not be kept), tries the
+same write again every `LoopOptions.disk_retry_s` (DISK_RETRY_S, 10 s), says every `disk_remind_s` (DISK_REMIND_S,
+60 s) that it is still waiting, and goes on once the write succeeds: the row is written exactly once (a failed
+append leaves the file as it was, `progress.MetricsFile`), and a failed checkpoint leaves no partial checkpoint
+behind (`learner.checkpoint` removes what orbax had written of it), so the newest complete one stays the one a
+resume takes. The scalar sinks (TensorBoard, W&B) do not make the loop wait: they hold what they could not write
+and write it with the next row (`monitor.scalars`). A stop signal (or `should_stop`) while the loop waits ends the
+wait: the row waited on is tried once more, then the final checkpoint once; if that cannot be written either, the
+process ends with one line saying so (`CheckpointNotWritten`, exit status 1) and its earlier checkpoints intact. A
+second signal aborts at once, as always. docs/distributed.md ("A full disk") says the same for users.
 
 Services implement `bus.service.Service` (a Protocol) and report with `bus.service.CycleReport`, so the rooms that
 implement them never import `deploy`: the learner, the actor, the curriculum service and the fused trainer all run
@@ -29,16 +43,31 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from impulse.bus.service import Service
 from impulse.deploy.runtime.progress import MetricsFile, ProgressLine
+from impulse.engine.io_errors import DiskFullError
 
 if TYPE_CHECKING:
     from impulse.monitor.scalars import ScalarSink
 
 log = logging.getLogger("impulse.run")
+
+DISK_RETRY_S = 10.0
+"""While the disk is full, how often the loop tries the write it waits on again."""
+DISK_REMIND_S = 60.0
+"""While the disk is full, how often the loop says again that it is waiting."""
+WAIT_POLL_S = 0.2
+"""While the loop waits for space, how often it looks at the stop signal."""
+
+
+class CheckpointNotWritten(SystemExit):
+    """The loop's last checkpoint could not be written for lack of disk: the process ends with this one line on
+    stderr and exit status 1 (a `SystemExit`, so no command prints a traceback for it), its earlier checkpoints
+    intact."""
 
 
 class StopFlag:
@@ -101,7 +130,7 @@ class LoopSummary:
     steps_here: int
     """Env steps this process made."""
     seconds: float
-    """From the service's start to the end of its last cycle (closing not counted)."""
+    """From the service's start to the end of its last cycle (closing and waiting for disk space not counted)."""
     stopped: bool
     """Ended by a signal or `should_stop` rather than by the service finishing."""
     last: dict[str, float]
@@ -139,6 +168,73 @@ class LoopOptions:
     scalar_sinks: Callable[[int], list[ScalarSink]] | None = None
     """Opens the sinks (TensorBoard, W&B) that get every metrics.jsonl row too, given the env steps the service
     resumes at (so they can drop what the rewound metrics.jsonl drops); closed when the loop ends."""
+    disk_retry_s: float = DISK_RETRY_S
+    """While the disk is full, how often the write waited on is tried again (the module docstring)."""
+    disk_remind_s: float = DISK_REMIND_S
+    """While the disk is full, how often the loop says that it is still waiting."""
+
+
+class DiskWait:
+    """The loop's wait for disk space (the module docstring): `write` runs a write until it succeeds, or until a
+    stop is asked for while it waits."""
+
+    def __init__(self, stop: StopFlag, should_stop: Callable[[], bool] | None, retry_s: float, remind_s: float):
+        self.stop = stop
+        self.should_stop = should_stop
+        self.retry_s = retry_s
+        self.remind_s = remind_s
+        self.waited_s = 0.0
+        """Seconds spent waiting so far (left out of the loop's rates)."""
+
+    def stopping(self) -> bool:
+        return self.stop.stop or (self.should_stop is not None and self.should_stop())
+
+    def write(self, what: str, attempt: Callable[[], None]) -> bool:
+        """Run `attempt` (one write of `what`, e.g. "the metrics row of update 12"); on `DiskFullError` log it once,
+        then try again every `retry_s` until it succeeds (True), reminding every `remind_s`; False if a stop was
+        asked for first (the write not made)."""
+        try:
+            attempt()
+            return True
+        except DiskFullError as err:
+            failure = err
+        log.error("%s: %s; training waits, trying again every %g s (free some space to go on; a stop signal "
+                  "stops the run, checkpointing once)", what, failure, self.retry_s)
+        says = self.stop.says
+        self.stop.says = "stopping while waiting for disk space: the final checkpoint is tried once"
+        started = time.monotonic()
+        next_try, next_reminder = started + self.retry_s, started + self.remind_s
+        try:
+            while not self.stopping():
+                now = time.monotonic()
+                if now >= next_try:
+                    try:
+                        attempt()
+                    except DiskFullError as err:
+                        failure = err
+                        next_try = time.monotonic() + self.retry_s
+                    else:
+                        log.info("%s: written after %.0f s waiting for disk space; training goes on", what,
+                                 time.monotonic() - started)
+                        return True
+                if now >= next_reminder:
+                    log.warning("still waiting for disk space (%.0f s): %s", now - started, failure)
+                    next_reminder = now + self.remind_s
+                time.sleep(max(min(WAIT_POLL_S, next_try - time.monotonic()), 0.0))
+        finally:
+            self.stop.says = says
+            self.waited_s += time.monotonic() - started
+        return False
+
+
+def _try_once(what: str, attempt: Callable[[], None]) -> DiskFullError | None:
+    """One attempt at a write (when stopping, no waiting): None if it was made, else its `DiskFullError`, logged."""
+    try:
+        attempt()
+    except DiskFullError as err:
+        log.error("%s: %s", what, err)
+        return err
+    return None
 
 
 def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSummary:
@@ -163,15 +259,18 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
     cycles_ended = None
     stopped = False
     sinks: list[ScalarSink] = []
+    not_saved: DiskFullError | None = None  # the last checkpoint could not be written (CheckpointNotWritten)
+    disk: DiskWait | None = None
     try:
         if options.scalar_sinks is not None:
             sinks = options.scalar_sinks(start_at.env_steps_done)
         says = "stopping after this cycle" + (" (checkpointing first)" if checkpoint_every > 0 else "")
         with StopFlag(says, getattr(service, "request_stop", None)) as stop:
+            disk = DiskWait(stop, options.should_stop, options.disk_retry_s, options.disk_remind_s)
             service.start()
             start = time.perf_counter()
             while not service.finished():
-                if stop.stop or (options.should_stop is not None and options.should_stop()):
+                if disk.stopping():
                     stopped = True
                     break
                 report = service.cycle()
@@ -185,13 +284,16 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 steps_here += report.env_steps
                 updates += report.updates
                 window.add(report.metrics)
-                elapsed = time.perf_counter() - start
+                elapsed = time.perf_counter() - start - disk.waited_s
                 last = {"update": updates, "env_steps": env_steps, "time_s": round(time.time(), 3),
                         **report.metrics}
                 if metrics_file is not None:
-                    metrics_file.write(last)
-                for sink in sinks:
-                    sink.write(last)
+                    what = f"the metrics row of update {updates}"
+                    if not disk.write(what, partial(metrics_file.write, last)):
+                        _try_once(what, partial(metrics_file.write, last))
+                        stopped = True
+                        break
+                _to_sinks(sinks, last)
                 if options.on_cycle is not None:
                     options.on_cycle(last, window.summary())
                 if progress is not None:
@@ -199,21 +301,44 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 due = checkpoint_every > 0 and updates // checkpoint_every > saved_at // checkpoint_every
                 rested = time.perf_counter() - last_save >= options.min_seconds_between_saves
                 if report.updates and due and rested:
-                    service.save(window.summary())
+                    if not disk.write(f"the checkpoint of update {updates}", lambda: service.save(window.summary())):
+                        stopped = True
+                        break
                     saved_at, last_save = updates, time.perf_counter()
             stopped = stopped or stop.stop
             cycles_ended = time.perf_counter()
             if updates != saved_at:
-                service.save(window.summary())
+                what = f"the final checkpoint (update {updates})"
+                if stopped or not disk.write(what, lambda: service.save(window.summary())):
+                    not_saved = _try_once(what, lambda: service.save(window.summary()))
     finally:
         try:
             service.close()
+        except DiskFullError as err:  # a checkpoint written in the background failed (learner.checkpoint)
+            log.error("closing: %s", err)
+            not_saved = not_saved or err
         finally:
             if progress is not None:
                 progress.close()
             if metrics_file is not None:
                 metrics_file.close()
             for sink in sinks:
-                sink.close()
-    seconds = (cycles_ended or time.perf_counter()) - start
+                try:
+                    sink.close()
+                except DiskFullError as err:
+                    log.error("closing a metrics sink: %s", err)
+    if not_saved is not None:
+        raise CheckpointNotWritten(f"the final checkpoint (update {updates}) could not be written: {not_saved}; the "
+                                   "checkpoints written before it are intact")
+    seconds = (cycles_ended or time.perf_counter()) - start - (disk.waited_s if disk is not None else 0.0)
     return LoopSummary(cycles, updates, env_steps, steps_here, seconds, stopped, last, window.summary())
+
+
+def _to_sinks(sinks: list[ScalarSink], row: dict[str, Any]) -> None:
+    """Hand `row` to every scalar sink. Ours hold what a full disk refuses and never raise for it; a sink that
+    raises `DiskFullError` anyway loses that row (metrics.jsonl has it), said in one line."""
+    for sink in sinks:
+        try:
+            sink.write(row)
+        except DiskFullError as err:
+            log.error("a metrics sink could not write update %s: %s", row.get("update"), err)

@@ -4,6 +4,9 @@ On a terminal the block is redrawn in place once a second; otherwise (a log file
 every `log_every_s` seconds, so a long run's log stays readable. A process that has exited shows how (exit status
 or signal), what happens next (a restart, or that the launcher gave up on it) and the error line it ended with,
 the line cut to the terminal's width.
+
+A restarted process shows "starting" until its own first status arrives, never the last status of the incarnation
+before it, which stays the newest heard under its name until then (`current_status`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,31 @@ COLUMNS_WITHOUT_TERMINAL = 200
 """The width lines of exited processes are cut to when the output is not a terminal (a log file)."""
 
 
+STALE_SHOWN_AFTER = 20
+"""A learner whose last this many batches were all stale says so on its line (it warns and republishes then)."""
+
+
+def alarms_part(status: dict[str, Any]) -> str:
+    """What needs a person's eye, early in a line so that a narrow terminal still shows it ("" when all is well):
+    updates skipped as non-finite, a learner whose batches are all stale, several learner instances seen by a
+    follower, a follower that had to re-sync."""
+    alarms = []
+    if _count_of(status, "skipped_non_finite"):
+        alarms.append(f"SKIPPED {status['skipped_non_finite']} non-finite updates")
+    if _count_of(status, "stale_streak") >= STALE_SHOWN_AFTER:
+        alarms.append(f"last {status['stale_streak']} batches ALL STALE")
+    if _count_of(status, "learners_seen") > 1:
+        alarms.append(f"{status['learners_seen']} LEARNERS on the bus")
+    if _count_of(status, "resyncs"):
+        alarms.append(f"re-synced {status['resyncs']}x")
+    return "".join(f" | {alarm}" for alarm in alarms)
+
+
+def _count_of(status: dict[str, Any], key: str) -> int:
+    value = status.get(key)
+    return value if isinstance(value, int) and not isinstance(value, bool) else 0
+
+
 def learner_line(status: dict[str, Any] | None) -> str:
     if status is None:
         return STARTING
@@ -46,7 +74,7 @@ def learner_line(status: dict[str, Any] | None) -> str:
         ("stale", "dropped_stale"), ("old-epoch", "dropped_old_epoch"), ("overflow", "dropped_overflow"),
         ("inbox-full", "dropped_inbox_full"), ("lost", "lost")))
     rejected = _total(status.get("rejected"))
-    return (f"v{status['policy_version']} epoch {status['epoch']} | update {status['update']:,}/"
+    return (f"v{status['policy_version']} epoch {status['epoch']}{alarms_part(status)} | update {status['update']:,}/"
             f"{status['num_updates']:,} | {_number(status.get('updates_per_s'), '{:.2f}')} upd/s | "
             f"{_number(status.get('consumed_steps_per_s'))} steps/s consumed | queue {status.get('queue', 0)} | "
             f"dropped {drops} | rejected {rejected} | solved {_number(status.get('solve_rate'), '{:.0%}')}"
@@ -64,7 +92,7 @@ def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
     if status is None:
         return STARTING
     waiting = f" | waiting for {status['waiting']}" if status.get("waiting") else ""
-    return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']} | lag "
+    return (f"{_number(status.get('steps_per_s'))} steps/s | v{status['policy_version']}{alarms_part(status)} | lag "
             f"{'-' if lag is None else lag} | in flight {status.get('in_flight', 0)} | dropped "
             f"{status.get('dropped_no_credit', 0)} written off {status.get('written_off', 0)} | rejected "
             f"{_total(status.get('rejected'))} | levels {status.get('levels', '?')}{waiting}"
@@ -79,10 +107,10 @@ def evaluator_line(status: dict[str, Any] | None) -> str:
         held = status.get("policy_version", -1)
         return "waiting for the learner's weights" if held < 0 else f"v{held} | scoring its first policy"
     groups = " ".join(f"{name} {rate:.0%}" for name, rate in sorted(status.get("groups", {}).items()))
-    return (f"v{status['policy_version']} | scored v{status['scored_version']}: mean "
+    return (f"v{status['policy_version']}{alarms_part(status)} | scored v{status['scored_version']}: mean "
             f"{_number(status.get('mean'), '{:.0%}')}{' ' + groups if groups else ''} in "
             f"{_number(status.get('seconds'), '{:.1f}')} s | {status.get('evaluations', 0)} evaluations, "
-            f"{status.get('skipped', 0)} points skipped")
+            f"{status.get('skipped', 0)} points skipped | rejected {_total(status.get('rejected'))}")
 
 
 def recorder_line(status: dict[str, Any] | None) -> str:
@@ -127,6 +155,41 @@ def _refill_part(status: dict[str, Any]) -> str:
     return f" | refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}{filling}"
 
 
+INCARNATION_FIELDS = ("pid", "incarnation", "epoch")
+"""Status fields that differ from one incarnation of a process to the next (an actor's and the curriculum's random
+incarnation, the learner's epoch; `pid` where a status carries it)."""
+
+
+def current_status(child: Child, status: dict[str, Any] | None) -> dict[str, Any] | None:
+    """`status`, the newest heard under `child`'s name, if it is from the incarnation running now; None if it is
+    from an earlier one (a process restarted after kill -9 sends nothing for a while). An earlier incarnation's
+    status is one that says so (its `pid` is not the child's, its `sent_at` is before this start), one the display
+    showed for the earlier incarnation (`Child.shown_status`), or one that arrived after that but carries the same
+    `INCARNATION_FIELDS`. Records what it shows in `child.shown_status`."""
+    if status is None:
+        return None
+    if isinstance(status.get("pid"), int) and status["pid"] != child.pid:
+        return None
+    sent_at = status.get("sent_at")
+    if isinstance(sent_at, int | float) and sent_at < child.started_wall:
+        return None
+    shown = child.shown_status
+    if shown is not None and shown[0] != child.started_at:  # what the display last showed was an earlier one's
+        earlier = shown[1]
+        if status is earlier or _same_incarnation(status, earlier):
+            return None
+    child.shown_status = (child.started_at, status)
+    return status
+
+
+def _same_incarnation(status: dict[str, Any], other: Any) -> bool:
+    """Whether two statuses carry the same incarnation fields (and carry any)."""
+    if not isinstance(other, dict):
+        return False
+    known = [key for key in INCARNATION_FIELDS if key in status and key in other]
+    return bool(known) and all(status[key] == other[key] for key in known)
+
+
 def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
            curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
            recorder_name: str = "recorder", columns: int | None = None) -> list[str]:
@@ -143,7 +206,7 @@ def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_n
         if child.pid is None:
             lines.append(_cut(f"{child.name:<{width}}  {exited_state(child)}", columns))
             continue
-        status = statuses.get(child.name)
+        status = current_status(child, statuses.get(child.name))
         try:
             if status is None and child.name != viewer_name:  # nothing heard yet: say how long it has been
                 body = starting_part(time.monotonic() - child.started_at)

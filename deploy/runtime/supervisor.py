@@ -6,28 +6,40 @@ a delay that doubles with each quick death (RESTART_BACKOFF_S) and resets once i
 STABLE_AFTER_S, so a process that crashes at start-up does not spin, and one that crashes rarely comes back fast.
 
 When a child exits with an error, its error line is read from what that incarnation appended to its log: the last
-exception line of a Python traceback, else the last non-empty line (a leading clock stamp dropped). A child that
+exception line of a Python traceback, else the last non-empty line (a leading clock stamp dropped), never a line
+of a traceback's frames (`error_line`); a traceback cut short (by a full disk, most often: the log is on it too) is
+said to be, and where the log's file system is full the line says that instead. A child that
 fails GIVE_UP_AFTER times in a row the same way (the same exit code and error line, each time within
 STABLE_AFTER_S of its start) is not restarted: the same start-up will fail again, and a crash loop only hides the
 error. Failures are non-zero exit statuses and crash signals (SIGSEGV, SIGABRT, ...); SIGKILL, SIGTERM, SIGINT
 and SIGHUP come from outside (a user, a test, the OOM killer) and never count towards giving up. A child that
 exits with EXIT_CANNOT_RUN has said its configuration cannot run on this machine (an update or a rollout that does
 not fit in memory): it is given up on at once, however long it took to find out.
+
+A child dies with the launcher, even when the launcher is killed with SIGKILL: it asks the kernel for SIGTERM
+when its parent dies (PR_SET_PDEATHSIG). It asks itself, first thing, before it executes the command (`Child.start`
+runs the command through GUARD, a few lines of Python): the parent's pid is in the child's environment
+(PARENT_PID_ENV), and if the parent is already gone by then, the child stops at once. No `preexec_fn` is used:
+CPython runs its at-fork hooks for one, in the launcher, and JAX's warns that a fork of a multithreaded process
+may deadlock.
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from impulse.engine.io_errors import disk_full_message, disk_usage, writing
 
 log = logging.getLogger("impulse.launch")
 
@@ -43,8 +55,39 @@ EXTERNAL_SIGNALS = frozenset({signal.SIGKILL, signal.SIGTERM, signal.SIGINT, sig
 LOG_TAIL_BYTES = 64 * 1024
 """How much of what an incarnation appended to its log is searched for its error line (the end of it)."""
 PR_SET_PDEATHSIG = 1
+PARENT_PID_ENV = "IMPULSE_PARENT_PID"
+"""In a child's environment: the pid of the supervisor that started it (read and removed by GUARD)."""
+GUARD = f"""\
+import ctypes, os, signal, sys
+parent = os.environ.pop({PARENT_PID_ENV!r}, "")
+if parent.isdigit():
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl({PR_SET_PDEATHSIG}, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != int(parent):
+        signal.raise_signal(signal.SIGTERM)
+os.execvp(sys.argv[1], sys.argv[1:])
+"""
+"""What a child runs first, `python -c GUARD ARGV...` (`guarded`): ask for SIGTERM when the parent dies; stop at
+once if the parent named in PARENT_PID_ENV is already gone (it died between the fork and the request: no signal
+would ever come); take the variable out of the environment (the child's own children must not read their
+grandparent's pid); then replace itself with ARGV (the same pid; the request survives the exec). It imports
+nothing of ours, so that it costs no more than an interpreter's start."""
 TRACEBACK = "Traceback (most recent call last):"
+GROUP_TRACEBACK = "Exception Group Traceback (most recent call last):"
 FATAL = "Fatal Python error:"
+CUT_SHORT = "a traceback cut short (its exception line is missing)"
+"""The error line of an output that ends inside a traceback and says nothing else."""
+MAX_ERROR_LINE = 300
+"""Characters an error line is cut to."""
+LOW_SPACE_BYTES = 1 << 20
+"""Free space under which a child's log is taken to be on a full disk (for its error line)."""
+_EXCEPTION_LINE = re.compile(r"^(?:[A-Za-z_]\w*\.)*[A-Za-z_]\w*(?::(?:\s.*)?)?$")
+"""`ValueError: ...`, `jax.errors.JaxRuntimeError: ...`, `KeyboardInterrupt`: how Python ends a traceback."""
+_TRACEBACK_PARTS = (TRACEBACK, "During handling of the above exception, another exception occurred:",
+                    "The above exception was the direct cause of the following exception:", "--- Logging error ---",
+                    "Call stack:", "Exception ignored in", "Exception in thread", 'File "', "[Previous line repeated")
 _CLOCK_STAMP = re.compile(
     r"^(?:\d{2}:\d{2}:\d{2}(?:\.\d+)?"  # ours: HH:MM:SS.mmm
     r"|\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}:\d{2}(?:[.,]\d+)?Z?"  # ISO 8601 (zenoh's and others')
@@ -52,13 +95,11 @@ _CLOCK_STAMP = re.compile(
 )
 
 
-def die_with_parent() -> None:
-    """In a child before exec (Linux): receive SIGTERM when the parent dies, even by SIGKILL, so no service (nor a
-    viewer `impulse view` started) outlives the process that started it. Elsewhere a no-op."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):
-        pass
+def guarded(argv: list[str], env: dict[str, str]) -> tuple[list[str], dict[str, str]]:
+    """The command line and environment that start `argv` through GUARD, so that it dies with this process:
+    what `Child.start` runs (and what any other starter of a child, such as `impulse view`'s, can run instead of
+    a `preexec_fn`)."""
+    return [sys.executable, "-c", GUARD, *argv], {**env, PARENT_PID_ENV: str(os.getpid())}
 
 
 @dataclass
@@ -85,21 +126,32 @@ class Child:
     streak: int = 0
     last_failure: tuple[int, str | None] | None = None
     gave_up: bool = False
+    started_wall: float = 0.0
+    """`time.time()` at this incarnation's start, to compare with times that messages carry."""
+    shown_status: tuple[float, Any] | None = field(default=None, repr=False, compare=False)
+    """The status display's memory (`status_display.current_status`): the status it last showed for this child
+    and the start (`started_at`) of the incarnation it showed it for."""
 
     @property
     def pid(self) -> int | None:
         return self.process.pid if self.process is not None and self.process.poll() is None else None
 
     def start(self, env: dict[str, str]) -> None:
+        """Start an incarnation: its output appended to the log, in a session of its own, dying with this process
+        (the module docstring)."""
         restart = self.process is not None
-        self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        with self.log_path.open("ab") as out:
+        with writing(self.log_path):
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            out = self.log_path.open("ab")
+        with out:
             self.log_start = os.fstat(out.fileno()).st_size
             # A session of its own: a Ctrl-C at the terminal reaches the launcher only, which stops the children
             # in order.
-            self.process = subprocess.Popen(self.argv(restart), stdout=out, stderr=subprocess.STDOUT, env=env,
-                                            start_new_session=True, preexec_fn=die_with_parent)
+            argv, child_env = guarded(self.argv(restart), env)
+            self.process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=child_env,
+                                            start_new_session=True)
         self.started_at = time.monotonic()
+        self.started_wall = time.time()
         self.restart_at = None
         self.error_line = None
         if restart:
@@ -115,7 +167,12 @@ class Child:
                 appended = log_file.read()
         except OSError:
             return None
-        return error_line(appended.decode("utf-8", errors="replace"))
+        line = error_line(appended.decode("utf-8", errors="replace"))
+        if line in (None, CUT_SHORT):  # nothing to say, or cut short: a full disk, if its log's is full
+            usage = disk_usage(self.log_path)
+            if usage is not None and usage.free < LOW_SPACE_BYTES:
+                return disk_full_message(self.log_path)
+        return line
 
 
 def is_failure(code: int) -> bool:
@@ -127,23 +184,72 @@ def is_failure(code: int) -> bool:
 
 
 def error_line(text: str) -> str | None:
-    """The line that says why a process ended, from the end of its output: the exception line of the last Python
-    traceback (the first unindented line after "Traceback (most recent call last):"), else the last "Fatal Python
-    error:" line (a crash), else the last non-empty line. A leading clock stamp is dropped (it would make every
-    failure look different) and a JSON log line is shown as its level, logger and message."""
+    """The line that says why a process ended, from the end of its output, at most MAX_ERROR_LINE characters:
+    - the exception line of the last Python traceback (the first line after "Traceback (most recent call
+      last):" that is not part of a frame and reads as an exception: `Name: message`; log lines another thread
+      wrote in between are passed over; for an exception group, its own line);
+    - if that traceback was cut short (no exception line: the output ended inside it, as it does when the disk is
+      full), the exception line of the traceback before it (a chained one), else the last line outside any frame,
+      else CUT_SHORT (also for an output that holds nothing but pieces of a traceback);
+    - else the last "Fatal Python error:" line (a crash), else the last non-empty line.
+    Never a line of a traceback's frames (`File "..."`, source, carets). A leading clock stamp is dropped (it
+    would make every failure look different) and a JSON log line is shown as its level, logger and message."""
     lines = [line.rstrip() for line in text.splitlines()]
-    tracebacks = [i for i, line in enumerate(lines) if line.startswith(TRACEBACK)]
-    if tracebacks:
-        for line in lines[tracebacks[-1] + 1:]:
-            if line and not line[0].isspace():
-                return line
-    fatal = [line for line in lines if line.startswith(FATAL)]
-    if fatal:
-        return fatal[-1]
-    for line in reversed(lines):
-        if line.strip():
-            return _plain(line.strip())
+    starts = [i for i, line in enumerate(lines) if line.startswith(TRACEBACK) or line.lstrip(" |+-")
+              .startswith(GROUP_TRACEBACK)]
+    found = None
+    for number, start in enumerate(reversed(starts)):
+        end = starts[len(starts) - number] if number else len(lines)
+        found = _exception_line(lines[start + 1:end], group=not lines[start].startswith(TRACEBACK))
+        if found is not None:
+            break
+    if found is None:
+        fatal = [line for line in lines if line.startswith(FATAL)]
+        found = fatal[-1] if fatal else _last_plain_line(lines)
+    if found is None and (starts or any(line.strip() for line in lines)):  # nothing but pieces of a traceback
+        found = CUT_SHORT
+    return None if found is None else _cut(found, MAX_ERROR_LINE)
+
+
+def _exception_line(block: list[str], group: bool) -> str | None:
+    """The exception line of one traceback's lines (after its "Traceback" line), or None if it has none."""
+    for line in block:
+        if group:  # `  | ExceptionGroup: ...`, at the depth of the frames' `  |   File ...`
+            match = re.match(r"^\s*\| (\S.*)$", line)
+            line = match.group(1) if match else ""
+        if not line or line[0].isspace() or _is_traceback_part(line):
+            continue
+        if _EXCEPTION_LINE.match(line):
+            return line
     return None
+
+
+def _is_traceback_part(line: str) -> bool:
+    """Whether `line` (stripped or not) is obviously a piece of a traceback rather than something said."""
+    stripped = line.strip()
+    return (stripped.startswith(_TRACEBACK_PARTS) or stripped.lstrip(" |+-").startswith(GROUP_TRACEBACK)
+            or set(stripped) <= set("^~ ") or set(stripped) <= set("+-| "))
+
+
+def _last_plain_line(lines: list[str]) -> str | None:
+    """The last non-empty line that is not part of a traceback (its header, its frames and their source lines,
+    which are indented, or the lines that chain two tracebacks): one that starts at the margin if there is one,
+    else any (stripped), as `_plain` shows it."""
+    candidates, inside = [], False
+    for line in lines:
+        if line.startswith(TRACEBACK) or line.lstrip(" |+-").startswith(GROUP_TRACEBACK):
+            inside = True
+        elif line and not line[0].isspace():
+            inside = False
+        if line.strip() and not inside and not _is_traceback_part(line):
+            candidates.append(line)
+    at_margin = [line for line in candidates if not line[0].isspace()]
+    chosen = at_margin or candidates
+    return _plain(chosen[-1].strip()) if chosen else None
+
+
+def _cut(line: str, limit: int) -> str:
+    return line if len(line) <= limit else line[:limit - 3] + "..."
 
 
 def _plain(line: str) -> str:
