@@ -125,6 +125,11 @@ class CandidateScorer(Protocol):
         """The fraction of episodes solved on each of `levels` by `params` (called from the scoring thread)."""
         ...
 
+    def counts(self) -> dict[str, int]:
+        """What following the learner's weights adopted and dropped, for the status line (`dropped_...` fields
+        reach the learner's metrics.jsonl)."""
+        ...
+
 
 class Refill(NamedTuple):
     """A finished scoring of candidates, waiting for `cycle` to refill the buffer with it."""
@@ -503,7 +508,7 @@ class CurriculumService:
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
                 **({"refills": self.refills, "scoring": self._scoring is not None, "filling": self.filling,
                     "requests_held": self.requests_held,
-                    "last_refill": self._last_refill} if self.scorer is not None else {}),
+                    "last_refill": self._last_refill, **self.scorer.counts()} if self.scorer is not None else {}),
                 **({"levels_ahead": {"ready": self.maker.ready, "made": self.maker.made,
                                      "unfiltered": self.maker.unfiltered,
                                      "filter_seconds": round(self.maker.filter_seconds, 1)}}

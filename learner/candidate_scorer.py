@@ -37,6 +37,10 @@ class PolicyScorer:
             return None
         return self.follow.version, self.follow.params
 
+    def counts(self) -> dict[str, int]:
+        """The weights follower's counts (adopted, repeated, overwritten in its inbox, re-synced, learners seen)."""
+        return dict(self.follow.counts)
+
     def solve_rates(self, params: Any, levels: Level, key: jax.Array) -> jax.Array:
         """The fraction of episodes solved on each of `levels` [C] by the policy `params` (blocks until done)."""
         return jax.block_until_ready(self._solve_rates(params, levels, key))

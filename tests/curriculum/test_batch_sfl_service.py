@@ -124,6 +124,9 @@ class GatedScorer:
     def policy(self):
         return self.scorer.policy()
 
+    def counts(self):
+        return self.scorer.counts()
+
     def solve_rates(self, params, levels, key):
         assert self.gate.wait(60), "the test never let the scoring finish"
         return self.scorer.solve_rates(params, levels, key)
