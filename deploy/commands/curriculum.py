@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -218,6 +219,28 @@ def _render(config: RunConfig, arrays: dict, report: dict, out: Path) -> None:
         print(f"wrote {path}")
 
 
+INTEGER_HISTOGRAMS = frozenset({"age", "replays"})
+"""The inspect report's histograms of whole counts (`curriculum.stats.inspect_report`), shown with integer bins."""
+
+
+def integer_bins(edges: list[float], counts: list[int]) -> list[tuple[str, int]] | None:
+    """A histogram of whole numbers relabelled by the integers each bin holds ("0", "1", "2-3", ...), bins that
+    hold no integer dropped; None when a bin that holds no integer has a count (the data are not whole numbers).
+
+    The bins are numpy's (`numpy.histogram`: each half-open, the last one closed), so a whole number falls into
+    the bin whose integers include it: the labels say exactly which values were counted."""
+    rows = []
+    for k, (lo, hi, count) in enumerate(zip(edges[:-1], edges[1:], counts, strict=True)):
+        first = math.ceil(lo)
+        last = math.floor(hi) if k == len(counts) - 1 else math.ceil(hi) - 1
+        if first > last:
+            if count:
+                return None
+            continue
+        rows.append((str(first) if first == last else f"{first}-{last}", int(count)))
+    return rows
+
+
 def _bar(count: int, most: int, width: int = 30) -> str:
     return "#" * (round(width * count / most) if most else 0)
 
@@ -237,6 +260,10 @@ def format_report(report: dict[str, Any]) -> str:
             continue
         lines.append(f"{name} histogram:")
         most = max(hist["counts"])
+        whole = integer_bins(hist["edges"], hist["counts"]) if name in INTEGER_HISTOGRAMS else None
+        if whole is not None:
+            lines += [f"  {label:>9} {count:>5} {_bar(count, most)}" for label, count in whole]
+            continue
         for lo, hi, count in zip(hist["edges"][:-1], hist["edges"][1:], hist["counts"], strict=True):
             lines.append(f"  {lo:>9.3g} .. {hi:<9.3g} {count:>5} {_bar(count, most)}")
     lines.append("top levels:")

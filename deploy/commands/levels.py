@@ -109,13 +109,16 @@ def _level_files(paths: list[Path]) -> tuple[list[Path], list[str]]:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from impulse.engine.levels.kinetix_json import level_file_problems
+    """Every problem of every file; a valid file that cannot be solved (`engine.levels.checks`) is still valid (it
+    does not change the exit status), but its line says why it cannot be solved."""
+    from impulse.engine.levels.checks import unsolvable_reasons
+    from impulse.engine.levels.kinetix_json import level_file_problems, load_kinetix_level
 
     files, missing = _level_files(args.paths)
     for line in missing:
         print(f"error  {line}")
     sizes = _sizes(args.size)
-    invalid = 0
+    invalid = unsolvable = 0
     for file in files:
         problems = level_file_problems(file, sizes)
         if problems:
@@ -123,11 +126,18 @@ def _validate(args: argparse.Namespace) -> int:
             print(f"INVALID  {file}")
             for problem in problems:
                 print(f"    {problem}")
+            continue
+        loaded = load_kinetix_level(file, sizes, validate=False)  # valid: it loads (validated just now)
+        reasons = unsolvable_reasons(loaded.level, loaded.sizes)
+        if reasons:
+            unsolvable += 1
+            print(f"ok, but cannot be solved: {'; '.join(reasons)}  {file}")
         else:
             print(f"ok       {file}")
     total = len(files)
     unfound = f", {len(missing)} paths with no level file" if missing else ""
-    print(f"{total - invalid} of {total} level files valid{unfound}")
+    unsolved = f" ({unsolvable} of them cannot be solved)" if unsolvable else ""
+    print(f"{total - invalid} of {total} level files valid{unsolved}{unfound}")
     return EXIT_INVALID if invalid or missing else 0
 
 

@@ -81,6 +81,18 @@ class LevelFileError(ValueError):
         return f"{self.path}: {len(self.problems)} problems:\n  {listed}"
 
 
+class LevelDoesNotFit(LevelFileError):
+    """A level file that does not fit the requested size (more slots than it allows, or another arena).
+
+    `needs` holds the slot counts the level would need (the file's own, or the slots it uses when loaded with
+    `compact`), so that a loader of a set can say which size each left-out level needs."""
+
+    def __init__(self, path: str | Path, problems: str | list[str], needs: SceneSizes):
+        super().__init__(path, problems)
+        self.args = (*self.args, needs)  # so that a copy or a pickle is built with `needs` too
+        self.needs = needs
+
+
 @dataclass(frozen=True)
 class KinetixLevel:
     """A loaded level: the physics scene plus the task data Kinetix keeps beside it."""
@@ -597,7 +609,7 @@ def level_from_document(
         P, C = layout.num_polygons, layout.num_circles
         cache = None  # the contact cache is laid out by the file's slots
     if not layout.fits_in(target):
-        raise LevelFileError(path, _does_not_fit(layout, target, compacted=layout is not file_sizes))
+        raise LevelDoesNotFit(path, _does_not_fit(layout, target, compacted=layout is not file_sizes), layout)
 
     state = _build_state(target, P, C, polygons, circles, joints, thrusters, gravity, cache, layout)
     if validate:

@@ -9,19 +9,30 @@
   loaded into the size;
 - "random" is not a fixed set: trainers sample random levels on the device instead (see
   `engine.levels.generator`), so `load_level_set` rejects it with a message saying so.
+
+Levels that do not fit the size. A set of several levels ("handmade", "kinetix:...", a folder, a glob) keeps the
+levels that fit and leaves the others out, saying so in one warning (logged at WARNING by this module) that names
+every level left out and the size it needs: training, evaluation, `impulse launch` and anything else that loads a
+set through `load_level_set` behave alike, and a run never plays fewer levels than its set holds without a word. A
+level named on its own ("handmade:NAME", a single file) must fit: it is refused with an error naming it, and so is a
+set of which no level fits.
 """
 
 from __future__ import annotations
 
 import glob
 import importlib.util
+import logging
 import os
 import re
 from pathlib import Path
 
-from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
+from impulse.engine.levels.kinetix_json import LevelDoesNotFit, LevelFileError, load_kinetix_level
 from impulse.engine.levels.level import Level, stack_levels
-from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.levels.summary import describe_sizes, size_class
+from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
+
+log = logging.getLogger(__name__)
 
 RANDOM = "random"
 HANDMADE = "handmade"
@@ -35,7 +46,29 @@ class LevelSetError(ValueError):
     """A level set cannot be resolved (unknown name, empty folder, levels that do not fit the size)."""
 
 
-def _handmade(names: list[str] | None, sizes: SceneSizes) -> tuple[list[str], list[Level]]:
+def size_name(sizes: SceneSizes) -> str:
+    """How messages name a size: "s", "m" or "l" for Kinetix's sizes (as `env.size` takes them), else its slot
+    counts."""
+    name = size_class(sizes)
+    return name.lower() if name != "custom" else describe_sizes(sizes)
+
+
+def size_needed(sizes: SceneSizes) -> str:
+    """The smallest of Kinetix's sizes that a level of slot counts `sizes` fits ("s", "m" or "l"), else the slot
+    counts themselves (more than L has, or another arena)."""
+    for name, preset in (("s", SIZE_S), ("m", SIZE_M), ("l", SIZE_L)):
+        if sizes.fits_in(preset):
+            return name
+    return describe_sizes(sizes)
+
+
+Skipped = list[tuple[str, str]]
+"""Levels of a set that do not fit the size: (name, the size it needs)."""
+
+
+def _handmade(names: list[str] | None, sizes: SceneSizes) -> tuple[list[str], list[Level], Skipped]:
+    """(names, levels, skipped) of the hand-made set: all levels that fit `sizes` (the others skipped), or the
+    ones named, each of which must fit."""
     from impulse.engine.levels import handmade  # imported here: building the designs costs time only when used
 
     available = handmade.names()
@@ -43,15 +76,15 @@ def _handmade(names: list[str] | None, sizes: SceneSizes) -> tuple[list[str], li
         unknown = [n for n in names if n not in available]
         if unknown:
             raise LevelSetError(f"unknown hand-made level(s) {', '.join(unknown)}; available: {', '.join(available)}")
-        chosen = names
+        too_large = [n for n in names if not handmade.size_of(n).fits_in(sizes)]
+        if too_large:
+            listed = ", ".join(f"{n} (needs {size_needed(handmade.size_of(n))})" for n in too_large)
+            raise LevelSetError(f"hand-made level(s) {listed} too large for size {size_name(sizes)}")
+        chosen, skipped = names, []
     else:
         chosen = [n for n in available if handmade.size_of(n).fits_in(sizes)]
-    levels = []
-    for name in chosen:
-        if not handmade.size_of(name).fits_in(sizes):
-            raise LevelSetError(f"hand-made level {name} is too large for the configured size")
-        levels.append(handmade.build(name, sizes))
-    return chosen, levels
+        skipped = [(n, size_needed(handmade.size_of(n))) for n in available if n not in chosen]
+    return chosen, [handmade.build(name, sizes) for name in chosen], skipped
 
 
 def _level_files_under(folder: Path, pattern: str = "*.json", recursive: bool = True) -> list[Path]:
@@ -139,35 +172,57 @@ def _unloadable(source: str, total: int, failures: list[LevelFileError]) -> Leve
     return LevelSetError(f"level set {source!r}: {len(failures)} of {total} level files cannot be loaded:\n  {listed}")
 
 
+def _left_out(skipped: Skipped) -> str:
+    return ", ".join(f"{name} (needs {needs})" for name, needs in skipped)
+
+
 def load_level_set(source: str, sizes: SceneSizes) -> tuple[list[str], Level]:
     """(names, batch of levels [K]) for a level-set string, every level in `sizes`.
 
-    Raises `LevelSetError` when the set cannot be resolved or any of its files does not load; every file that
-    fails is named with its problems (all of them, not only the first file's, so one run finds every bad file)."""
+    Levels of a larger size are left out of a set of several, with one warning naming each and the size it needs
+    (the module docstring); a set of one level that does not fit, or of which none fits, is refused. Raises
+    `LevelSetError` when the set cannot be resolved or any of its files does not load; every file that fails is
+    named with its problems (all of them, not only the first file's, so one run finds every bad file)."""
     if source == RANDOM:
         raise LevelSetError("'random' levels are sampled by the trainer, not loaded from a set")
     if source == HANDMADE or source.startswith(HANDMADE + ":"):
         picked = source.partition(":")[2]
-        names, levels = _handmade([n for n in picked.split(",") if n] or None, sizes)
+        names, levels, skipped = _handmade([n for n in picked.split(",") if n] or None, sizes)
     else:
+        one_file = False
         if source.startswith(KINETIX + ":"):
             named = _kinetix_files(source.partition(":")[2])
         elif GLOB_CHARACTERS & set(source):
             named = _glob_files(source)
         else:
             files = _files(Path(source))
+            one_file = not Path(source).is_dir()
             named = [(file.stem if len(files) == 1 else str(file.relative_to(source)).removesuffix(".json"), file)
                      for file in files]
-        names, levels, failures = [], [], []
+        names, levels, failures, skipped = [], [], [], []
         for name, file in named:
             try:
                 levels.append(load_kinetix_level(file, sizes).level)
+            except LevelDoesNotFit as err:
+                if one_file:
+                    failures.append(err)
+                else:
+                    skipped.append((name, size_needed(err.needs)))
+                continue
             except LevelFileError as err:
                 failures.append(err)
                 continue
             names.append(name)
         if failures:
             raise _unloadable(source, len(named), failures) from failures[0]
+    total = len(names) + len(skipped)
     if not levels:
-        raise LevelSetError(f"level set {source!r} has no level that fits the configured size")
+        if total == 1:
+            raise LevelSetError(f"level set {source!r}: its one level, {_left_out(skipped)}, does not fit size "
+                                f"{size_name(sizes)}")
+        raise LevelSetError(f"level set {source!r}: none of its {total} levels fits size {size_name(sizes)}: "
+                            f"{_left_out(skipped)}")
+    if skipped:
+        log.warning("level set %r: %d of %d levels do not fit size %s and are left out: %s", source, len(skipped),
+                    total, size_name(sizes), _left_out(skipped))
     return names, stack_levels(levels)

@@ -1,8 +1,10 @@
-"""A readable description of a level: its size class, shapes, joints, thrusters and what each action does."""
+"""A readable description of a level: its size class and what it uses of it, its task (and why it cannot be solved,
+when it cannot: `engine.levels.checks`), shapes, joints, thrusters and what each action does."""
 
 from __future__ import annotations
 
 import numpy as np
+from impulse.engine.levels.checks import unsolvable_reasons
 from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
 from impulse.engine.physics.params import SimParams
 from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
@@ -25,6 +27,23 @@ def describe_sizes(sizes: SceneSizes) -> str:
     return (f"{size_class(sizes)} ({_count(sizes.num_polygons, 'polygon')} incl. {sizes.num_static_polygons} "
             f"arena, {_count(sizes.num_circles, 'circle')}, {_count(sizes.num_joints, 'joint')}, "
             f"{_count(sizes.num_thrusters, 'thruster')})")
+
+
+def _size_label(sizes: SceneSizes) -> str:
+    """"S", "M" or "L", else the slot counts."""
+    name = size_class(sizes)
+    return name if name != "custom" else describe_sizes(sizes)
+
+
+def describe_use(level: Level, sizes: SceneSizes) -> str:
+    """What an (unbatched) level uses of its slots: its active shapes, joints and thrusters, e.g. "6 polygons incl.
+    4 arena, 2 circles, 2 joints, 0 thrusters" (a Kinetix file holds every slot of its size, used or not)."""
+    P, S = sizes.num_polygons, sizes.num_static_polygons
+    active = np.asarray(level.state.bodies.active, bool)
+    joints = int(np.asarray(level.state.joints.active, bool).sum())
+    thrusters = int(np.asarray(level.state.thrusters.active, bool).sum())
+    return (f"{_count(int(active[:P].sum()), 'polygon')} incl. {int(active[:S].sum())} arena, "
+            f"{_count(int(active[P:].sum()), 'circle')}, {_count(joints, 'joint')}, {_count(thrusters, 'thruster')}")
 
 
 def _xy(v) -> str:
@@ -52,10 +71,10 @@ def describe_level(
     roles = s["roles"]
     active = b["active"]
     lines = []
+    size = _size_label(sizes)
     if file_sizes is not None and file_sizes != sizes:
-        lines.append(f"size: {describe_sizes(file_sizes)} in the file, loaded as {describe_sizes(sizes)}")
-    else:
-        lines.append(f"size: {describe_sizes(sizes)}")
+        size = f"{_size_label(file_sizes)} in the file, loaded as {size}"
+    lines.append(f"size: {size}; in use: {describe_use(level, sizes)}")
     if frame_skip is not None:
         lines.append(f"physics: {frame_skip} sub-steps per action"
                      + (f" of {float(params.dt):.4f} s" if params is not None else "")
@@ -65,9 +84,9 @@ def describe_level(
     task = "task: make a green shape touch a blue shape" + (
         " without any green shape touching a red one" if "red" in present else ""
     )
-    missing = [name for name in ("green", "blue") if name not in present]
-    if missing:
-        task += f" (this level has no {' or '.join(missing)} shape, so it cannot be solved)"
+    reasons = unsolvable_reasons(level, sizes)
+    if reasons:
+        task += f" (it cannot be solved: {'; '.join(reasons)})"
     lines.append(task)
 
     lines.append("shapes:")

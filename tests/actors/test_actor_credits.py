@@ -31,6 +31,8 @@ from tests.support.launch_procs import QUICK_LAUNCH, TINY_BATCH, free_port
 pytestmark = pytest.mark.heavy
 
 RUN = "credit-test"
+NONCE = "0123456789abcdef"
+"""The instance nonce of the learner this test plays (`bus.keys.INSTANCE`)."""
 TIMEOUT_S = 1.5
 SLOW_PACE_S = 1.0
 
@@ -52,10 +54,12 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
     params = agent.init(jax.random.PRNGKey(0))
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner:
         learner.stamp.acting_for(epoch=1, policy_version=5)
+        learner.declare_token(learner.keys.learner_instance(NONCE))  # followers adopt only this instance's weights
         weights = learner.latest_publisher(learner.keys.weights_policy)
+
         def weights_frame(version: int) -> bytearray:
-            return bytearray(encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
-                                            weights_hash(params)))
+            stamp = Stamp(RUN, epoch=1, policy_version=version, nonce=NONCE)
+            return bytearray(encode_weights(stamp, tree_arrays(params), weights_hash(params)))
 
         weights.put(weights_frame(5))
         trajectories = learner.inbox(learner.keys.traj_all, 16)

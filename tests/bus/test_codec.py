@@ -150,7 +150,7 @@ def test_encode_refuses_what_the_wire_cannot_carry() -> None:
 
 
 def test_rejected_only_takes_known_reasons() -> None:
-    assert len(set(REASONS)) == len(REASONS) == 16
+    assert len(set(REASONS)) == len(REASONS) == 17
     with pytest.raises(ValueError, match="unknown reject reason"):
         Rejected("because", "no")
 

@@ -31,6 +31,8 @@ from tests.support.launch_procs import QUICK_LAUNCH, free_port
 pytestmark = pytest.mark.heavy
 
 RUN = "batch-sfl-test"
+NONCE = "0123456789abcdef"
+"""The instance nonce of the learner this test plays (`bus.keys.INSTANCE`)."""
 CANDIDATES, ATTEMPTS, BUFFER, EVERY = 16, 2, 8, 4
 
 
@@ -72,10 +74,11 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
     config, env_params, agent, params, curriculum = small_setup()
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
             Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
+        learner.declare_token(learner.keys.learner_instance(NONCE))  # followers adopt only this instance's weights
         weights = learner.latest_publisher(learner.keys.weights_policy)
 
         def publish(version: int) -> None:
-            frame = encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
+            frame = encode_weights(Stamp(RUN, epoch=1, policy_version=version, nonce=NONCE), tree_arrays(params),
                                    weights_hash(params))
             weights.put(frame)
 
@@ -138,14 +141,15 @@ def test_level_requests_during_a_later_scoring_are_held_only_when_asked(tmp_path
     config, env_params, agent, params, curriculum = small_setup(hold_override)
     with Bus(config.bus, RUN, "learner", "learner", listen=True) as learner, \
             Bus(config.bus, RUN, "curriculum", "curriculum") as bus, Checkpointer(tmp_path / "ckpt") as checkpoints:
+        learner.declare_token(learner.keys.learner_instance(NONCE))  # followers adopt only this instance's weights
         weights = learner.latest_publisher(learner.keys.weights_policy)
         scorer = GatedScorer(PolicyScorer(bus, agent, env_params, ATTEMPTS))
         service = CurriculumService(curriculum, bus, checkpoints, "", lambda current, assignments: current,
                                     item=CURRICULUM, scorer=scorer)
         service.start()
         for version in (0, EVERY):
-            weights.put(encode_weights(Stamp(RUN, epoch=1, policy_version=version), tree_arrays(params),
-                                       weights_hash(params)))
+            stamp = Stamp(RUN, epoch=1, policy_version=version, nonce=NONCE)
+            weights.put(encode_weights(stamp, tree_arrays(params), weights_hash(params)))
             cycle_until(service, lambda: service.status()["scoring"], 30, f"the scoring of version {version}")
             answered = ask_levels(service, learner)
             if version == 0 or hold:

@@ -70,7 +70,7 @@ def test_validate_reports_every_problem_and_exit_code(
 def test_show_describes_roles_links_and_controls(level_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["levels", "show", str(level_file)]) == 0
     out = capsys.readouterr().out
-    assert "size: S (5 polygons incl. 4 arena, 2 circles, 1 joint, 1 thruster)" in out
+    assert "size: S; in use: 5 polygons incl. 4 arena, 2 circles, 1 joint, 1 thruster" in out
     assert "#4  green   rectangle 0.80 x 0.60 m, at (1.50, 2.50)" in out
     assert "blue    circle r 0.30 m" in out and "fixed" in out
     assert "red     circle r 0.20 m" in out
