@@ -17,14 +17,19 @@ the server keeps running):
 - `GET /api/agents`: the checkpoints offered for watching, and the run a level can be sent to;
 - `GET /api/solve_rates?set=S&checkpoint=C&attempts=N`: how often that agent solves each level of the set
   (`solve_rates`, `impulse eval`'s scoring), 409 when the studio cannot load agents;
+  `GET /api/solve_rates/progress?...` (the same query): how far that scoring is while it runs;
+- `GET /api/runs`: the runs whose learning curves the Run page shows (`runs`); `GET /api/run/metrics?run=R&after=U`:
+  that run's metrics rows after update U, in columns, at most `runs.MAX_ROWS` per reply;
 - `POST /api/inject` {"level"}: send the level into the running curriculum of `--run`'s run (`console`): its
   reply, or 422 with the service's reason;
-- `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels (`console`);
+- `GET /api/curriculum?top=K`: that curriculum's buffer report with its K best levels, every level's score and
+  solve rate for the charts, and the studio's history of its counters (`console`);
   `GET /api/curriculum/thumbnail?level_id=ID`: one of those levels as a PNG;
   `POST /api/curriculum/knobs` {"set": ["replay_prob=0.8", ...]}: change live knobs (or, without "set", read
   them), 422 with the service's reason when refused. All four answer 409 when the studio has no run and 503
   when no curriculum service answers (one handler each, for every route);
-- `WebSocket /ws/play`: play and watch (`protocol`).
+- `WebSocket /ws/play`: play and watch (`protocol`); a message with "progress": true gets a progress message every
+  second while its reply takes longer than one (what it is doing: loading, compiling on first use).
 
 Every request and handshake first passes `security.Guard`: the Host allow-list, the access token, the same-origin
 and content-type checks and the body cap (`MAX_BODY_BYTES`: a larger Content-Length is refused before reading, any
@@ -33,14 +38,18 @@ studio` serves with (the same cap on WebSocket messages). A save that cannot be 
 folder) answers 507 naming the file and the free space.
 
 Engine work (loading, drawing, compiling, stepping) runs in worker threads, so one slow request (a first
-compilation) never stalls the others.
+compilation) never stalls the others. A save or an edit of a level that can never be solved (no green shape, ...)
+carries `warnings` (`solvable`); the level is saved all the same.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
+import math
 import tempfile
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -50,7 +59,7 @@ from impulse.curriculum.client import CurriculumUnreachable
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.summary import size_class
 from impulse.engine.physics.validate import validate_scene
-from impulse.studio.console import CurriculumLink, CurriculumRefused
+from impulse.studio.console import CurriculumLink, CurriculumRefused, json_ready
 from impulse.studio.editing import apply_edits
 from impulse.studio.level_io import (
     LevelInputError,
@@ -63,9 +72,11 @@ from impulse.studio.level_io import (
     save_document,
 )
 from impulse.studio.library import SAVED, Library, UnknownLevel, level_counts
-from impulse.studio.protocol import PilotLoader, PlayConnection
+from impulse.studio.protocol import PilotCache, PilotLoader, PlayConnection
+from impulse.studio.runs import MAX_ROWS, Runs
 from impulse.studio.scene import actuator_settings, scene_json
 from impulse.studio.security import BodyTooLarge, Guard
+from impulse.studio.solvable import unsolvable_reasons
 from impulse.studio.solve_rates import DEFAULT_ATTEMPTS, SolveRates
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -89,10 +100,22 @@ MAX_BUFFER_ROWS = 256
 """The most buffer levels the Curriculum page asks for at once (each is drawn)."""
 BUFFER_SET_LEVELS = 64
 """The buffer levels the gallery's set of a linked run holds: the best by score."""
+PROGRESS_EVERY_S = 1.0
+"""A play message whose reply takes longer than this gets a progress message this often (when it asks for them)."""
+SLOW_PLAY_S = 5.0
+"""A play message that takes longer than this is logged, with what it was doing."""
+RUN_FOLDERS = (Path("runs"),)
+"""Where the Run page looks for runs besides the offered agents' (`run_dir = "runs/{name}"` by default)."""
+IMMUTABLE = {"Cache-Control": "private, max-age=86400, immutable"}
+"""For a buffer level's thumbnail: its id is its content's, so the picture of an id never changes."""
 
 
 class RequestError(ValueError):
     """A request the studio cannot read (not JSON, too large, a missing field): HTTP 400."""
+
+
+class PageGone(Exception):
+    """The play socket's page went away while its message was being handled."""
 
 
 class NoRun(LookupError):
@@ -146,7 +169,40 @@ def _edited(body: dict[str, Any]) -> dict[str, Any]:
     return {"level": level_document(loaded, level), "scene": scene_json(scene_drawing(level)),
             "actuators": actuator_settings(level), "size": size_class(loaded.sizes),
             "counts": level_counts(level.state, loaded.sizes),
-            "problems": validate_scene(level.state)}
+            "problems": validate_scene(level.state), "warnings": unsolvable_reasons(level, loaded.sizes)}
+
+
+def socket_text(reply: dict[str, Any]) -> str:
+    """A play reply as strict JSON: a NaN or an infinity (a scene whose physics blew up) is sent as null, since a
+    browser's JSON.parse refuses them, and a reply the page cannot read would leave it waiting for ever."""
+    try:
+        return json.dumps(reply, allow_nan=False)
+    except ValueError:
+        log.warning("studio: a play reply held NaN or infinity; sent as null")
+        return json.dumps(json_ready(reply), allow_nan=False)
+
+
+async def answer_play(websocket: WebSocket, connection: PlayConnection, message: Any, seq: Any,
+                      progress: bool) -> dict[str, Any]:
+    """`connection.handle(message)` in a worker thread; while it runs, with `progress`, a progress message every
+    PROGRESS_EVERY_S saying what the connection is doing (`PlayConnection.phase`) and for how long."""
+    work = asyncio.ensure_future(run_in_threadpool(connection.handle, message))
+    started = time.monotonic()
+    while not (await asyncio.wait({work}, timeout=PROGRESS_EVERY_S))[0]:
+        if not progress:
+            continue
+        try:
+            await websocket.send_text(json.dumps({
+                "type": "progress", "seq": seq, "what": connection.phase or "working",
+                "elapsed_s": round(time.monotonic() - started, 1)}))
+        except (WebSocketDisconnect, RuntimeError):  # the work finishes in its thread; nobody reads its result
+            work.add_done_callback(lambda done: done.cancelled() or done.exception())
+            raise PageGone() from None
+    elapsed = time.monotonic() - started
+    if elapsed > SLOW_PLAY_S:
+        kind = message.get("type") if isinstance(message, dict) else None
+        log.info("studio: play message %r took %.1f s (last: %s)", kind, elapsed, connection.phase)
+    return work.result()
 
 
 def make_app(
@@ -159,6 +215,7 @@ def make_app(
     load_pilot: PilotLoader | None = None,
     agents: Sequence[str] = (),
     curriculum: CurriculumLink | None = None,
+    run_folders: Sequence[Path] = RUN_FOLDERS,
 ) -> Starlette:
     """The studio app: levels from the hand-made and Kinetix sets, `levels_dir` (where it saves) and `sources`
     (folders, files or glob patterns); `token` required on every request when given (`impulse studio` always
@@ -166,7 +223,8 @@ def make_app(
     address it is served on and `allow_hosts` more names it answers to (`security.Guard`: every other Host is
     refused, against DNS rebinding); `load_pilot` loads a
     checkpoint to watch (None: watching is off), `agents` the checkpoints the page offers; `curriculum` links to
-    a running run's curriculum service (the Curriculum page and "Send to run"; None: no run)."""
+    a running run's curriculum service (the Curriculum page and "Send to run"; None: no run); `run_folders` hold
+    runs (one per subfolder) whose learning curves the Run page shows, besides those of `agents`."""
     # A linked run's buffer is a gallery set too: a folder of level files that each listing rewrites from the
     # service (`CurriculumLink.snapshot`), so its levels open, play and score as any others do.
     buffer_folder, buffer_set, folders = None, None, {}
@@ -176,7 +234,9 @@ def make_app(
         folders[buffer_set] = (f"Curriculum buffer of run {curriculum.run} (live: its best {BUFFER_SET_LEVELS} "
                                "levels by score)", Path(buffer_folder.name))
     library = Library(Path(levels_dir), tuple(sources), folders)
-    solve_rates = SolveRates(library, load_pilot) if load_pilot is not None else None
+    pilots = PilotCache(load_pilot) if load_pilot is not None else None  # one load per agent, shared
+    solve_rates = SolveRates(library, pilots) if pilots is not None else None
+    runs = Runs(agents, run_folders)
 
     async def index(request: Request) -> Response:
         return FileResponse(STATIC / "index.html")
@@ -230,20 +290,44 @@ def make_app(
                                                body.get("size"))
         log.info("studio: saved %s", path)
         return JSONResponse({"saved": {"set": SAVED, "name": path.stem}, "path": str(path),
-                             "size": size_class(loaded.sizes)})
+                             "size": size_class(loaded.sizes),
+                             "warnings": unsolvable_reasons(loaded.level, loaded.sizes)})
 
     async def agent_list(request: Request) -> Response:
         return JSONResponse({"enabled": load_pilot is not None, "checkpoints": list(agents),
                              "inject_run": curriculum.run if curriculum is not None else None})
 
-    async def agent_rates(request: Request) -> Response:
+    def scoring(request: Request) -> tuple[SolveRates, str, str, int]:
         set_id, checkpoint = _query(request, "set", "checkpoint")
         attempts = request.query_params.get("attempts", str(DEFAULT_ATTEMPTS))
         if not attempts.isdigit():
             raise RequestError(f"attempts must be a whole number, got {attempts!r}")
         if solve_rates is None:
             raise NoRun("this studio cannot load agents")
-        return JSONResponse(await run_in_threadpool(solve_rates.rates, set_id, checkpoint, int(attempts)))
+        return solve_rates, set_id, checkpoint, int(attempts)
+
+    async def agent_rates(request: Request) -> Response:
+        rates, set_id, checkpoint, attempts = scoring(request)
+        return JSONResponse(await run_in_threadpool(rates.rates, set_id, checkpoint, attempts))
+
+    async def agent_rates_progress(request: Request) -> Response:
+        rates, set_id, checkpoint, attempts = scoring(request)
+        return JSONResponse({"progress": rates.progress(set_id, checkpoint, attempts)})
+
+    async def run_list(request: Request) -> Response:
+        listed = await run_in_threadpool(runs.listing)
+        return JSONResponse({"runs": listed, "selected": listed[0]["id"] if listed else None})
+
+    async def run_metrics(request: Request) -> Response:
+        [run_id] = _query(request, "run")
+        after, limit = request.query_params.get("after", ""), request.query_params.get("limit", str(MAX_ROWS))
+        try:
+            after_update = float(after) if after else -math.inf
+        except ValueError:
+            raise RequestError(f"after must be a number (an update), got {after!r}") from None
+        if not limit.isdigit():
+            raise RequestError(f"limit must be a whole number, got {limit!r}")
+        return JSONResponse(await run_in_threadpool(runs.metrics, run_id, after_update, int(limit)))
 
     def linked() -> CurriculumLink:
         if curriculum is None:
@@ -267,12 +351,13 @@ def make_app(
         top = request.query_params.get("top", "24")
         if not top.isdigit() or not 1 <= int(top) <= MAX_BUFFER_ROWS:
             raise RequestError(f"top must be a whole number from 1 to {MAX_BUFFER_ROWS}, got {top!r}")
-        return JSONResponse(await run_in_threadpool(link.buffer, int(top)))
+        points = request.query_params.get("points", "1") != "0"
+        return JSONResponse(await run_in_threadpool(link.buffer, int(top), points))
 
     async def buffer_thumbnail(request: Request) -> Response:
         [level_id] = _query(request, "level_id")
-        png = linked().thumbnail(level_id)
-        return Response(png, media_type="image/png", headers={"Cache-Control": "no-cache"})
+        png = await run_in_threadpool(linked().thumbnail, level_id)
+        return Response(png, media_type="image/png", headers=IMMUTABLE)
 
     async def knobs(request: Request) -> Response:
         body = await _body(request)
@@ -290,7 +375,7 @@ def make_app(
 
     async def play(websocket: WebSocket) -> None:
         await websocket.accept()
-        connection = PlayConnection(library, load_pilot)
+        connection = PlayConnection(library, pilots)
         while True:
             received = await websocket.receive()
             if received["type"] == "websocket.disconnect":
@@ -303,7 +388,10 @@ def make_app(
                     raise RequestError(f"a message may be at most {MAX_BODY_BYTES:,} characters")
                 message = _json(received["text"])
                 seq = message.get("seq") if isinstance(message, dict) else None
-                reply = await run_in_threadpool(connection.handle, message)
+                progress = isinstance(message, dict) and message.get("progress") is True
+                reply = await answer_play(websocket, connection, message, seq, progress)
+            except PageGone:
+                return
             except (RequestError, LevelInputError, UnknownLevel, ValueError) as err:
                 reply = {"type": "error", "message": str(err)}
             except Exception as err:  # the connection and the server go on; the log has the traceback
@@ -311,7 +399,7 @@ def make_app(
                 reply = {"type": "error", "message": f"internal error: {type(err).__name__}: {err}"}
             reply["seq"] = seq
             try:
-                await websocket.send_text(json.dumps(reply))
+                await websocket.send_text(socket_text(reply))
             except (WebSocketDisconnect, RuntimeError):  # the page went away mid-reply
                 return
 
@@ -362,6 +450,9 @@ def make_app(
         Route("/api/save", save, methods=["POST"]),
         Route("/api/agents", agent_list),
         Route("/api/solve_rates", agent_rates),
+        Route("/api/solve_rates/progress", agent_rates_progress),
+        Route("/api/runs", run_list),
+        Route("/api/run/metrics", run_metrics),
         Route("/api/inject", inject, methods=["POST"]),
         Route("/api/curriculum", buffer),
         Route("/api/curriculum/thumbnail", buffer_thumbnail),

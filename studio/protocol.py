@@ -11,13 +11,21 @@ Client to server (JSON objects; an optional "seq" is echoed in the reply, for me
 - {"type": "agent", "checkpoint": PATH}: load a policy to watch (null to unload); the level is reloaded in the
   agent's size, or refused with the reason when it does not fit.
 
+Any message may carry "progress": true: while its reply takes longer than a second, the server sends
+{"type": "progress", "seq", "what", "elapsed_s"} every second first (what the connection is doing: loading the
+agent, compiling the environment or the policy on their first use, `play.PlaySession.warm_up`), so a page can
+say what it waits for. Without it, every message gets exactly one reply, as before.
+
 Server to client: {"type": "state", ...} (`play.PlaySession.frame`: scene, reward, return, done, outcome, step_ms;
 a load adds "level" and "controls", an agent load adds "agent"), or {"type": "error", "message": ...}, after
-which the connection stays usable.
+which the connection stays usable. Loads and agent loads compile what stepping needs before they reply
+(`play.PlaySession.warm_up`), so no step waits for a compile.
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -43,8 +51,46 @@ def controls(loaded: KinetixLevel) -> dict[str, list[int]]:
             "thrusters": sorted({int(b) for b in np.asarray(loaded.thruster_bindings)[fired]})}
 
 
+class PilotCache:
+    """`load_pilot` once per checkpoint, shared by every play connection and the gallery's scoring: a second "Load
+    agent" of the same checkpoint costs nothing, and the same agent object means the same compiled programs. A
+    checkpoint folder whose contents changed (a running run wrote a newer checkpoint) is loaded again."""
+
+    def __init__(self, load_pilot: PilotLoader):
+        self.load_pilot = load_pilot
+        self._pilots: dict[str, tuple[tuple[float, ...], Pilot]] = {}
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _stamp(checkpoint: str) -> tuple[float, ...]:
+        """The modification times of the checkpoint path and of its `checkpoints` folder (where a run adds steps)."""
+        stamps = []
+        for path in (Path(checkpoint), Path(checkpoint) / "checkpoints"):
+            try:
+                stamps.append(path.stat().st_mtime)
+            except OSError:
+                stamps.append(-1.0)
+        return tuple(stamps)
+
+    def cached(self, checkpoint: str) -> bool:
+        """Whether `checkpoint` is loaded already (and unchanged): loading it again is instant."""
+        with self._lock:
+            entry = self._pilots.get(checkpoint)
+        return entry is not None and entry[0] == self._stamp(checkpoint)
+
+    def __call__(self, checkpoint: str) -> Pilot:
+        stamp = self._stamp(checkpoint)
+        with self._lock:  # one load at a time: two pages asking for the same agent load it once
+            entry = self._pilots.get(checkpoint)
+            if entry is None or entry[0] != stamp:
+                entry = (stamp, self.load_pilot(checkpoint))
+                self._pilots[checkpoint] = entry
+            return entry[1]
+
+
 class PlayConnection:
-    """One play socket: the level it plays, its session and the agent loaded, if any."""
+    """One play socket: the level it plays, its session and the agent loaded, if any. `phase` says what the
+    message being handled is doing now (set from the worker thread, read by the socket's loop for progress)."""
 
     def __init__(self, library: Library, load_pilot: PilotLoader | None = None):
         self.library = library
@@ -52,6 +98,12 @@ class PlayConnection:
         self.source: dict[str, Any] | None = None
         self.pilot: Pilot | None = None
         self.session: PlaySession | None = None
+        self.phase: str | None = None
+        self.phase_since = time.monotonic()
+
+    def report(self, what: str) -> None:
+        """Record what the connection is doing now (`phase`), for the page's wait message."""
+        self.phase, self.phase_since = what, time.monotonic()
 
     def handle(self, message: Any) -> dict[str, Any]:
         """The reply to one message; `LevelInputError` (or `library.UnknownLevel`) for a request that cannot be
@@ -59,6 +111,8 @@ class PlayConnection:
         if not isinstance(message, dict):
             raise LevelInputError("a message is a JSON object with a \"type\"")
         kind = message.get("type")
+        self.report({"load": "loading the level", "agent": "loading the agent", "reset": "resetting the level",
+                     "step": "stepping"}.get(kind, "working"))
         if kind == "load":
             return self._load(message)
         if kind == "agent":
@@ -93,7 +147,9 @@ class PlayConnection:
         else:
             spec = EnvSpec(sizes=loaded.sizes, solver=loaded.options, frame_skip=loaded.frame_skip)
             params = EnvParams(sim=loaded.params)
-        self.session = PlaySession(loaded.level, spec, params, self.pilot)
+        session = PlaySession(loaded.level, spec, params, self.pilot)
+        session.warm_up(self.report)
+        self.session = session
         self.source = {key: source[key] for key in ("set", "name", "level") if key in source}
         reply = self.session.reset()
         reply["level"] = {"set": source.get("set"), "name": source.get("name"),
@@ -111,6 +167,7 @@ class PlayConnection:
                 raise LevelInputError("this studio cannot load agents")
             if not isinstance(checkpoint, str) or not checkpoint:
                 raise LevelInputError("agent needs \"checkpoint\": a run directory or a checkpoint folder")
+            self.report(f"loading the agent {checkpoint}")
             pilot = self.load_pilot(str(Path(checkpoint).expanduser()))
             previous, self.pilot = self.pilot, pilot
             if self.source is not None:

@@ -2,15 +2,19 @@
 thumbnails; a level's JSON round trip (GET, save, GET again gives the same level, for our hand-made files and
 Kinetix's); the editor's operations and the size limit; bad input answered with a 4xx and a message naming the
 problem while the server goes on; the play socket (a motor moves the car, a bad message is an error and the
-socket stays usable); the access token and the same-origin check; and `impulse studio`'s refusal to listen on the
-network without a token. The client names the studio's host as a browser would (127.0.0.1): the studio refuses
-any other (tests/studio/test_security.py tests that, and the rest of the guard, over real HTTP)."""
+socket stays usable); the access token and the same-origin check; `impulse studio`'s refusal to listen on the
+network without a token; the warnings of a level that cannot be solved; the Run page's metrics routes; strict JSON
+on the play socket; and the progress messages of a slow agent load. The client names the studio's host as a
+browser would (127.0.0.1): the studio refuses any other (tests/studio/test_security.py tests that, and the rest of
+the guard, over real HTTP)."""
 
 from __future__ import annotations
 
 import ast
 import io
+import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -421,3 +425,104 @@ def test_watching_an_agent_steps_with_its_actions_and_refuses_levels_it_cannot_p
         assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny&attempts=0").status_code == 422
     with studio_client(make_app(levels_dir)) as client:
         assert client.get("/api/solve_rates?set=handmade&checkpoint=tiny").status_code == 409
+
+
+def test_a_level_that_cannot_be_solved_is_saved_with_a_warning(client: TestClient, levels_dir: Path) -> None:
+    """No green shape: the editor's reply and Save warn that the level cannot be solved, and Save still writes it."""
+    state = edit(client, level_json(client, "handmade", THRUST), []).json()
+    assert state["warnings"] == []
+    green = [shape["body"] for shape in state["scene"]["polygons"] + state["scene"]["circles"]
+             if shape["role"] == "green"]
+    assert green, "the level has a green shape to take away"
+    greyed = edit(client, state["level"], [{"op": "set_role", "body": body, "role": "neutral"} for body in green])
+    assert any("cannot be solved" in w and "green" in w for w in greyed.json()["warnings"]), greyed.json()
+    saved = client.post("/api/save", json={"name": "no_green", "level": greyed.json()["level"]})
+    assert saved.status_code == 200, saved.text
+    assert any("cannot be solved" in w and "green" in w for w in saved.json()["warnings"]), saved.json()
+    assert (levels_dir / "no_green.json").is_file()
+    assert client.post("/api/save", json={"name": "fine", "level": state["level"]}).json()["warnings"] == []
+
+
+def test_the_run_page_reads_metrics_incrementally_and_only_of_listed_runs(tmp_path: Path, levels_dir: Path) -> None:
+    """A run folder under the runs folder is listed (with the offered agent's run), its rows come back in columns
+    after a given update, at most the cap per reply, without per-level evaluation columns; rows appended later
+    come with the next request; a run not listed is 404."""
+    from impulse.studio.runs import MAX_ROWS
+
+    runs = tmp_path / "runs"
+    (runs / "live").mkdir(parents=True)
+    metrics = runs / "live" / "metrics.jsonl"
+
+    def rows(first: int, last: int) -> str:
+        return "".join(json.dumps({"update": u, "env_steps": 100 * u, "solve_rate": u / 10, "episode_return": 0.5,
+                                   "eval/mean": 0.25, "eval/level/kinetix:s/a": 1.0, "note": "text",
+                                   "policy_lag": None}) + "\n" for u in range(first, last + 1))
+
+    metrics.write_text(rows(1, 5) + '{"update": 6, "solve_r')  # the last line is still being written
+    with studio_client(make_app(levels_dir, agents=[str(REPO / "pretrained" / "general-s")],
+                                run_folders=[runs])) as client:
+        listed = client.get("/api/runs").json()
+        ids = [run["id"] for run in listed["runs"]]
+        assert ids[0].endswith("general-s") and listed["selected"] == ids[0] and str(runs / "live") in ids
+        assert listed["runs"][0]["file"] == "curve.jsonl"
+        first = client.get("/api/run/metrics", params={"run": str(runs / "live")}).json()
+        assert first["total"] == 5 and first["last_update"] == 5 and not first["more"]
+        assert "eval/level/kinetix:s/a" not in first["columns"] and "note" not in first["columns"]
+        assert {"update", "env_steps", "solve_rate", "eval/mean"} <= set(first["columns"])
+        column = first["columns"].index("solve_rate")
+        assert [row[column] for row in first["rows"]] == [0.1, 0.2, 0.3, 0.4, 0.5]
+        with metrics.open("a") as out:  # the cut line is finished, and more rows come
+            out.write('ate": 0.6}\n' + rows(7, 9))
+        later = client.get("/api/run/metrics", params={"run": str(runs / "live"), "after": 5}).json()
+        assert [row[later["columns"].index("update")] for row in later["rows"]] == [6, 7, 8, 9]
+        assert later["total"] == 9
+        none = client.get("/api/run/metrics", params={"run": str(runs / "live"), "after": 9}).json()
+        assert none["rows"] == [] and none["last_update"] == 9
+        shipped = client.get("/api/run/metrics", params={"run": ids[0]}).json()
+        assert len(shipped["rows"]) <= MAX_ROWS and shipped["total"] > 0
+        assert client.get("/api/run/metrics", params={"run": str(tmp_path)}).status_code == 404
+        assert client.get("/api/run/metrics", params={"run": str(runs / "live"), "after": "x"}).status_code == 400
+
+
+def test_play_replies_are_strict_json_even_when_physics_blows_up() -> None:
+    """A NaN in a reply (a scene whose physics blew up) goes out as null: the page's JSON.parse refuses NaN, and a
+    reply it cannot read would leave it waiting for ever."""
+    from impulse.studio.app import socket_text
+
+    text = socket_text({"type": "state", "reward": float("nan"), "scene": {"circles": [{"centre": [1.0, math.inf]}]}})
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"type": "state", "reward": None, "scene": {"circles": [{"centre": [1.0, None]}]}}
+
+
+def test_a_slow_agent_load_says_what_it_waits_for_and_loads_once(levels_dir: Path, tiny_pilot) -> None:
+    """A message asking for progress gets a progress message a second while its reply takes longer (here: the agent
+    loading), then its reply; without "progress" there is exactly one reply. Two sockets loading the same agent
+    load it once (the studio's pilot cache), and the steps after the load compile nothing (the load did)."""
+    loads = []
+
+    def slow_load(path: str):
+        loads.append(path)
+        time.sleep(1.6)
+        return tiny_pilot
+
+    with studio_client(make_app(levels_dir, load_pilot=slow_load, agents=["tiny"])) as client:
+        with client.websocket_connect(PLAY) as socket:
+            socket.send_json({"type": "load", "set": "handmade", "name": CAR, "seq": 1})
+            assert socket.receive_json()["seq"] == 1
+            socket.send_json({"type": "agent", "checkpoint": "tiny", "seq": 2, "progress": True})
+            progress = socket.receive_json()
+            assert progress["type"] == "progress" and progress["seq"] == 2, progress
+            assert progress["what"] == "loading the agent tiny" and progress["elapsed_s"] >= 1.0
+            reply = socket.receive_json()
+            while reply["type"] == "progress":  # a busy machine may take another second
+                reply = socket.receive_json()
+            assert reply["agent"] == "tiny" and reply["seq"] == 2
+            started = time.perf_counter()
+            socket.send_json({"type": "step", "agent": True, "seq": 3, "progress": True})
+            assert socket.receive_json()["type"] == "state"
+            assert time.perf_counter() - started < 1.0, "the first agent step compiled: the load should have"
+        with client.websocket_connect(PLAY) as socket:
+            socket.send_json({"type": "agent", "checkpoint": "tiny"})
+            assert socket.receive_json() == {"type": "agent", "agent": "tiny", "seq": None}
+        assert loads == ["tiny"]
+        assert client.get("/api/solve_rates/progress?set=handmade&checkpoint=tiny").json() == {"progress": None}
