@@ -44,9 +44,34 @@ from impulse.learner.fused import FusedCarry, FusedTrainer
 from impulse.learner.networks import describe_parameters
 from impulse.learner.non_finite import SKIPPED_COLUMN, NonFiniteGuard, NonFiniteParameters, refuse_non_finite
 from impulse.learner.run_directory import existing_run
-from impulse.learner.scoring import LevelSets, evaluation_columns, format_scores, load_level_sets, score_policy
+from impulse.learner.scoring import (
+    LevelScored,
+    LevelSets,
+    evaluation_columns,
+    format_scores,
+    load_level_sets,
+    score_policy,
+)
 
 log = logging.getLogger(__name__)
+
+PhaseReport = Callable[[str], None]
+"""Told what a run does now, when it starts a phase that takes a while ("compiling the training step (64 envs x
+64 steps)"): a command's progress display. The same phases are logged."""
+
+
+def evaluating_phase(levels: int, attempts: int) -> str:
+    """How an evaluation's phase is named wherever it is shown: "evaluating 42 levels x 20 attempts"."""
+    return f"evaluating {levels} level{'s' if levels != 1 else ''} x {attempts} attempt{'s' if attempts != 1 else ''}"
+
+
+FINAL_EVALUATION = "evaluating the final policy"
+"""The phase a distributed run's learner announces before it leaves the bus to evaluate its final policy."""
+
+
+def _report(on_phase: PhaseReport | None, phase: str) -> None:
+    if on_phase is not None:
+        on_phase(phase)
 
 
 class RunError(RuntimeError):
@@ -95,8 +120,12 @@ class FusedRun:
     """The fused trainer as a run-loop service: one `cycle` is one jitted iteration (rollout + PPO update)."""
 
     def __init__(self, config: TrainingSetup, run_dir: Path, config_toml: str, resume: bool = False,
-                 stop_after_updates: int | None = None, init_from: Path | None = None):
+                 stop_after_updates: int | None = None, init_from: Path | None = None,
+                 on_phase: PhaseReport | None = None):
+        """`on_phase`: told of the phases that take a while (restoring, compiling, evaluating); `self.on_phase`
+        may be changed later (a command's heartbeat while the run is built, then its progress line)."""
         self.config = config
+        self.on_phase = on_phase
         self.run_dir = run_dir
         self.config_toml = config_toml
         self.trainer, self.agent, self.names, self.levels = build(config)
@@ -119,10 +148,14 @@ class FusedRun:
         self.init_from: dict[str, Any] = {}
         """Where the starting policy came from, when fine-tuning (written into every checkpoint's counters)."""
         if resume:
+            _report(self.on_phase, "restoring the newest checkpoint")
             self._restore()
         elif init_from is not None:
+            _report(self.on_phase, f"reading the starting policy of {init_from}")
             self._start_from_policy(init_from)
         log.info("compiling the training step (%s envs x %s steps) ...", config.ppo.num_envs, config.ppo.num_steps)
+        _report(self.on_phase, f"compiling the training step ({config.ppo.num_envs} envs x {config.ppo.num_steps} "
+                "steps)")
         start = time.perf_counter()
         # Lowered from shapes alone: a carry restored from a checkpoint holds arrays committed to a device, which
         # would otherwise put sharding annotations in the program, so that a resumed or fine-tuned run missed the
@@ -224,8 +257,11 @@ class FusedRun:
         """The current policy scored on the evaluation sets, as the evaluator process scores a distributed run's:
         the `eval/...` columns of metrics.jsonl."""
         config = self.config
+        assert self.eval_sets is not None
+        _report(self.on_phase, evaluating_phase(len(self.eval_sets.names), config.eval.attempts))
         scored = score_policy(self.agent, self.carry.train.params, self.trainer.env_params, self.eval_sets,
                               jax.random.PRNGKey(config.seed + 1 + self.update), config.eval.attempts)
+        _report(self.on_phase, "training")
         log.info("update %d: evaluation mean solve rate %.0f%%%s", self.update, 100 * scored.mean,
                  "".join(f", {group} {rate:.0%}" for group, rate in scored.groups.items()))
         return evaluation_columns(scored.table, scored.groups, self.update)
@@ -244,26 +280,30 @@ class FusedRun:
     def close(self) -> None:
         self.checkpoints.close()
 
-    def evaluate_at_end(self) -> dict[str, dict[str, float]] | None:
-        """Scores on the evaluation levels once the whole run is done (written to eval.json), else None."""
+    def evaluate_at_end(self, on_phase: PhaseReport | None = None) -> dict[str, dict[str, float]] | None:
+        """Scores on the evaluation levels once the whole run is done (written to eval.json), else None;
+        `on_phase` is told when the evaluation starts."""
         if self.update < self.trainer.num_updates:
             return None
         return final_evaluation(self.config, self.agent, self.trainer.env_params, self.carry.train.params,
-                                self.run_dir)
+                                self.run_dir, on_phase=on_phase)
 
 
-def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams, params: Any,
-                     run_dir: Path) -> dict[str, dict[str, float]] | None:
+def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams, params: Any, run_dir: Path,
+                     on_phase: PhaseReport | None = None) -> dict[str, dict[str, float]] | None:
     """Scores of `params` on the run's evaluation levels (`eval.levels`, else the training levels, else the
-    hand-made set), logged as a table and written to eval.json; None when evaluation is off or has no levels."""
+    hand-made set), logged as a table and written to eval.json; None when evaluation is off or has no levels.
+    `on_phase` is told when it loads the levels and when it evaluates them."""
     if config.eval.attempts <= 0:
         return None
+    _report(on_phase, "loading the evaluation levels")
     names, levels = _levels(config, agent.spec.sizes)
     sets = _eval_sets(config, agent.spec.sizes, names, levels)
     if sets is None or not sets.names:
         return None
     log.info("final evaluation: %d levels x %d attempts (compiling, then %s episodes) ...", len(sets.names),
              config.eval.attempts, f"{len(sets.names) * config.eval.attempts:,}")
+    _report(on_phase, evaluating_phase(len(sets.names), config.eval.attempts))
     start = time.perf_counter()
     scored = score_policy(agent, params, env_params, sets, jax.random.PRNGKey(config.seed + 1),
                           config.eval.attempts)
@@ -331,10 +371,14 @@ def evaluate_run(
     seed: int = 0,
     greedy: bool = False,
     recorder: Callable[[list[str], RecordedEpisodes, int], None] | None = None,
+    on_phase: PhaseReport | None = None,
+    on_level: LevelScored | None = None,
 ) -> dict[str, dict[str, float]]:
     """Scores per level of a run's checkpoint (newest unless `step`), on `levels` (default: as after training).
     `recorder(names, episodes, policy_version)`, if given, receives one more episode per level, recorded for
-    drawing (`learner.evaluate.record_episodes`)."""
+    drawing (`learner.evaluate.record_episodes`). `on_phase` is told of each phase as it starts (they are logged
+    too), `on_level` of each level's score (`score_policy`)."""
+    _report(on_phase, "building the environment and the network")
     trainer, agent, names, train_levels = build(config)
     sizes = agent.spec.sizes
     if levels:
@@ -346,12 +390,23 @@ def evaluate_run(
         sets = _eval_sets(config, sizes, names, train_levels)
         if sets is None:
             raise RunError("no evaluation levels: pass --levels")
+    _report(on_phase, f"restoring the policy of {run_dir}")
     restored = restore_policy(config, run_dir, step, trainer, train_levels)
     items, counters = restored.items, restored.counters
     params = items[TRAIN].params
-    scored = score_policy(agent, params, trainer.env_params, sets, jax.random.PRNGKey(seed),
-                          attempts or config.eval.attempts, greedy=greedy)
+    attempts = attempts or config.eval.attempts
+    phase = evaluating_phase(len(sets.names), attempts)
+    log.info("%s (compiling, then %s episodes) ...", phase, f"{len(sets.names) * attempts:,}")
+    _report(on_phase, phase)
+    started = time.perf_counter()
+    scored = score_policy(agent, params, trainer.env_params, sets, jax.random.PRNGKey(seed), attempts, greedy=greedy,
+                          on_level=on_level)
+    log.info("evaluated %d levels in %.1f s (compiling included)", len(sets.names), time.perf_counter() - started)
     if recorder is not None:
+        phase = (f"playing one more episode per level to record ({len(sets.names)} levels, up to "
+                 f"{agent.spec.max_timesteps} steps each)")
+        log.info("%s ...", phase)
+        _report(on_phase, phase)
         episodes = record_episodes(agent, params, trainer.env_params, sets.levels, jax.random.PRNGKey(seed + 1),
                                    greedy)
         recorder(list(sets.names), episodes, int(counters.get("policy_version", counters.get("update", 0))))

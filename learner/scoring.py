@@ -9,6 +9,7 @@ protocol (`learner.evaluate.evaluate`). Groups are the mean solve rate of each s
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -43,7 +44,8 @@ def set_names(spec: str) -> list[str]:
 
 def load_level_sets(spec: str, sizes: SceneSizes) -> LevelSets:
     """Every level of the sets `spec` names, loaded into `sizes`; a level named by two sets is played once.
-    Raises `LevelSetError` naming the set that cannot be loaded."""
+    A set's levels that do not fit `sizes` are left out with a warning naming them (`load_level_set`, the same
+    for every command). Raises `LevelSetError` naming the set that cannot be loaded."""
     names: list[str] = []
     batches: list[Level] = []
     members: dict[str, list[str]] = {}
@@ -51,7 +53,8 @@ def load_level_sets(spec: str, sizes: SceneSizes) -> LevelSets:
         try:
             set_level_names, levels = load_level_set(source, sizes)
         except LevelSetError as err:
-            raise LevelSetError(f"level set {source!r}: {err}") from None
+            named = str(err).startswith(f"level set {source!r}")  # the loader's message names the set already
+            raise LevelSetError(str(err) if named else f"level set {source!r}: {err}") from None
         keep = [i for i, name in enumerate(set_level_names) if name not in names]
         members[source] = list(set_level_names)
         names += [set_level_names[i] for i in keep]
@@ -107,11 +110,20 @@ class Scored(NamedTuple):
         return float(np.mean([s["solve_rate"] for s in self.table.values()])) if self.table else float("nan")
 
 
+LevelScored = Callable[[int, int, str, float], None]
+"""`on_level(done, total, name, solve_rate)`: told of each level's score as it is known."""
+
+
 def score_policy(agent: Agent, params: Any, env_params: EnvParams, sets: LevelSets, key: jax.Array, attempts: int,
-                 greedy: bool = False) -> Scored:
-    """`params` played `attempts` times on every level of `sets` (Kinetix's protocol)."""
+                 greedy: bool = False, on_level: LevelScored | None = None) -> Scored:
+    """`params` played `attempts` times on every level of `sets` (Kinetix's protocol). `on_level` is told of each
+    level's solve rate as it is known: all the levels are played in one program, so they are known together, when
+    it ends (a caller shows the wait before it as a phase)."""
     scores = evaluate(agent, params, env_params, sets.levels, key, attempts=attempts, greedy=greedy)
     table = scores_table(sets.names, scores)
+    if on_level is not None:
+        for done, (name, row) in enumerate(table.items(), start=1):
+            on_level(done, len(table), name, row["solve_rate"])
     return Scored(table, group_means(table, sets.members))
 
 

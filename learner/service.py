@@ -28,6 +28,11 @@ share of the actors; they agree on every update and run it together on the batch
 (process 0) is the learner the rest of the run sees: weights, status under the name `learner`, checkpoints,
 metrics. The others acknowledge their actors and take part in the update.
 
+Phases. The status says what the learner does (`phase`: compiling, training, checkpointing, stopping, finished,
+or evaluating its final policy, which the learner command announces before it leaves the bus) and, for a phase
+that holds the loop, since when (`phase_since`), so that the launcher's display shows the wait as it goes on
+(`report_phase`, which publishes at once).
+
 Drops. Everything the learner drops or refuses is counted, and so is what the actors and the curriculum report in
 their status lines (`bus.status.DropTotals`): every metrics row carries the running totals (`drops/...`,
 `rejected/...`), and the checkpoint counters keep them across a restart.
@@ -257,6 +262,11 @@ class LearnerService:
         self._stale_versions: Counter[int] = Counter()  # ... and the versions that acted them
         self._stale_alarm_at = -float("inf")
         self._last_metrics: dict[str, float] = {}
+        self.phase = "starting"
+        """What the learner does now, for its status line: compiling, training, checkpointing, evaluating ...,
+        stopping, finished (`report_phase`)."""
+        self.phase_since: float | None = None
+        """When (wall clock) the phase began, for a phase that blocks the loop (its seconds are shown); else None."""
 
     def _open_checkpoints(self, run_dir: Path, resume: bool, init_from: Path | None) -> None:
         """Refuse a run directory that holds checkpoints unless resuming; restore the newest usable one, or with
@@ -537,6 +547,8 @@ class LearnerService:
             "dropped_queries": self._weights_queries.dropped if self._weights_queries is not None else 0,
             "solve_rate": self._last_metrics.get("window_solve_rate"),
             "finished": self.finished(),
+            "phase": self.phase,
+            **({"phase_since": self.phase_since} if self.phase_since is not None else {}),
             "peer_drops": self.peer_drops.totals(),
             "evaluation": self.evaluation,
             "skipped_non_finite": self.guard.skipped,
@@ -620,10 +632,23 @@ class LearnerService:
         """The run loop's window summary, for the status line."""
         self._last_metrics["window_solve_rate"] = window.get("solve_rate")
 
+    def report_phase(self, phase: str, blocking: bool = True) -> None:
+        """Say what the learner does now ("compiling", "checkpointing", "evaluating 42 levels x 20 attempts") in a
+        status published at once, so that the launcher's display shows it while the loop waits on it (`blocking`:
+        with its seconds so far)."""
+        self.phase = phase
+        self.phase_since = time.time() if blocking else None
+        self._status.publish(self.status())
+
+    def _back_to_training(self) -> None:
+        """The blocking phase is over: the next status says "training" (published when due)."""
+        self.phase, self.phase_since = "training", None
+
     def save(self, summary: dict[str, float]) -> None:
         self.note_window(summary)
         if self.checkpoints is None:
             return
+        self.report_phase("checkpointing")
         train = local_copy(self.train) if self.group.several else self.train
         refuse_non_finite(train.params, f"checkpoint {self.update}")
         counters = {"update": self.update, "env_steps": self.env_steps, "learner_epoch": self.epoch,
@@ -632,6 +657,7 @@ class LearnerService:
                     "rejected": self.rejected(), "peer_drops": self.peer_drops.state(), **self.init_from, **summary}
         self.checkpoints.save(self.update, {TRAIN: train}, counters, self.config_toml,
                               solve_rate=summary.get("solve_rate"))
+        self._back_to_training()
 
     def start(self) -> None:
         """Publish the starting weights (fresh, or the resumed checkpoint's), which actors wait for; then compile
@@ -641,10 +667,12 @@ class LearnerService:
         ppo = self.ppo
         warn_if_gpu_sized(ppo.num_envs, ppo.num_steps)
         log.info("compiling the update (%s envs x %s steps) ...", ppo.num_envs, ppo.num_steps)
+        self.report_phase("compiling")
         started = time.perf_counter()
         compiled = self._update.lower(self.train, self._group_template, self.key).compile()
         log.info("compiled the update in %.1f s", time.perf_counter() - started)
         check_fits(compiled, "the learner's update", ppo.num_envs, ppo.num_steps)
+        self._back_to_training()
 
     def progress(self) -> Progress:
         return Progress(env_steps_done=self.env_steps, updates_done=self.update,
@@ -662,4 +690,5 @@ class LearnerService:
             self._group_ready()
         if self.checkpoints is not None:
             self.checkpoints.close()
+        self.phase, self.phase_since = ("finished" if self.finished() else "stopping"), None
         self._status.publish(self.status())

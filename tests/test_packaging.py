@@ -45,6 +45,7 @@ def test_the_wheel_holds_impulse_alone_with_every_package(wheel: Path) -> None:
     assert expected - set(names) == set(), "packages missing from pyproject.toml's [tool.setuptools] packages"
     assert "impulse/engine/levels/handmade/s_easy_car_right.json" in names
     assert {f"impulse/studio/static/{name}" for name in ("index.html", "app.js", "style.css")} <= set(names)
+    assert "impulse/studio/static/vendor/uPlot.iife.min.js" in names  # the chart library the pages load
     entry = next(name for name in names if name.endswith("entry_points.txt"))
     assert "impulse = impulse.deploy.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
 

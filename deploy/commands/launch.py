@@ -42,7 +42,7 @@ from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
-from impulse.deploy.runtime.status_display import StatusDisplay, render
+from impulse.deploy.runtime.status_display import StatusDisplay, status_block
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
 from impulse.engine.memory import HOST_PROCESSES_ENV
 from impulse.learner.run_directory import existing_run, holds_checkpoints
@@ -167,7 +167,8 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
         roles.append(f"recorder ({config.recorder.path})")
     roles.append(f"{config.actors.num_actors} actor{'s' if config.actors.num_actors != 1 else ''}")
     log.info("run %s in %s: %s; logs in %s", config.name, run_dir, ", ".join(roles), run_dir / "logs")
-    with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus:
+    # On a terminal the display is a table at the bottom of the screen with the log lines scrolling above it.
+    with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus, display:
         statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
         presence = bus.watch_alive(bus.keys.alive_pattern())
         statuses: dict[str, dict] = {}
@@ -194,7 +195,6 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     # Command-line tools and watchers come and go; a learner's instance token goes with its own.
                     if role != OPERATOR and Keys.instance_nonce(ident) is None:
                         log.info("%s %s the bus", ident, "joined" if alive else "left")
-                        display.forget()
                 for child, code in supervisor.exited():
                     if child.name == LEARNER and code == 0:
                         finished = True
@@ -202,7 +202,6 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     if code == 0 and child.name not in (CURRICULUM, VIEWER):
                         log.info("%s ended: the learner finished the run", child.name)  # actors stop on their own
                         continue
-                    display.forget()
                     if child.gave_up:
                         failed = give_up_on(child, actors)
                         if failed:
@@ -217,27 +216,34 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     break
                 if finished:
                     log.info("the learner finished the run; stopping the actors")
-                    display.forget()
                     break
-                if supervisor.restart_due():
-                    display.forget()  # Child.start logged a line
+                supervisor.restart_due()
                 if display.due():
-                    display.show(render(statuses, children, LEARNER))
+                    display.show(status_block(statuses, children, LEARNER))
                 time.sleep(POLL_S)
             interrupted = stop.stop
+            stopping: set[str] = set()
+
+            def stop_children(names: list[str], timeout_s: float) -> None:
+                """Stop `names`, showing them as stopping meanwhile (on a terminal)."""
+                stopping.update(names)
+                for received in statuses_inbox.poll():
+                    _read_status(received, bus, statuses)
+                display.redraw(status_block(statuses, children, LEARNER, stopping=stopping))
+                supervisor.stop(names, timeout_s)
+
             # The actors and the evaluator first: they follow the learner.
-            supervisor.stop([c.name for c in followers_group(children)], ACTOR_STOP_TIMEOUT_S)
+            stop_children([c.name for c in followers_group(children)], ACTOR_STOP_TIMEOUT_S)
             if config.recorder.path:
-                supervisor.stop([RECORDER], ACTOR_STOP_TIMEOUT_S)  # after the actors: it writes what it heard
+                stop_children([RECORDER], ACTOR_STOP_TIMEOUT_S)  # after the actors: it writes what it heard
             if config.uses_curriculum_service:
-                supervisor.stop([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
+                stop_children([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
             if not finished:
                 log.info("stopping the learner (it writes a final checkpoint)")
-                supervisor.stop([LEARNER], LEARNER_STOP_TIMEOUT_S)
+                stop_children([LEARNER], LEARNER_STOP_TIMEOUT_S)
             if streams:
-                supervisor.stop([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
-            display.forget()
-            display.show(render(statuses, children, LEARNER))
+                stop_children([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
+            display.show(status_block(statuses, children, LEARNER))
     if failed:
         # A new run refused by what it needs (every process given up on said it cannot run with this
         # configuration) before it trained is taken back; the refusal, with the sizes to use, is on stderr.

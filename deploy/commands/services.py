@@ -100,7 +100,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     from impulse.engine.memory import DoesNotFit
     from impulse.learner.agent import make_agent
     from impulse.learner.non_finite import NonFiniteUpdates
-    from impulse.learner.run import final_evaluation
+    from impulse.learner.run import FINAL_EVALUATION, final_evaluation
     from impulse.learner.service import LEARNER_ID, LearnerError, LearnerService
 
     # A new run made here (not a launcher's, not resumed) is taken back if it is refused before it trains.
@@ -142,6 +142,10 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
             return EXIT_CANNOT_RUN
         finished = service.finished()
         params = service.train.params
+        if leads and finished and config.eval.attempts > 0:
+            # Said before the learner leaves the bus (it evaluates after, so that the actors stop at once): the
+            # launcher's display shows this phase, with its seconds so far, until the learner exits.
+            service.report_phase(FINAL_EVALUATION)
     if not leads:
         log.info("learner process %d of %d %s at update %d of %d; the leader checkpoints", group.index, group.count,
                  "done" if finished else "stopped", service.update, service.num_updates)

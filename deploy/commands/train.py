@@ -1,5 +1,12 @@
 """`impulse train` and `impulse eval`: the fused run (`learner.run.FusedRun`) driven by the shared run loop, and
-evaluation of a checkpoint."""
+evaluation of a checkpoint.
+
+Neither is ever silent for long: `impulse train` shows what it builds and compiles before the first update (a
+heartbeat: `deploy.runtime.progress.Heartbeat`), then its progress row (`ProgressLine`: phase, update n/N, steps/s,
+ETA, solve rate, skipped non-finite updates), then its final evaluation; `impulse eval` shows each phase (loading,
+compiling and playing the evaluation, recording, writing a video) with its seconds, from its first second on. On a
+terminal these are live displays below the log lines; otherwise log lines every few seconds.
+"""
 
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
+from impulse.deploy.runtime.progress import Heartbeat, ProgressLine
 from impulse.deploy.runtime.run_dirs import (
     create_run_dir,
     fine_tuning_for,
@@ -63,12 +71,17 @@ def train_run(
     from impulse.learner.run import FusedRun
 
     sinks = scalar_sinks_for(config, run_dir)
-    run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates,
-                   init_from=init_from)
+    with Heartbeat("building the environment and the network", logger=log) as beat:
+        run = FusedRun(config, run_dir, config_toml, resume=resume, stop_after_updates=stop_after_updates,
+                       init_from=init_from, on_phase=beat.phase)
+    progress = ProgressLine(run.progress().total_env_steps, num_updates=run.trainer.num_updates)
+    run.on_phase = progress.phase  # its periodic evaluations
     loop = run_loop(run, LoopOptions(metrics_path=run_dir / "metrics.jsonl",
                                      checkpoint_every=config.checkpoint.every_updates,
-                                     window_size=config.checkpoint.every_updates, scalar_sinks=sinks))
-    scores = run.evaluate_at_end()
+                                     window_size=config.checkpoint.every_updates, scalar_sinks=sinks,
+                                     progress=progress))
+    with Heartbeat(logger=log) as beat:  # shown once the final evaluation starts, if there is one
+        scores = run.evaluate_at_end(on_phase=beat.phase)
     return RunSummary(
         updates=run.update,
         env_steps=run.env_steps,
@@ -174,10 +187,6 @@ def _open_checkpoint(args: argparse.Namespace, command: str) -> tuple[RunConfig,
 
 
 def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.learner.run import RunError, evaluate_run
-    from impulse.learner.scoring import format_scores
-
-    enable_compile_cache()
     opened = _open_checkpoint(args, "eval")
     if opened is None:
         return EXIT_USAGE
@@ -190,15 +199,34 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
         except ValueError as err:
             print(f"impulse eval: --video: {err}", file=sys.stderr)
             return EXIT_USAGE
-    recorders = ([_recorder(config.name, args.record)] if args.record is not None else []) + \
-        ([_video_writer(args.video)] if args.video is not None else [])
-    try:
-        table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
-                             seed=args.seed, greedy=args.greedy,
-                             recorder=(lambda *a: [r(*a) for r in recorders]) if recorders else None)
-    except RunError as err:
-        print(f"impulse eval: {err}", file=sys.stderr)
-        return EXIT_FAILED
+    recorders = ([("the recording", args.record, _recorder(config.name, args.record))] if args.record is not None
+                 else []) + ([("the video", args.video, _video_writer(args.video))] if args.video is not None else [])
+    # From the first second: loading JAX alone takes several on a busy CPU, compiling the evaluation tens more.
+    with Heartbeat("loading JAX, the checkpoint's configuration and the levels", logger=log) as beat:
+        enable_compile_cache()
+        from impulse.learner.run import RunError, evaluate_run  # JAX loads here
+
+        def write(names: list[str], episodes: Any, policy_version: int) -> None:
+            for what, path, writer in recorders:
+                phase = f"writing {what} {path} ({len(names)} levels, {episodes.first.shape[0]} frames each)"
+                log.info("%s ...", phase)
+                beat.phase(phase)
+                writer(names, episodes, policy_version)
+
+        def scored(done: int, total: int, name: str, solve_rate: float) -> None:
+            rates.append(solve_rate)
+            beat.phase(f"scored {done}/{total} levels, mean solve rate {sum(rates) / len(rates):.0%}")
+
+        rates: list[float] = []
+        try:
+            table = evaluate_run(config, run_dir, step=step, levels=args.levels, attempts=args.attempts,
+                                 seed=args.seed, greedy=args.greedy, recorder=write if recorders else None,
+                                 on_phase=beat.phase, on_level=scored)
+        except RunError as err:
+            print(f"impulse eval: {err}", file=sys.stderr)
+            return EXIT_FAILED
+    from impulse.learner.scoring import format_scores
+
     print(format_scores(table))
     if args.record is not None:
         print(f"recorded one episode per level in {args.record} (open it with `rerun {args.record}`)")

@@ -13,7 +13,8 @@ none should copy:
   update 0 holds nothing worth resuming, and it would make the next start of the same run refuse the directory as
   one that "already holds checkpoints");
 - `metrics.jsonl` (one line per cycle that did something; a resumed run first sets aside the rows of the updates
-  it redoes), the same rows to the scalar sinks (TensorBoard, W&B: `monitor.scalars`) and the progress line;
+  it redoes), the same rows to the scalar sinks (TensorBoard, W&B: `monitor.scalars`) and the progress line, which
+  is also told the loop's phase (training, checkpointing);
 - starting the service (`Service.start`) under the stop signal, and closing it, once, whatever ended the loop;
 - a full disk (below).
 
@@ -269,6 +270,7 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
             disk = DiskWait(stop, options.should_stop, options.disk_retry_s, options.disk_remind_s)
             service.start()
             start = time.perf_counter()
+            _phase(progress, "training")
             while not service.finished():
                 if disk.stopping():
                     stopped = True
@@ -297,17 +299,21 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                 if options.on_cycle is not None:
                     options.on_cycle(last, window.summary())
                 if progress is not None:
-                    progress.update(env_steps, steps_here / elapsed if elapsed > 0 else 0.0, window.summary())
+                    progress.update(env_steps, steps_here / elapsed if elapsed > 0 else 0.0, window.summary(),
+                                    record=last)
                 due = checkpoint_every > 0 and updates // checkpoint_every > saved_at // checkpoint_every
                 rested = time.perf_counter() - last_save >= options.min_seconds_between_saves
                 if report.updates and due and rested:
+                    _phase(progress, "checkpointing")
                     if not disk.write(f"the checkpoint of update {updates}", lambda: service.save(window.summary())):
                         stopped = True
                         break
                     saved_at, last_save = updates, time.perf_counter()
+                    _phase(progress, "training")
             stopped = stopped or stop.stop
             cycles_ended = time.perf_counter()
             if updates != saved_at:
+                _phase(progress, "checkpointing")
                 what = f"the final checkpoint (update {updates})"
                 if stopped or not disk.write(what, lambda: service.save(window.summary())):
                     not_saved = _try_once(what, lambda: service.save(window.summary()))
@@ -318,8 +324,8 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
             log.error("closing: %s", err)
             not_saved = not_saved or err
         finally:
-            if progress is not None:
-                progress.close()
+            if progress is not None:  # a loop that ended by an error or a signal has stopped, not finished
+                progress.close("done" if cycles_ended is not None and not stopped else "stopped")
             if metrics_file is not None:
                 metrics_file.close()
             for sink in sinks:
@@ -332,6 +338,12 @@ def run_loop(service: Service, options: LoopOptions = LoopOptions()) -> LoopSumm
                                    "checkpoints written before it are intact")
     seconds = (cycles_ended or time.perf_counter()) - start - (disk.waited_s if disk is not None else 0.0)
     return LoopSummary(cycles, updates, env_steps, steps_here, seconds, stopped, last, window.summary())
+
+
+def _phase(progress: ProgressLine | None, phase: str) -> None:
+    """Tell the progress line (if any) what the loop does now."""
+    if progress is not None:
+        progress.phase(phase)
 
 
 def _to_sinks(sinks: list[ScalarSink], row: dict[str, Any]) -> None:
