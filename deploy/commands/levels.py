@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from impulse.deploy.runtime.progress import Heartbeat
+
 EXIT_INVALID = 1
 EXIT_USAGE = 2
 _SIZES = ("s", "m", "l")
@@ -75,13 +77,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(levels_parser=parser)
 
 
+SLOW_ACTIONS = {"render": "levels render: loading the levels and drawing them (JAX compiles the first time)",
+                "convert": "levels convert: loading, checking and resizing the level (JAX compiles the first time)"}
+"""The actions that show a heartbeat while they work (`deploy.runtime.progress.Heartbeat`)."""
+
+
 def run(args: argparse.Namespace, _config: object) -> int:
     action = getattr(args, "levels_action", None)
     if action is None:
         args.levels_parser.print_usage(sys.stderr)
         print("impulse levels: choose an action: validate, show, render or convert", file=sys.stderr)
         return EXIT_USAGE
-    return {"validate": _validate, "show": _show, "render": _render, "convert": _convert}[action](args)
+    act = {"validate": _validate, "show": _show, "render": _render, "convert": _convert}[action]
+    if action not in SLOW_ACTIONS:
+        return act(args)
+    with Heartbeat(SLOW_ACTIONS[action]):  # they load, check and play levels: tens of seconds on a CPU at first
+        return act(args)
 
 
 def _sizes(name: str | None):
