@@ -2,20 +2,33 @@
 
 Why: on a GPU the XLA step runs every joint visit and every contact phase of every iteration as its own chain of
 small kernels that read and write the bodies in global memory; a Kinetix scene is 1-2 KB, so the step is bound
-by launches and memory traffic (docs/engine.md). Here a block of scenes (one per lane) loads its bodies, joint
-accumulators and contact impulses once, runs all `options.iterations` sweeps with them held as values, and
-stores them once. The per-contact constants stay in the block's input and are read where they are used.
+by launches and memory traffic (docs/engine.md). Here one kernel launch runs all `options.iterations` sweeps of a
+block of scenes (one per lane), on a copy of their state that stays with the block.
 
 What it computes is `step.iterate_phased`, visit for visit: per iteration the joints in slot order
-(joint_solver.solve_joint), then the contacts phase by phase (contact_solver.solve_phase; a phase's contacts
-share no body, so visiting them one after another gives what solving them side by side gives). The formulas are
-those two functions' written over lanes instead of slots; tests/engine/physics/test_physics_kernel.py holds the
-kernel to the XLA schedule on levels and random scenes.
+(joint_solver.solve_joint), then the contacts phase by phase (contact_solver.solve_phase). The formulas are those
+two functions' written over lanes instead of slots; tests/engine/physics/test_physics_kernel.py holds the kernel to
+the XLA schedule on levels and random scenes.
 
-Layout (lanes.py): every body, joint and contact slot is a row, indices are unrolled at trace time, a joint's
-bodies (scene data) are picked by one-hot weights over the bodies as in joint_solver. The kernel is written for
-Triton (`jax.experimental.pallas.triton`); on other platforms `step` runs the XLA schedule instead, and
-`interpret=True` runs the kernel through Pallas's interpreter anywhere (for tests).
+Rolled, so that the program Triton compiles does not grow with the scene: every loop is a loop of the kernel
+(`jax.lax.fori_loop`, an scf.for in Triton), none is unrolled at trace time. The kernel body holds one joint visit
+and one contact visit:
+
+1. copy the block's state (bodies, joint accumulators, contact impulses) to the output block;
+2. `iterations` times: the joints in slot order, then the contacts in visit order, phase after phase. A phase's
+   contacts share no body, so visiting them one after another gives, bit for bit, what solving them side by side
+   gives, and one loop over all contacts in phase order is the whole contact sweep.
+
+Each visit loads the rows it reads from the output block at computed row offsets (lanes.py) and stores the rows it
+changed; its constants are read from the constants block the same way. A contact's bodies are static: a table of
+the bodies of each contact in visit order (an int32 input shared by all blocks) gives them as scalars, and their
+rows are loaded for all lanes alike. A joint's bodies are scene data: each lane reads and writes its own bodies'
+rows (a gather and a scatter). A lane is one scene and one GPU thread (blocks of 32 to 128 lanes, one warp per 32),
+so each load sees the stores of the visits before it from the same thread: the Gauss-Seidel order needs no barrier.
+(That is also why a phase is not one vectorised update over a [contacts, lanes] tile: Triton may spread a tile's
+scene over several threads, and the next phase would read bodies that another thread wrote.)
+The kernel is written for Triton (`jax.experimental.pallas.triton`); on other platforms `step` runs the XLA schedule
+instead, and `interpret=True` runs the kernel through Pallas's interpreter anywhere (for tests).
 
 The kernel works on a batch of scenes, the step on one: `iterate_kernel` is a `custom_vmap`, whose batching
 rule hands the whole vmapped batch to the kernel with scenes on lanes; unbatched it runs one scene in one block.
@@ -25,24 +38,28 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from impulse.engine.physics.contact_solver import ContactRows
 from impulse.engine.physics.context import Impulses, StepContext
 from impulse.engine.physics.joint_solver import JointSolverState
-from impulse.engine.physics.lanes import Row, RowLayout, Vector, flatten, vectors
+from impulse.engine.physics.lanes import Field, Row, RowLayout, Vector, lane_numbers
 from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.params import CARRIED_IMPULSE_CAP
 from impulse.engine.physics.sizes import SceneSizes
+from impulse.engine.physics.slots import by_phase, in_slot_order, phase_bodies
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as pallas_triton
 
 Array = jax.Array
 
 MAX_LANES = 128
-"""Scenes per block: one per thread of four warps."""
+MIN_LANES = 32
+"""Scenes per block: one per thread, from one warp to four; never fewer lanes than a warp has threads, so that no
+scene's values are held by two threads."""
 
 SOLVER_PARAMS = (
     "joint_stiffness",
@@ -60,20 +77,34 @@ JOINT_SCALARS = ("inverse_mass_a", "inverse_mass_b", "inverse_inertia_a", "inver
 
 
 @functools.cache
-def layouts(sizes: SceneSizes) -> tuple[RowLayout, RowLayout]:
-    """(state, constants): what the iterations change, and what they only read."""
+def layouts(sizes: SceneSizes) -> tuple[RowLayout, RowLayout, RowLayout]:
+    """(state, constants, schedule): what the iterations change and what they only read, per scene (contacts in
+    visit order), and the bodies of each contact in visit order, the same for every scene."""
     n, j, k = sizes.num_bodies, sizes.num_joints, pair_tables(sizes).num_contacts
     state = RowLayout((
-        ("position", 2 * n), ("velocity", 2 * n), ("angular_velocity", n),
-        ("acc_impulse", 2 * j), ("acc_r_impulse", j), ("anchor", 2 * j),
-        ("normal_impulse", k), ("tangent_impulse", k),
+        Field("position", n, 2), Field("velocity", n, 2), Field("angular_velocity", n),
+        Field("acc_impulse", j, 2), Field("acc_r_impulse", j), Field("anchor", j, 2),
+        Field("normal_impulse", k), Field("tangent_impulse", k),
     ))
-    contact = tuple((f"contact_{name}", (2 if name in VECTOR_CONTACT_FIELDS else 1) * k) for name in CONTACT_FIELDS)
-    joint = (("joint_a", j), ("joint_b", j), ("joint_lever_a", 2 * j), ("joint_lever_b", 2 * j)) + tuple(
-        (f"joint_{name}", j) for name in JOINT_SCALARS
-    )
-    constants = RowLayout(contact + joint + (("params", len(SOLVER_PARAMS)),))
-    return state, constants
+    contact = tuple(Field(f"contact_{name}", k, 2 if name in VECTOR_CONTACT_FIELDS else 1) for name in CONTACT_FIELDS)
+    joint = (Field("joint_a", j), Field("joint_b", j), Field("joint_lever_a", j, 2), Field("joint_lever_b", j, 2))
+    joint += tuple(Field(f"joint_{name}", j) for name in JOINT_SCALARS)
+    constants = RowLayout(contact + joint + (Field("params", len(SOLVER_PARAMS)),))
+    schedule = RowLayout((Field("contact_a", k), Field("contact_b", k)))
+    return state, constants, schedule
+
+
+@functools.cache
+def schedule_table(sizes: SceneSizes) -> np.ndarray:
+    """The `schedule` layout's table: body a and body b of every contact, in visit order (phase after phase)."""
+    _, _, schedule = layouts(sizes)
+    table = np.zeros(schedule.num_rows, np.int32)
+    bodies = phase_bodies(pair_tables(sizes))
+    if bodies:
+        for name, side in (("contact_a", 0), ("contact_b", 1)):
+            order = np.concatenate([pair[side] for pair in bodies])
+            table[schedule.offsets[name] : schedule.offsets[name] + len(order)] = order
+    return table
 
 
 def iterate_kernel(
@@ -82,12 +113,22 @@ def iterate_kernel(
     """`step.iterate_phased` for one scene (vmap it: batches run as blocks of scenes): the solved joint state and
     the accumulated contact impulses in slot order."""
     rows, jrows, joints, params = context.contact_rows, context.joint_rows, context.joints, context.params
+    tables = context.tables
+
+    def in_visit_order(values: Array) -> Array:
+        return jnp.concatenate(by_phase(values, tables)) if tables.num_contacts else values
+
+    def in_slot_order_of(values: Array) -> Array:
+        return in_slot_order([values], tables) if tables.num_contacts else values
+
     state_fields = {
         "position": start.position, "velocity": start.velocity, "angular_velocity": start.angular_velocity,
         "acc_impulse": start.acc_impulse, "acc_r_impulse": start.acc_r_impulse, "anchor": start.anchor,
-        "normal_impulse": carried.normal, "tangent_impulse": carried.tangent,
+        "normal_impulse": in_visit_order(carried.normal), "tangent_impulse": in_visit_order(carried.tangent),
     }
-    constant_fields = {f"contact_{name}": value for name, value in zip(CONTACT_FIELDS, rows, strict=True)}
+    constant_fields = {
+        f"contact_{name}": in_visit_order(value) for name, value in zip(CONTACT_FIELDS, rows, strict=True)
+    }
     constant_fields |= {
         "joint_a": joints.a_index, "joint_b": joints.b_index,
         "joint_lever_a": jrows.lever_a, "joint_lever_b": jrows.lever_b,
@@ -104,7 +145,8 @@ def iterate_kernel(
         position=solved["position"], velocity=solved["velocity"], angular_velocity=solved["angular_velocity"],
         acc_impulse=solved["acc_impulse"], acc_r_impulse=solved["acc_r_impulse"], anchor=solved["anchor"],
     )
-    return joint_state, Impulses(solved["normal_impulse"], solved["tangent_impulse"])
+    impulses = Impulses(in_slot_order_of(solved["normal_impulse"]), in_slot_order_of(solved["tangent_impulse"]))
+    return joint_state, impulses
 
 
 @functools.cache
@@ -130,11 +172,12 @@ def _batched_solver(sizes: SceneSizes, iterations: int, interpret: bool) -> Call
 
 
 def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, iterations: int, interpret: bool) -> dict:
-    """The kernel over a batch of scenes (leading axis of every field), in blocks of up to MAX_LANES scenes."""
-    state_layout, constant_layout = layouts(sizes)
+    """The kernel over a batch of scenes (leading axis of every field), in blocks of MIN_LANES to MAX_LANES
+    scenes."""
+    state_layout, constant_layout, schedule_layout = layouts(sizes)
     scenes = state_fields["position"].shape[0]
     shapes = {name: value.shape for name, value in state_fields.items()}
-    lanes = min(MAX_LANES, max(16, 1 << (scenes - 1).bit_length()))
+    lanes = min(MAX_LANES, max(MIN_LANES, 1 << (scenes - 1).bit_length()))
     padded = -(-scenes // lanes) * lanes
 
     def lanes_of(layout: RowLayout, fields: dict) -> Array:
@@ -149,54 +192,97 @@ def run_blocks(state_fields: dict, constant_fields: dict, sizes: SceneSizes, ite
         kernel,
         out_shape=jax.ShapeDtypeStruct(state_in.shape, jnp.float32),
         grid=(padded // lanes,),
-        in_specs=[block((state_layout.num_rows, lanes)), block((constant_layout.num_rows, lanes))],
+        in_specs=[
+            block((state_layout.num_rows, lanes)),
+            block((constant_layout.num_rows, lanes)),
+            pl.BlockSpec((schedule_layout.num_rows,), lambda i: (0,)),
+        ],
         out_specs=block((state_layout.num_rows, lanes)),
-        compiler_params=pallas_triton.CompilerParams(num_warps=max(1, lanes // 32)),
+        compiler_params=pallas_triton.CompilerParams(num_warps=lanes // 32),
         interpret=interpret,
-    )(state_in, constants)
+    )(state_in, constants, jnp.asarray(schedule_table(sizes)))
     solved = state_layout.unpack(state_out[:, :scenes])
     return {name: solved[name].reshape(shapes[name]) for name in shapes}
 
 
-def solver_kernel(state_ref, constants_ref, out_ref, *, sizes: SceneSizes, iterations: int) -> None:
-    """All `iterations` solver sweeps of one block of scenes (see the module docstring)."""
-    state_layout, constant_layout = layouts(sizes)
-    tables = pair_tables(sizes)
+def solver_kernel(state_ref, constants_ref, schedule_ref, out_ref, *, sizes: SceneSizes, iterations: int) -> None:
+    """All `iterations` solver sweeps of one block of scenes, as the module docstring lists them: the state copied
+    to `out_ref`, then per sweep every joint in slot order and every contact in visit order, each visit loading and
+    storing its own rows of `out_ref`."""
+    state, constants, schedule = layouts(sizes)
+    num_joints, num_contacts = sizes.num_joints, pair_tables(sizes).num_contacts
+    p = {name: constants.row(constants_ref, "params", i) for i, name in enumerate(SOLVER_PARAMS)}
+    lanes = lane_numbers(out_ref.shape[1])
 
-    def constant(name: str, index: int) -> Row:
-        return constant_layout.row(constants_ref, name, index)
+    def copy_row(r: Array, carry: None) -> None:
+        out_ref[r, :] = state_ref[r, :]
+        return carry
 
-    def constant_vector(name: str, index: int) -> Vector:
-        return constant(name, 2 * index), constant(name, 2 * index + 1)
+    def joint(j: Array, carry: None) -> None:
+        """Joint j of every lane: its bodies are each scene's own, so they are read and written per lane."""
+        a = constants.row(constants_ref, "joint_a", j).astype(jnp.int32)
+        b = constants.row(constants_ref, "joint_b", j).astype(jnp.int32)
+        c = JointConstants(
+            lever_a=constants.vector(constants_ref, "joint_lever_a", j),
+            lever_b=constants.vector(constants_ref, "joint_lever_b", j),
+            **{name: constants.row(constants_ref, f"joint_{name}", j) for name in JOINT_SCALARS},
+        )
+        xa, xb = (state.lane_vector(out_ref, "position", body, lanes) for body in (a, b))
+        va, vb = (state.lane_vector(out_ref, "velocity", body, lanes) for body in (a, b))
+        wa, wb = (state.lane_row(out_ref, "angular_velocity", body, lanes) for body in (a, b))
+        acc, acc_r = state.vector(out_ref, "acc_impulse", j), state.row(out_ref, "acc_r_impulse", j)
+        change = visit_joint(c, xa, xb, va, vb, wa, wb, acc, acc_r, p)
 
-    p = dict(zip(SOLVER_PARAMS, constant_layout.load(constants_ref)["params"], strict=True))
-    rows = state_layout.load(state_ref)
-    carry = (
-        vectors(rows["position"]), vectors(rows["velocity"]), rows["angular_velocity"],
-        vectors(rows["acc_impulse"]), rows["acc_r_impulse"], vectors(rows["anchor"]),
-        rows["normal_impulse"], rows["tangent_impulse"],
-    )
+        # joint_solver adds each body's changes weighted by its one-hot weights (0 or 1), side a's then side b's; a
+        # joint with both sides on one body gets both changes there, in that order, and both stores write that sum.
+        same = (a == b).astype(jnp.float32)
 
-    def iteration(_, carry):
-        position, velocity, spin, acc, acc_r, anchor, normal, tangent = (list(part) for part in carry)
-        for j in range(sizes.num_joints):
-            visit_joint(j, position, velocity, spin, acc, acc_r, anchor, constant, constant_vector, p)
-        for phase in tables.phases:
-            for k in phase.tolist():
-                a, b = int(tables.contact_a[k]), int(tables.contact_b[k])
-                velocity[a], spin[a], velocity[b], spin[b], normal[k], tangent[k] = visit_contact(
-                    k, velocity[a], spin[a], velocity[b], spin[b], normal[k], tangent[k], constant, constant_vector
-                )
-        return position, velocity, spin, acc, acc_r, anchor, normal, tangent
+        def moved(old_a: Row, old_b: Row, delta_a: Row, delta_b: Row) -> tuple[Row, Row]:
+            return old_a + delta_a + same * delta_b, old_b + same * delta_a + delta_b
 
-    position, velocity, spin, acc, acc_r, anchor, normal, tangent = jax.lax.fori_loop(
-        0, iterations, iteration, carry
-    )
-    state_layout.store(out_ref, {
-        "position": flatten(position), "velocity": flatten(velocity), "angular_velocity": list(spin),
-        "acc_impulse": flatten(acc), "acc_r_impulse": list(acc_r), "anchor": flatten(anchor),
-        "normal_impulse": list(normal), "tangent_impulse": list(tangent),
-    })
+        for name, old_a, old_b, delta_a, delta_b in (
+            ("position", xa, xb, change.dx_a, change.dx_b), ("velocity", va, vb, change.dv_a, change.dv_b),
+        ):
+            new_a, new_b = zip(*(moved(old_a[i], old_b[i], delta_a[i], delta_b[i]) for i in range(2)), strict=True)
+            state.set_lane_vector(out_ref, name, a, lanes, new_a)
+            state.set_lane_vector(out_ref, name, b, lanes, new_b)
+        new_wa, new_wb = moved(wa, wb, change.dw_a, change.dw_b)
+        state.set_lane_row(out_ref, "angular_velocity", a, lanes, new_wa)
+        state.set_lane_row(out_ref, "angular_velocity", b, lanes, new_wb)
+        state.set_vector(out_ref, "acc_impulse", j, change.acc)
+        state.set_row(out_ref, "acc_r_impulse", j, change.acc_r)
+        state.set_vector(out_ref, "anchor", j, change.anchor)
+        return carry
+
+    def contact(v: Array, carry: None) -> None:
+        """The v-th contact in visit order, on every lane; its bodies are the table's, the same on every lane."""
+        a, b = schedule.entry(schedule_ref, "contact_a", v), schedule.entry(schedule_ref, "contact_b", v)
+        c = ContactRows(*(
+            constants.vector(constants_ref, f"contact_{name}", v) if name in VECTOR_CONTACT_FIELDS
+            else constants.row(constants_ref, f"contact_{name}", v)
+            for name in CONTACT_FIELDS
+        ))
+        va, wa = state.vector(out_ref, "velocity", a), state.row(out_ref, "angular_velocity", a)
+        vb, wb = state.vector(out_ref, "velocity", b), state.row(out_ref, "angular_velocity", b)
+        normal, tangent = state.row(out_ref, "normal_impulse", v), state.row(out_ref, "tangent_impulse", v)
+        va, wa, vb, wb, normal, tangent = visit_contact(c, va, wa, vb, wb, normal, tangent)
+        state.set_vector(out_ref, "velocity", a, va)
+        state.set_row(out_ref, "angular_velocity", a, wa)
+        state.set_vector(out_ref, "velocity", b, vb)
+        state.set_row(out_ref, "angular_velocity", b, wb)
+        state.set_row(out_ref, "normal_impulse", v, normal)
+        state.set_row(out_ref, "tangent_impulse", v, tangent)
+        return carry
+
+    def sweep(_: Array, carry: None) -> None:
+        if num_joints:
+            jax.lax.fori_loop(0, num_joints, joint, carry)
+        if num_contacts:
+            jax.lax.fori_loop(0, num_contacts, contact, carry)
+        return carry
+
+    jax.lax.fori_loop(0, state.num_rows, copy_row, None)
+    jax.lax.fori_loop(0, iterations, sweep, None)
 
 
 def _nonzero(x: Row) -> Row:
@@ -228,107 +314,119 @@ def _scale(s: Row, v: Vector) -> Vector:
     return s * v[0], s * v[1]
 
 
-def visit_contact(k: int, va: Vector, wa: Row, vb: Vector, wb: Row, normal_impulse: Row, tangent_impulse: Row,
-                  constant: Callable, constant_vector: Callable) -> tuple[Vector, Row, Vector, Row, Row, Row]:
-    """contact_solver.solve_phase for contact slot k on every lane: normal impulse, then friction."""
-    n, t = constant_vector("contact_normal", k), constant_vector("contact_tangent", k)
-    lever_a, lever_b = constant_vector("contact_lever_a", k), constant_vector("contact_lever_b", k)
-    ima, imb = constant("contact_inverse_mass_a", k), constant("contact_inverse_mass_b", k)
-    iia, iib = constant("contact_inverse_inertia_a", k), constant("contact_inverse_inertia_b", k)
+def visit_contact(c: ContactRows, va: Vector, wa: Row, vb: Vector, wb: Row, normal_impulse: Row,
+                  tangent_impulse: Row) -> tuple[Vector, Row, Vector, Row, Row, Row]:
+    """contact_solver.solve_phase for one contact on every lane (`c`: its constants, one row or vector each): the
+    normal impulse, then friction; the bodies' new velocities and the contact's new impulses."""
 
     def relative_velocity() -> Vector:
-        return _sub(_add(vb, _spin_velocity(wb, lever_b)), _add(va, _spin_velocity(wa, lever_a)))
+        return _sub(_add(vb, _spin_velocity(wb, c.lever_b)), _add(va, _spin_velocity(wa, c.lever_a)))
 
     def apply(impulse: Vector) -> tuple[Vector, Row, Vector, Row]:
         return (
-            _sub(va, _scale(ima, impulse)), wa - iia * _cross(lever_a, impulse),
-            _add(vb, _scale(imb, impulse)), wb + iib * _cross(lever_b, impulse),
+            _sub(va, _scale(c.inverse_mass_a, impulse)), wa - c.inverse_inertia_a * _cross(c.lever_a, impulse),
+            _add(vb, _scale(c.inverse_mass_b, impulse)), wb + c.inverse_inertia_b * _cross(c.lever_b, impulse),
         )
 
-    normal_speed = _dot(relative_velocity(), n)
-    target = constant("contact_target_velocity", k)
-    new_normal = jnp.maximum(normal_impulse + (target - normal_speed) * constant("contact_normal_mass", k), 0.0)
-    va, wa, vb, wb = apply(_scale(new_normal - normal_impulse, n))
+    normal_speed = _dot(relative_velocity(), c.normal)
+    new_normal = jnp.maximum(normal_impulse + (c.target_velocity - normal_speed) * c.normal_mass, 0.0)
+    va, wa, vb, wb = apply(_scale(new_normal - normal_impulse, c.normal))
 
-    tangent_speed = _dot(relative_velocity(), t)
-    limit = constant("contact_friction", k) * new_normal
-    new_tangent = jnp.clip(tangent_impulse - tangent_speed * constant("contact_tangent_mass", k), -limit, limit)
-    va, wa, vb, wb = apply(_scale(new_tangent - tangent_impulse, t))
+    tangent_speed = _dot(relative_velocity(), c.tangent)
+    limit = c.friction * new_normal
+    new_tangent = jnp.clip(tangent_impulse - tangent_speed * c.tangent_mass, -limit, limit)
+    va, wa, vb, wb = apply(_scale(new_tangent - tangent_impulse, c.tangent))
     return va, wa, vb, wb, new_normal, new_tangent
 
 
-def visit_joint(j: int, position: list[Vector], velocity: list[Vector], spin: list[Row], acc: list[Vector],
-                acc_r: list[Row], anchor: list[Vector], constant: Callable, constant_vector: Callable,
-                p: dict[str, Row]) -> None:
-    """joint_solver.solve_joint for joint j on every lane, updating the lists in place. The joint's bodies are
-    scene data: read and written through one-hot weights over the bodies."""
-    num_bodies = len(position)
-    pick_a = [(constant("joint_a", j) == body).astype(jnp.float32) for body in range(num_bodies)]
-    pick_b = [(constant("joint_b", j) == body).astype(jnp.float32) for body in range(num_bodies)]
+class JointConstants(NamedTuple):
+    """One joint's constants on every lane (the kernel's rows of joint_solver.JointRows and the joints' limits)."""
 
-    def read(values: list, pick: list[Row]):
-        if isinstance(values[0], tuple):
-            return tuple(sum(w * v[c] for w, v in zip(pick, values, strict=True)) for c in range(2))
-        return sum(w * v for w, v in zip(pick, values, strict=True))
+    lever_a: Vector
+    lever_b: Vector
+    inverse_mass_a: Row
+    inverse_mass_b: Row
+    inverse_inertia_a: Row
+    inverse_inertia_b: Row
+    relative_angle: Row
+    enabled: Row
+    is_fixed_joint: Row
+    motor_has_joint_limits: Row
+    min_rotation: Row
+    max_rotation: Row
 
-    xa, xb = read(position, pick_a), read(position, pick_b)
-    va, vb = read(velocity, pick_a), read(velocity, pick_b)
-    wa, wb = read(spin, pick_a), read(spin, pick_b)
-    on = constant("joint_enabled", j)
+
+class JointChange(NamedTuple):
+    """What one joint visit does: its bodies' position, velocity and spin changes, and the joint's new values."""
+
+    dx_a: Vector
+    dx_b: Vector
+    dv_a: Vector
+    dv_b: Vector
+    dw_a: Row
+    dw_b: Row
+    acc: Vector
+    acc_r: Row
+    anchor: Vector
+
+
+def visit_joint(c: JointConstants, xa: Vector, xb: Vector, va: Vector, vb: Vector, wa: Row, wb: Row, acc: Vector,
+                acc_r: Row, p: dict[str, Row]) -> JointChange:
+    """joint_solver.solve_joint for one joint on every lane, from its bodies' positions, velocities and spins and
+    its accumulators: the linear impulse and position projection, then the angular lock or limit."""
+    on = c.enabled
     enabled = on != 0
-    ima, imb = constant("joint_inverse_mass_a", j), constant("joint_inverse_mass_b", j)
-    iia, iib = constant("joint_inverse_inertia_a", j), constant("joint_inverse_inertia_b", j)
-    ra, rb = constant_vector("joint_lever_a", j), constant_vector("joint_lever_b", j)
+    ima, imb = c.inverse_mass_a, c.inverse_mass_b
+    iia, iib = c.inverse_inertia_a, c.inverse_inertia_b
+    ra, rb = c.lever_a, c.lever_b
 
     anchor_a, anchor_b = _add(xa, ra), _add(xb, rb)
+    a_is_static, b_is_static = ima == 0, imb == 0
     mass_a, mass_b = 1.0 / _nonzero(ima), 1.0 / _nonzero(imb)
     point = tuple(
-        jnp.where(ima == 0, anchor_a[c], jnp.where(
-            imb == 0, anchor_b[c], (anchor_a[c] * mass_a + anchor_b[c] * mass_b) / (mass_a + mass_b)))
-        for c in range(2)
+        jnp.where(a_is_static, anchor_a[i], jnp.where(
+            b_is_static, anchor_b[i], (anchor_a[i] * mass_a + anchor_b[i] * mass_b) / (mass_a + mass_b)))
+        for i in range(2)
     )
     arm_a, arm_b = _sub(point, xa), _sub(point, xb)
     relative = _sub(_add(vb, _spin_velocity(wb, arm_b)), _add(va, _spin_velocity(wa, arm_a)))
-    speed = jnp.sqrt(relative[0] ** 2 + relative[1] ** 2)
-    direction = (relative[0] / _nonzero(speed), relative[1] / _nonzero(speed))
-    denominator = _nonzero(ima + imb) + _cross(ra, direction) ** 2 * iia + _cross(rb, direction) ** 2 * iib
+    speed = _nonzero(jnp.sqrt(relative[0] ** 2 + relative[1] ** 2))
+    direction = (relative[0] / speed, relative[1] / speed)
+    inverse_mass = _nonzero(ima + imb)
+    inverse_inertia = _nonzero(iia + iib)
+    denominator = _nonzero(inverse_mass + _cross(ra, direction) ** 2 * iia + _cross(rb, direction) ** 2 * iib)
     error = _sub(anchor_b, anchor_a)
     impulse = tuple(
-        (p["joint_stiffness"] * (relative[c] + p["baumgarte_coefficient_joints_v"] * error[c])
-         / _nonzero(denominator)) * on
-        for c in range(2)
+        (p["joint_stiffness"] * (relative[i] + p["baumgarte_coefficient_joints_v"] * error[i]) / denominator) * on
+        for i in range(2)
     )
     new_wa, new_wb = wa + iia * _cross(ra, impulse), wb - iib * _cross(rb, impulse)
-    share = tuple(p["baumgarte_coefficient_joints_p"] * error[c] / _nonzero(ima + imb) for c in range(2))
+    share = tuple(p["baumgarte_coefficient_joints_p"] * error[i] / inverse_mass for i in range(2))
 
     raw = new_wb - new_wa
-    phi = constant("joint_relative_angle", j)
-    fixed = constant("joint_is_fixed_joint", j) != 0
-    limit_error = phi - jnp.clip(phi, constant("joint_min_rotation", j), constant("joint_max_rotation", j))
+    phi = c.relative_angle
+    fixed = c.is_fixed_joint != 0
+    limit_error = phi - jnp.clip(phi, c.min_rotation, c.max_rotation)
     limit_bias = p["baumgarte_coefficient_rjoint_limit_av"] * limit_error
-    limited = (~fixed & (constant("joint_motor_has_joint_limits", j) != 0) & (limit_error != 0)
+    limited = (~fixed & (c.motor_has_joint_limits != 0) & (limit_error != 0)
                & (jnp.sign(raw) == jnp.sign(limit_bias)))
     target = jnp.where(fixed, raw + p["baumgarte_coefficient_fjoint_av"] * phi, raw + limit_bias)
-    angular_impulse = jnp.where(fixed | limited, target / _nonzero(iia + iib), 0.0) * on
+    angular_impulse = jnp.where(fixed | limited, target / inverse_inertia, 0.0) * on
     new_wa = new_wa + angular_impulse * iia
     new_wb = new_wb - angular_impulse * iib
 
-    total = _add(acc[j], impulse)
-    cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_velocity"] / _nonzero(ima + imb)
+    total = _add(acc, impulse)
+    cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_velocity"] / inverse_mass
     norm = jnp.sqrt(total[0] ** 2 + total[1] ** 2)
     total = _scale(jnp.minimum(1.0, cap / _nonzero(norm)), total)
-    r_cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_angular_velocity"] / _nonzero(iia + iib)
-    total_r = jnp.clip(acc_r[j] + angular_impulse, -r_cap, r_cap)
+    r_cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_angular_velocity"] / inverse_inertia
+    total_r = jnp.clip(acc_r + angular_impulse, -r_cap, r_cap)
 
-    for body in range(num_bodies):
-        wa_, wb_ = pick_a[body], pick_b[body]
-        position[body] = tuple(
-            position[body][c] + wa_ * (share[c] * ima) + wb_ * (-share[c] * imb) for c in range(2)
-        )
-        velocity[body] = tuple(
-            velocity[body][c] + wa_ * (ima * impulse[c]) + wb_ * (-imb * impulse[c]) for c in range(2)
-        )
-        spin[body] = spin[body] + wa_ * (new_wa - wa) + wb_ * (new_wb - wb)
-    acc[j] = tuple(jnp.where(enabled, total[c], 0.0) for c in range(2))
-    acc_r[j] = jnp.where(enabled & fixed, total_r, 0.0)
-    anchor[j] = tuple(jnp.where(enabled, point[c], 0.0) for c in range(2))
+    return JointChange(
+        dx_a=tuple(share[i] * ima for i in range(2)), dx_b=tuple(-share[i] * imb for i in range(2)),
+        dv_a=tuple(ima * impulse[i] for i in range(2)), dv_b=tuple(-imb * impulse[i] for i in range(2)),
+        dw_a=new_wa - wa, dw_b=new_wb - wb,
+        acc=tuple(jnp.where(enabled, total[i], 0.0) for i in range(2)),
+        acc_r=jnp.where(enabled & fixed, total_r, 0.0),
+        anchor=tuple(jnp.where(enabled, point[i], 0.0) for i in range(2)),
+    )

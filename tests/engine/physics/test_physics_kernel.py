@@ -2,8 +2,9 @@
 
 Its numbers are checked through Pallas's interpreter on CPU (`backend="pallas_interpret"`, on a vmapped batch);
 that it is a kernel Triton accepts, batched and for one scene, is checked by lowering the step for a CUDA GPU,
-which needs no GPU. The full check on every shared
-level and 1,000 random levels per size is `impulse bench kernel_check` on a GPU (benchmarks/RESULTS.md).
+which needs no GPU; that it stays small (rolled: its loops are the kernel's, so its body does not grow with the
+scene) by counting its equations at two sizes. The full check on every shared level and 1,000 random levels per
+size is `impulse bench kernel_check` on a GPU (benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -16,15 +17,21 @@ import numpy as np
 import pytest
 from impulse.benchmarks._harness import LEVELS_DIR
 from impulse.benchmarks.kernel_check import compare, shared_levels
+from impulse.benchmarks.kernel_size import kernel_equations
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.spec import env_from_config
-from impulse.engine.physics import SolverOptions, step
+from impulse.engine.physics import SIZE_L, SIZE_S, SolverOptions, step
 
 from tests.support.level_samples import host_levels
 
-# Measured: 1.3e-5 m on the shared S levels after 120 steps, 3e-6 m on random S levels after 60 (float rounding,
-# the same arithmetic evaluated in another order); a wrong term in a visit parts them by millimetres at once.
+# Measured (2026-12-02) after 120 steps: 1.9e-5 m over the NUM_SCENES scenes (the unrolled kernel before it: 5.0e-6 m),
+# 1.1e-5 m on the 10 shared S levels batched alone (unrolled: 1.3e-5 m). Float rounding, the same arithmetic evaluated
+# in another order; a wrong term in a visit parts them by millimetres at once.
 TOLERANCE_M = 1e-4
+
+# The kernel body, in jaxpr equations: 500 at every size on 2026-12-02 (one joint visit and one contact visit), where
+# the unrolled kernel had 2,762 at S and 25,441 at L and did not compile on a GPU within 240 s.
+MAX_KERNEL_EQUATIONS = 1000
 
 
 # Scenes compared: the shared S levels topped up with random ones. test_generator's NaN check steps batches of this
@@ -71,6 +78,12 @@ def test_the_step_lowers_to_one_triton_kernel_for_cuda_batched_or_not_and_to_pla
     assert lowered["batched for cuda"].count("__gpu$xla.gpu.triton") == 1
     assert lowered["one scene for cuda"].count("__gpu$xla.gpu.triton") == 1
     assert "triton" not in lowered["batched for cpu"]
+
+
+def test_the_kernel_is_rolled_so_its_body_is_as_small_for_l_as_for_s() -> None:
+    at_s, at_l = kernel_equations(SIZE_S), kernel_equations(SIZE_L)
+    assert at_s == at_l, (at_s, at_l)
+    assert at_s <= MAX_KERNEL_EQUATIONS
 
 
 def test_backend_setting_is_checked_and_reaches_the_solver_options() -> None:
