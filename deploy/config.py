@@ -5,12 +5,12 @@ wrong type found after a GPU job has started costs hours, and a silently ignored
 `ConfigError`s whose message is written for the person at the terminal: the full dotted key, where the value
 came from, what was expected, and the closest valid keys.
 
-Supported field types: int, float (an int is accepted), bool, str, `Literal[...]`, `X | None`, `tuple[...]` and
-`list[...]` of those, and nested dataclasses (TOML tables). A table whose class names a `SHORTHAND` field may be
-given a plain value, meaning that field (`curriculum=sfl` is `curriculum.method=sfl`). An integral float such as
-`1e9` is accepted for an int. TOML has no null, so an optional field is set to None with the word `none` (the
-string "none" in a file), and `config_to_toml` writes None the same way; a resolved config therefore reads back to
-an equal instance.
+Supported field types: int, float (an int is accepted; NaN and infinities are refused), bool, str, `Literal[...]`,
+`X | None`, `tuple[...]` and `list[...]` of those, and nested dataclasses (TOML tables). A table whose class names a
+`SHORTHAND` field may be given a plain value, meaning that field (`curriculum=sfl` is `curriculum.method=sfl`). An
+integral float such as `1e9` is accepted for an int. TOML has no null, so an optional field is set to None with the
+word `none` (the string "none" in a file), and `config_to_toml` writes None the same way; a resolved config
+therefore reads back to an equal instance.
 
 Input is read defensively, since a config file or an override is whatever a person typed or pointed at: a file must
 be a regular file (a directory, a FIFO or a device such as /dev/zero is refused before it is opened) of at most
@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import math
 import os
 import stat
 import tomllib
@@ -414,9 +415,12 @@ def _convert(tp: Any, value: Any, raw: str | None) -> Any:
     if tp is float:
         if isinstance(value, int | float) and not isinstance(value, bool):
             try:
-                return float(value)
+                number = float(value)
             except OverflowError:  # an int too large for a float
                 raise _Mismatch from None
+            if not math.isfinite(number):  # no setting means NaN or infinity; `nan` / `inf` are typos or tests
+                raise _Mismatch
+            return number
         raise _Mismatch
     if tp is str:
         if isinstance(value, str):
@@ -454,6 +458,8 @@ def _describe(tp: Any) -> str:
         return " or ".join(NONE_WORD if a is type(None) else _describe(a) for a in typing.get_args(tp))
     if dataclasses.is_dataclass(tp):
         return f"a table of {tp.__name__} keys"
+    if tp is float:
+        return "a finite float"
     if isinstance(tp, type) and origin is None:
         return tp.__name__
     return repr(tp).replace("typing.", "")

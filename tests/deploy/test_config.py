@@ -163,7 +163,6 @@ OUT_OF_RANGE = [
     ("ppo.num_minibatches", "0"),
     ("ppo.update_epochs", "0"),
     ("ppo.learning_rate", "0"),
-    ("ppo.learning_rate", "nan"),
     ("ppo.gamma", "1.01"),
     ("ppo.gamma", "-0.1"),
     ("ppo.gae_lambda", "1.5"),
@@ -225,6 +224,16 @@ def test_out_of_range_value_is_refused_naming_the_dotted_key(key: str, bad: str)
     with pytest.raises(ConfigError, match=r"invalid config \[") as info:
         resolve_config(RunConfig, None, [f"{key}={bad}"])
     assert f"{key} must be" in str(info.value)
+
+
+@pytest.mark.parametrize("assignment", ["ppo.learning_rate=nan", "ppo.learning_rate=inf", "bc.min_return=nan",
+                                        "curriculum.replay_prob=-inf", "ppo.max_grad_norm=-nan"])
+def test_a_float_key_refuses_nan_and_infinities(assignment: str) -> None:
+    """No setting means NaN or an infinity (`inf` passes a `> 0` range check, `nan` passes none)."""
+    key = assignment.split("=")[0]
+    with pytest.raises(ConfigError, match=rf"config key '{key}' expects a finite float, got -?(nan|inf)"):
+        resolve_config(RunConfig, None, [assignment])
+    assert resolve_config(RunConfig, None, ["ppo.learning_rate=1e38"]).ppo.learning_rate == 1e38
 
 
 def test_range_message_states_the_rule() -> None:
