@@ -77,6 +77,12 @@ class CurriculumConfig:
     follows the learner's weights to score (policy versions stand for updates), on a thread of its own."""
     sfl_candidates: int = 1024
     """SFL batch scoring: fresh levels scored at each refresh (Kinetix: 3 x 4,096)."""
+    sfl_score_block: int = 1024
+    """SFL batch scoring in the curriculum service: candidates played per call. A scoring of more candidates runs
+    as equal blocks of this many, one after another, so that a long scoring (a first fill of thousands of L levels
+    on a CPU takes most of an hour) counts its progress on the status line and holds one block's environments in
+    memory at a time; it must divide `sfl_candidates` when smaller. On a GPU, a block of every candidate (one call)
+    keeps the device busiest. Fused training scores inside its step and ignores it."""
     sfl_attempts: int = 4
     """SFL batch scoring: episodes per candidate from its start (stochastic policy); its solve rate p gives the
     learnability p (1 - p)."""
@@ -136,9 +142,12 @@ class CurriculumConfig:
         if self.sfl_scoring not in SFL_SCORINGS:
             problems.append(f"curriculum.sfl_scoring must be one of {', '.join(SFL_SCORINGS)}, got "
                             f"{self.sfl_scoring!r}")
-        for name in ("sfl_candidates", "sfl_attempts", "sfl_refresh_updates"):
+        for name in ("sfl_candidates", "sfl_attempts", "sfl_refresh_updates", "sfl_score_block"):
             if getattr(self, name) < 1:
                 problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
+        if 1 <= self.sfl_score_block < self.sfl_candidates and self.sfl_candidates % self.sfl_score_block:
+            problems.append(f"curriculum.sfl_score_block must divide curriculum.sfl_candidates "
+                            f"({self.sfl_candidates}) when smaller, got {self.sfl_score_block}")
         if self.levels_ahead < 0:
             problems.append(f"curriculum.levels_ahead must be >= 0, got {self.levels_ahead}")
         for name in ("filter_ratio", "filter_steps"):

@@ -22,7 +22,8 @@ With batch-scored SFL (`curriculum.sfl_scoring=batch`) results do not score leve
 policy versions (and once the first weights arrive) the service draws `sfl_candidates` fresh levels, has the
 learner's newest policy play each `sfl_attempts` times (a `CandidateScorer` the caller passes in, which follows
 the learner's weights) and refills its buffer with the most learnable (`Curriculum.refill`). The scoring runs on a
-thread of its own, so level queries are answered from the current buffer meanwhile; the refill is applied in
+thread of its own, in blocks of `sfl_score_block` candidates whose count the status line shows
+(`scored_candidates`), so level queries are answered from the current buffer meanwhile; the refill is applied in
 `cycle`, like everything else that changes the state. Until the first refill, level queries are refused with the
 reason (actors wait and ask again), so that training starts on a scored buffer, as the fused trainer's does,
 rather than on fresh levels alone; with `sfl_hold_while_scoring` during every scoring.
@@ -199,6 +200,8 @@ class CurriculumService:
         self._scoring: threading.Thread | None = None
         self._scored: Refill | BaseException | None = None  # what the scoring thread left for `cycle`
         self._scoring_version = -1  # the policy version the newest scoring started from
+        self.scored_candidates = (0, 0)
+        """(candidates scored, candidates) of the newest scoring: it plays `sfl_score_block` of them per call."""
         self._last_refill: dict[str, float] = {}
         if self.scorer is not None:
             config = curriculum.config
@@ -375,6 +378,7 @@ class CurriculumService:
             return 0
         self._scoring_version = version
         key = jax.random.fold_in(jax.random.fold_in(self._key, 1), version)
+        self.scored_candidates = (0, self.curriculum.config.sfl_candidates)
         self._scoring = threading.Thread(target=self._score, args=(params, key, version), daemon=True,
                                          name="sfl-scoring")
         self._scoring.start()
@@ -386,8 +390,16 @@ class CurriculumService:
             started = time.perf_counter()
             level_key, play_key = jax.random.split(key)
             candidates = self._candidates(level_key)
-            rates = self.scorer.solve_rates(params, candidates, play_key)
-            self._scored = Refill(candidates, rates, version, time.perf_counter() - started)
+            total = self.curriculum.config.sfl_candidates
+            block = min(self.curriculum.config.sfl_score_block, total)
+            rates = []
+            for first in range(0, total, block):
+                self.scored_candidates = (first, total)  # read by status() on the service's thread
+                part = jax.tree.map(lambda leaf, first=first: leaf[first:first + block], candidates)
+                part_key = play_key if block == total else jax.random.fold_in(play_key, first)
+                rates.append(self.scorer.solve_rates(params, part, part_key))
+            self.scored_candidates = (total, total)
+            self._scored = Refill(candidates, jnp.concatenate(rates), version, time.perf_counter() - started)
         except BaseException as err:  # noqa: BLE001 - handed to the service's own thread, which raises it
             self._scored = err
 
@@ -507,6 +519,7 @@ class CurriculumService:
                 "method": self.curriculum.method, "samples": self.samples, "results": self.result_messages,
                 "policy_version": self.policy_version, "knob_changes": self.knob_changes, "injected": self.injected,
                 **({"refills": self.refills, "scoring": self._scoring is not None, "filling": self.filling,
+                    "scored_candidates": list(self.scored_candidates),
                     "requests_held": self.requests_held,
                     "last_refill": self._last_refill, **self.scorer.counts()} if self.scorer is not None else {}),
                 **({"levels_ahead": {"ready": self.maker.ready, "made": self.maker.made,

@@ -260,11 +260,12 @@ def streaming_part(monitor: dict[str, Any] | None) -> str:
 
 def curriculum_parts(status: dict[str, Any]) -> list[Part]:
     """The curriculum service's fields: its method, its buffer, what it staged, served and heard, drops and
-    refusals, batch-scored SFL's refills (its phase: serving, scoring levels, holding level requests)."""
+    refusals, batch-scored SFL's refills (its phase: serving, scoring levels with the count, holding level
+    requests)."""
     rejected = _total(status.get("rejected"))
     dropped = status.get("dropped_inbox_full", 0)
-    phase = ("holding level requests" if status.get("filling") else "scoring levels" if status.get("scoring")
-             else "serving")
+    phase = (f"scoring levels{scoring_part(status).removeprefix(', scoring')}" if status.get("scoring") else
+             "holding level requests" if status.get("filling") else "serving")
     return [Part(str(status.get("method", "?"))),
             Part(f"buffer {_number(status.get('buffer_fill'), '{:.0%}')} full, score "
                  f"{_number(status.get('score_mean'), '{:.3f}')}, learnable "
@@ -286,7 +287,16 @@ def _refill_parts(status: dict[str, Any]) -> list[Part]:
     last = status.get("last_refill") or {}
     newest = f" (v{last['version']}, {last.get('seconds', 0):.0f} s)" if "version" in last else ""
     filling = ", holding level requests" if status.get("filling") else ""
-    return [Part(f"refills {status['refills']}{newest}{', scoring' if status.get('scoring') else ''}{filling}")]
+    return [Part(f"refills {status['refills']}{newest}{scoring_part(status)}{filling}")]
+
+
+def scoring_part(status: dict[str, Any]) -> str:
+    """", scoring 1,024/2,048" while batch-scored SFL scores candidates (the count once its first block is
+    done), "" otherwise."""
+    if not status.get("scoring"):
+        return ""
+    done, total = (status.get("scored_candidates") or [0, 0])[:2]
+    return f", scoring {done:,}/{total:,}" if total else ", scoring"
 
 
 INCARNATION_FIELDS = ("pid", "incarnation", "epoch")

@@ -34,6 +34,7 @@ RUN = "batch-sfl-test"
 NONCE = "0123456789abcdef"
 """The instance nonce of the learner this test plays (`bus.keys.INSTANCE`)."""
 CANDIDATES, ATTEMPTS, BUFFER, EVERY = 16, 2, 8, 4
+BLOCK = 8  # candidates per scoring call: every scoring here runs as two blocks
 
 
 def cycle_until(service: CurriculumService, condition, timeout_s: float, what: str) -> None:
@@ -51,6 +52,7 @@ def small_setup(*overrides: str):
         f"bus.hub=tcp/127.0.0.1:{free_port()}", "env.levels=random", "curriculum=sfl", "curriculum.sfl_scoring=batch",
         f"curriculum.sfl_candidates={CANDIDATES}", f"curriculum.sfl_attempts={ATTEMPTS}",
         f"curriculum.sfl_refresh_updates={EVERY}", f"curriculum.buffer_size={BUFFER}", "curriculum.noop_filter=false",
+        f"curriculum.sfl_score_block={BLOCK}",
         "ppo.num_envs=8", "network.width=16", "network.depth=1", *overrides])
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
@@ -94,6 +96,7 @@ def test_the_service_refills_its_buffer_from_the_learners_policy(tmp_path) -> No
         cycle_until(service, lambda: service.refills == 1, 300, "the first refill, from version 0")
         assert len(ask_levels(service, learner)) == 1 and not service.status()["filling"]
         assert "| refills 1 (v0, " in curriculum_line(service.status())
+        assert service.status()["scored_candidates"] == [CANDIDATES, CANDIDATES]
         filled = np.asarray(service.state.buffer.filled)
         refill = service.status()["last_refill"]
         learnable, solved = round(refill["learnable"] * CANDIDATES), round(refill["solved"] * CANDIDATES)
@@ -151,6 +154,8 @@ def test_level_requests_during_a_later_scoring_are_held_only_when_asked(tmp_path
             stamp = Stamp(RUN, epoch=1, policy_version=version, nonce=NONCE)
             weights.put(encode_weights(stamp, tree_arrays(params), weights_hash(params)))
             cycle_until(service, lambda: service.status()["scoring"], 30, f"the scoring of version {version}")
+            # held at its first block by the gate: the line counts what is scored of how many
+            assert f"scoring 0/{CANDIDATES}" in curriculum_line(service.status())
             answered = ask_levels(service, learner)
             if version == 0 or hold:
                 assert answered == [], "held: the first scoring, or every scoring with sfl_hold_while_scoring"

@@ -198,6 +198,7 @@ OUT_OF_RANGE = [
     ("curriculum.score_memory", "-1"),
     ("curriculum.num_edits", "9"),  # beyond max_edits
     ("curriculum.candidate_episodes", "0"),
+    ("curriculum.sfl_score_block", "0"),
     ("actors.num_actors", "0"),
     ("actors.credits", "0"),
     ("actors.credit_timeout_s", "0"),
@@ -234,6 +235,13 @@ def test_a_float_key_refuses_nan_and_infinities(assignment: str) -> None:
     with pytest.raises(ConfigError, match=rf"config key '{key}' expects a finite float, got -?(nan|inf)"):
         resolve_config(RunConfig, None, [assignment])
     assert resolve_config(RunConfig, None, ["ppo.learning_rate=1e38"]).ppo.learning_rate == 1e38
+
+
+def test_a_score_block_smaller_than_the_candidates_must_divide_them() -> None:
+    with pytest.raises(ConfigError, match=r"curriculum.sfl_score_block must divide curriculum.sfl_candidates \(2048\)"):
+        resolve_config(RunConfig, None, ["curriculum.sfl_candidates=2048", "curriculum.sfl_score_block=1000"])
+    for block in ("512", "2048", "5000"):  # a divisor, all of them, more than all of them: one block
+        resolve_config(RunConfig, None, ["curriculum.sfl_candidates=2048", f"curriculum.sfl_score_block={block}"])
 
 
 def test_range_message_states_the_rule() -> None:
