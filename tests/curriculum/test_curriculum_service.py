@@ -116,7 +116,7 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
 
         # Bad values and fixed keys are refused with the config system's messages; nothing changes.
         for assignment, message in (("replay_prob=2", "replay_prob must be in [0, 1]"),
-                                    ("temperature=warm", "expects float"),
+                                    ("temperature=warm", "expects a finite float"),
                                     ("replay_prb=0.1", "did you mean 'replay_prob'"),
                                     ("buffer_size=8", "fixed for the life of a run")):
             reply = serve_until(service, lambda a=assignment: knobs(set=[a]))
