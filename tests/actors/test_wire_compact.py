@@ -49,10 +49,15 @@ def test_real_batches_round_trip_bit_for_bit_and_smaller(rolled):
     for sent, back in zip(sent_leaves, got_leaves, strict=True):
         same_bits(sent, back)
     padded = len(encode(Kind.TRAJECTORY, tree_arrays(batch), run=RUN))
-    assert len(frame) < padded
     message = decode(frame, run=RUN)
     cut = [name for name in message.arrays if name.endswith(ROWS)]
     assert cut, "no array was cut by rows"
+    if spec.observation == "entity":  # unused entity rows are left out
+        assert len(frame) < padded
+    else:  # the flat observation has no entity rows; what rows a batch of 2 x 4 steps saves depends on its levels
+        # (smaller on Kinetix's shared S levels, 128 bytes larger on our hand-made ones): the row masks are all it
+        # can add, one 64-byte-aligned array each at most
+        assert len(frame) <= padded + 64 * len(cut), (len(frame), padded, len(cut))
     assert message.arrays["steps/done"].dtype == np.uint8  # booleans as bits
     if spec.observation == "entity":  # the hand-made levels leave slots unused: fewer rows than the padding
         rows = np.unpackbits(message.arrays["steps/obs/polygons" + ROWS])
