@@ -18,7 +18,7 @@ restored agent's parameters are committed, so its actions were, and so the state
 while a person's actions were not. (Watching used to compile three times over on its first steps: the policy on
 the agent's first step, the environment step again for the agent's committed action, then the policy and the step
 once more for the committed observation and state, 20 to 40 s each on a busy 2-core machine, the page's step
-counter standing still, with no word, all the while: issue 54, finding 5.)
+counter standing still, with no word, all the while.)
 """
 
 from __future__ import annotations

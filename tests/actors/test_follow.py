@@ -1,7 +1,7 @@
 """Following the learner over real zenoh sessions on loopback (a hub and three sessions in this process): weights
 are adopted only from the learner instance whose token the follower follows, every frame that reaches the
 follower is checked or counted, a second instance is reported, a restarted learner is followed whatever its
-versions, and a follower that refuses every frame for a while re-syncs by query (issue 53, findings 5 and 6)."""
+versions, and a follower that refuses every frame for a while re-syncs by query."""
 
 from __future__ import annotations
 

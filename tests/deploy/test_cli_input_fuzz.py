@@ -1,4 +1,4 @@
-"""Careless input on the `impulse` command line never ends in a traceback (issue 53, finding 7).
+"""Careless input on the `impulse` command line never ends in a traceback.
 
 Random and damaged config files, odd `key=value` overrides and paths of the wrong kind are given to the CLI's
 `main` in-process, with `--print-config` so that nothing but argument parsing and config loading runs (no JAX):

@@ -148,8 +148,8 @@ class MalformedTrajectories:
 
 def inject_foreign_weights_and_credit(watcher: StatusWatcher) -> None:
     """On the keys the actors listen to: weights of another network (in the learner's name), a stray frame of the
-    right network far ahead of the learner from another learner instance (issue 53, finding 5: before, both
-    actors adopted it and refused every genuine frame after it), and a garbage credit."""
+    right network far ahead of the learner from another learner instance (followers that adopted it would refuse
+    every genuine frame after it as stale), and a garbage credit."""
     bus, run = watcher.bus, watcher.run
     [current] = bus.get(bus.keys.weights_latest, timeout_s=10)
     genuine = decode(current, run=run, kinds=Kind.WEIGHTS)

@@ -1,6 +1,6 @@
 """Which of the launcher's children count as actors (the run stops once all have given up) and which are stopped
 first: the recorder and the evaluator are not actors, so a run whose actors are all gone stops even while they
-live (issue 53, finding 8)."""
+live."""
 
 from pathlib import Path
 
