@@ -1,7 +1,7 @@
 """A distributed run with an exploding learning rate (a real `impulse launch`: a learner and one actor over zenoh
 on loopback) skips every update, counts them in metrics.jsonl, publishes and checkpoints only finite parameters,
 and stops after `ppo.max_non_finite_updates` in a row with one line naming the cause, instead of stalling with
-actors that refuse the weights and a learner that drops every batch as stale (issue 53, finding 1). The fused
+actors that refuse the weights and a learner that drops every batch as stale. The fused
 run's side is tests/learner/test_non_finite.py."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What `impulse levels` and `impulse curriculum inspect` print about a level's use of its slots, a level that
-cannot be solved, and whole-count histograms (issue 54, findings 7a, 7b and the "cannot be solved" check)."""
+cannot be solved, and whole-count histograms."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What `impulse launch`, `impulse train` and `impulse eval` show a person (issue 54): real commands under a
+"""What `impulse launch`, `impulse train` and `impulse eval` show a person: real commands under a
 pseudo-terminal of 80 and 120 columns (`tests.support.terminal`), read back from a pyte screen.
 
 The launch's status table fits 80 columns with the solve rate on screen, is redrawn in place with the log lines

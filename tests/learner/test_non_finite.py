@@ -1,6 +1,6 @@
 """An update that is not finite is skipped, counted and, after `ppo.max_non_finite_updates` in a row, stops the
-run with one error naming the cause; a non-finite parameter tree is never checkpointed or exported (issue 53,
-finding 1). The fused run here is a real `impulse train` (in this process) with an exploding learning rate;
+run with one error naming the cause; a non-finite parameter tree is never checkpointed or exported.
+The fused run here is a real `impulse train` (in this process) with an exploding learning rate;
 the distributed run is tests/deploy/test_launch_non_finite.py."""
 
 from __future__ import annotations

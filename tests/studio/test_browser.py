@@ -310,7 +310,7 @@ def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hu
 
 
 def test_watching_the_agent_200_steps_on_five_levels_in_a_row(server, page) -> None:
-    """Finding 5 of issue 54: watching froze (the step counter stood still, no word) while the first agent step
+    """Watching once froze (the step counter stood still, no word) while the first agent step
     compiled the policy. Now the load compiles, saying so, and steps never wait: on each of five S levels (three
     hand-made, two of Kinetix's when they are here) the agent plays past 200 steps (as fast as the page can go,
     its episodes following one another), the canvas changes, and none of the five loads compiles anything."""

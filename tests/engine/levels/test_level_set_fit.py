@@ -1,4 +1,4 @@
-"""Level sets and the configured size (issue 54, finding 4): a set of several levels leaves out those that do not fit
+"""Level sets and the configured size: a set of several levels leaves out those that do not fit
 with one warning naming each and the size it needs, the same for every command (they all load through
 `load_level_set`); a set of which none fits, or a level named on its own, is refused."""
 
