@@ -81,7 +81,8 @@ class DropTotals:
     """What other processes dropped and refused, summed over every incarnation of each whose status was heard.
 
     A process's counters restart at zero when it restarts, so the newest status of each incarnation (the
-    `incarnation` a status carries, drawn by the process at start) is kept and all of them are summed: the
+    `incarnation` a status carries, drawn by the process at start, or else the `pid` every `StatusPublisher`
+    adds: the recorder and the evaluator draw no incarnation) is kept and all of them are summed: the
     learner writes these sums to metrics.jsonl, so a drop anywhere in the run is counted there. Counted fields:
     integer fields named `dropped_*`, `written_off` and `lost`, and the `rejected` counts by reason. Values that
     are not plausible counts are ignored; `state()`/`restore()` carry them across a restart of the learner.
@@ -110,8 +111,7 @@ class DropTotals:
 
     def note(self, heard: Status) -> None:
         """Keep the counters of this status as its incarnation's newest."""
-        incarnation = heard.status.get("incarnation")
-        name = f"{heard.role}/{heard.ident}#{incarnation if _count(incarnation) is not None else ''}"
+        name = f"{heard.role}/{heard.ident}#{incarnation_of(heard.status)}"
         if name not in self._latest and len(self._latest) >= MAX_TRACKED_PROCESSES:
             oldest = next(iter(self._latest))
             self._retired.update(self._latest.pop(oldest))
@@ -139,6 +139,16 @@ class DropTotals:
             self._latest = {name: plausible_counts(counts) for name, counts in by_process.items()
                             if isinstance(name, str)}
         self._retired = Counter(plausible_counts(retired))
+
+
+def incarnation_of(status: dict[str, Any]) -> str:
+    """What tells one incarnation of a process from the next in its status: its drawn `incarnation` if it sends
+    one, else its `pid` (empty if it sends neither, or nothing plausible)."""
+    for field, mark in (("incarnation", ""), ("pid", "pid:")):
+        value = _count(status.get(field))
+        if value is not None:
+            return f"{mark}{value}"
+    return ""
 
 
 def plausible_counts(value: object) -> dict[str, int]:

@@ -40,6 +40,22 @@ from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
+from impulse.deploy.runtime.process_roles import (
+    LEARNER_ROLE,
+    PROCESS_ROLES,
+    Kind,
+    LaunchPlan,
+    ProcessRole,
+    credential_roles,
+    group,
+    jax_processes,
+    launch_children,
+    launch_summary,
+    needed_after_giving_up,
+    parts_by_child,
+    role_of,
+    stop_stages,
+)
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, status_block
@@ -51,16 +67,7 @@ log = logging.getLogger("impulse.launch")
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
-LEARNER = "learner"
-CURRICULUM = "curriculum"
-VIEWER = "viewer"
-EVALUATOR = "evaluator"
-RECORDER = "recorder"
-ACTOR_PREFIX = "actor-"
-"""The launcher's actors are named `actor-<index>`: the only children that count as actors."""
 POLL_S = 0.2
-ACTOR_STOP_TIMEOUT_S = 20.0
-LEARNER_STOP_TIMEOUT_S = 180.0
 
 
 def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,12 +88,8 @@ def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
                         "Rerun server that records (`impulse view --headless`)")
 
 
-def _service_argv(role: str, run_dir: Path, *extra: str, action: str | None = None) -> list[str]:
-    command = [role] if action is None else [role, action]
-    return [sys.executable, "-m", "impulse.deploy.cli", *command, "--run", str(run_dir), *extra]
-
-
-def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
+def run_launch(args: argparse.Namespace, config: RunConfig, roles: tuple[ProcessRole, ...] = PROCESS_ROLES) -> int:
+    """The launch; `roles`: the registry of what it may start (`deploy.runtime.process_roles`)."""
     fine_tuning = fine_tuning_for("launch", args.init_from, config, resume=args.resume)
     if fine_tuning is None:
         return EXIT_USAGE
@@ -116,8 +119,10 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     streams = args.view or args.record is not None  # the processes stream to a Rerun server `impulse view` starts
     if streams:
         config = viewer_config(config)
+    plan = LaunchPlan(config, run_dir, resume=args.resume is not None, init_from=init_from, record=args.record,
+                      view=args.view)
     try:  # before anything is written or started: a problem every process would hit is one error, not a crash loop
-        run_preflight(config, run_dir, resume=args.resume is not None,
+        run_preflight(config, run_dir, resume=args.resume is not None, credential_roles=credential_roles(plan, roles),
                       curriculum_service=config.uses_curriculum_service, cpu_only=True, init_from=init_from)
     except PreflightError as err:
         print(f"impulse launch: {err}", file=sys.stderr)
@@ -125,48 +130,14 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     created = create_run_dir(run_dir) and args.resume is None
     write_resolved_config(config, run_dir)
 
-    resume_first = args.resume is not None
-    # On a restart too: a learner that died before its first checkpoint starts from the same policy again.
-    fine_tune = ["--init-from", str(init_from)] if init_from is not None else []
-    children = []
-    if streams:
-        record = ["--record", str(args.record)] if args.record is not None else []
-        record += [] if args.view else ["--headless"]
-        children.append(Child(VIEWER, lambda restart: [sys.executable, "-m", "impulse.deploy.cli", "view", str(run_dir),
-                                                       *record], run_dir / "logs" / "viewer.log"))
-    children.append(Child(LEARNER, lambda restart: _service_argv("learner", run_dir, *fine_tune,
-                                                             *(["--resume"] if restart or resume_first else [])),
-                      run_dir / "logs" / "learner.log"))
-    if config.uses_curriculum_service:
-        # Always --resume: its own checkpoints hold every buffered level (none yet on a fresh run).
-        children.append(Child(CURRICULUM, lambda restart: _service_argv("curriculum", run_dir, "--resume",
-                                                                        action="serve"),
-                              run_dir / "logs" / "curriculum.log"))
-    if config.evaluator.levels:
-        children.append(Child(EVALUATOR, lambda restart: _service_argv("evaluator", run_dir),
-                              run_dir / "logs" / "evaluator.log"))
-    if config.recorder.path:  # before the actors, so that it hears their first batches
-        children.append(Child(RECORDER, lambda restart: _service_argv("recorder", run_dir),
-                              run_dir / "logs" / "recorder.log"))
-    for index in range(config.actors.num_actors):
-        name = f"{ACTOR_PREFIX}{index}"
-        children.append(Child(name, lambda restart, i=index: _service_argv("actor", run_dir, "--index", str(i)),
-                              run_dir / "logs" / f"{name}.log"))
-    # Every process but the viewer and the recorder runs JAX programs sized by the batch; on a CPU they share the
-    # host's memory.
-    sharing = sum(child.name not in (VIEWER, RECORDER) for child in children)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", HOST_PROCESSES_ENV: str(sharing)}
+    children = launch_children(plan, roles)
+    # On a CPU the processes that run batch-sized JAX programs share the host's memory.
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", HOST_PROCESSES_ENV: str(jax_processes(children, roles))}
     supervisor = Supervisor(children, env)
     display = StatusDisplay(log_every_s=args.status_every)
-    roles = ["learner"]
-    if config.uses_curriculum_service:
-        roles.append(f"curriculum ({config.curriculum.method})")
-    if config.evaluator.levels:
-        roles.append(f"evaluator ({config.evaluator.levels})")
-    if config.recorder.path:
-        roles.append(f"recorder ({config.recorder.path})")
-    roles.append(f"{config.actors.num_actors} actor{'s' if config.actors.num_actors != 1 else ''}")
-    log.info("run %s in %s: %s; logs in %s", config.name, run_dir, ", ".join(roles), run_dir / "logs")
+    parts = parts_by_child(children, roles)
+    log.info("run %s in %s: %s; logs in %s", config.name, run_dir, ", ".join(launch_summary(plan, roles)),
+             run_dir / "logs")
     # On a terminal the display is a table at the bottom of the screen with the log lines scrolling above it.
     with Bus(config.bus, config.name, OPERATOR, "launcher", listen=True) as bus, display:
         statuses_inbox = bus.inbox(bus.keys.status_pattern(), 256, drop_oldest=True)
@@ -184,7 +155,6 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                                                                                   config.monitor.web_port)
             log.info("Rerun viewer: %s (the processes stream to %s)", where, config.monitor.url)
         finished = False
-        actors = actor_group(children)
         failed: list[Child] = []  # given up on, and the run cannot go on without them
         with StopFlag("stopping the run: the actors first, then the curriculum and the learner") as stop:
             while not stop.stop:
@@ -196,30 +166,31 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                     if role != OPERATOR and Keys.instance_nonce(ident) is None:
                         log.info("%s %s the bus", ident, "joined" if alive else "left")
                 for child, code in supervisor.exited():
-                    if child.name == LEARNER and code == 0:
+                    role = role_of(child.name, roles)
+                    if role is LEARNER_ROLE and code == 0:
                         finished = True
                         break
-                    if code == 0 and child.name not in (CURRICULUM, VIEWER):
-                        log.info("%s ended: the learner finished the run", child.name)  # actors stop on their own
+                    if code == 0 and role.ends_with_run:
+                        log.info("%s ended: the learner finished the run", child.name)  # followers stop on their own
                         continue
                     if child.gave_up:
-                        failed = give_up_on(child, actors)
+                        failed = give_up_on(child, children, roles)
                         if failed:
                             break
                         continue
                     delay = supervisor.restart_later(child)
                     log.warning("%s ended (%s); restarting it in %.0f s%s", child.name, describe_failure(child), delay,
-                                " with --resume" if child.name == LEARNER else "")
+                                role.restart_note)
                 if failed:
                     log.error("stopping the run: %s", f"the {failed[0].name} gave up"
-                              if failed[0].name in (LEARNER, CURRICULUM) else "every actor gave up")
+                              if role_of(failed[0].name, roles).kind is Kind.CRITICAL else "every actor gave up")
                     break
                 if finished:
                     log.info("the learner finished the run; stopping the actors")
                     break
                 supervisor.restart_due()
                 if display.due():
-                    display.show(status_block(statuses, children, LEARNER))
+                    display.show(status_block(statuses, children, parts))
                 time.sleep(POLL_S)
             interrupted = stop.stop
             stopping: set[str] = set()
@@ -229,21 +200,20 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
                 stopping.update(names)
                 for received in statuses_inbox.poll():
                     _read_status(received, bus, statuses)
-                display.redraw(status_block(statuses, children, LEARNER, stopping=stopping))
+                display.redraw(status_block(statuses, children, parts, stopping=stopping))
                 supervisor.stop(names, timeout_s)
 
-            # The actors and the evaluator first: they follow the learner.
-            stop_children([c.name for c in followers_group(children)], ACTOR_STOP_TIMEOUT_S)
-            if config.recorder.path:
-                stop_children([RECORDER], ACTOR_STOP_TIMEOUT_S)  # after the actors: it writes what it heard
-            if config.uses_curriculum_service:
-                stop_children([CURRICULUM], ACTOR_STOP_TIMEOUT_S)  # it writes a final checkpoint
-            if not finished:
-                log.info("stopping the learner (it writes a final checkpoint)")
-                stop_children([LEARNER], LEARNER_STOP_TIMEOUT_S)
-            if streams:
-                stop_children([VIEWER], ACTOR_STOP_TIMEOUT_S)  # last: the others' final metrics reach it
-            display.show(status_block(statuses, children, LEARNER))
+            # In the registry's stop order: the actors and the evaluator first (they follow the learner), then the
+            # recorder (it writes what they sent), the curriculum service and the learner (final checkpoints), and
+            # the viewer last (the others' final metrics reach it).
+            for lead, members in stop_stages(children, roles):
+                running = [child.name for child in members if child.pid is not None]
+                if not running:
+                    continue
+                if lead.stop_note:
+                    log.info("%s", lead.stop_note)
+                stop_children(running, lead.stop_timeout_s)
+            display.show(status_block(statuses, children, parts))
     if failed:
         # A new run refused by what it needs (every process given up on said it cannot run with this
         # configuration) before it trained is taken back; the refusal, with the sizes to use, is on stderr.
@@ -264,35 +234,25 @@ def run_launch(args: argparse.Namespace, config: RunConfig) -> int:
     return 0 if finished or interrupted else EXIT_FAILED
 
 
-def actor_group(children: list[Child]) -> list[Child]:
-    """The children that are actors: the run stops once every one of them has given up. The evaluator, the
-    recorder and the viewer are not among them (a run whose actors are gone does not go on for its recorder)."""
-    return [child for child in children if child.name.startswith(ACTOR_PREFIX)]
-
-
-def followers_group(children: list[Child]) -> list[Child]:
-    """The children stopped first: the actors and the evaluator, which follow the learner (the recorder is stopped
-    after them, since it writes what they sent; then the curriculum, the learner and the viewer)."""
-    return [child for child in children if child.name.startswith(ACTOR_PREFIX) or child.name == EVALUATOR]
-
-
-def give_up_on(child: Child, actors: list[Child]) -> list[Child]:
-    """Say that the launcher gave up on `child`; returns the children without which the run cannot go on (the
-    learner, the curriculum service, or every actor once all have given up), or [] when it goes on without it."""
+def give_up_on(child: Child, children: list[Child], roles: tuple[ProcessRole, ...] = PROCESS_ROLES) -> list[Child]:
+    """Say that the launcher gave up on `child`; returns the children without which the run cannot go on
+    (`process_roles.needed_after_giving_up`: a critical role's process, or every actor once all have given up),
+    or [] when it goes on without it."""
     if child.last_exit == EXIT_CANNOT_RUN:
         log.error("%s cannot run with this configuration (%s): not restarting it; its log: %s", child.name,
                   describe_failure(child), child.log_path)
     else:
         log.error("%s failed %d times in a row the same way (%s): not restarting it; its log: %s", child.name,
                   child.streak, describe_failure(child), child.log_path)
-    if child.name in (LEARNER, CURRICULUM):
-        return [child]
-    if child.name not in {actor.name for actor in actors}:
+    needed = needed_after_giving_up(child, children, roles)
+    if needed:
+        return needed
+    kind = role_of(child.name, roles).kind
+    if kind is Kind.FOLLOWER:
+        followers = group(children, Kind.FOLLOWER, roles)
+        log.warning("the run goes on with %d of %d actors", sum(not f.gave_up for f in followers), len(followers))
+    else:
         log.warning("the run goes on without the %s", child.name)
-        return []
-    if all(actor.gave_up for actor in actors):
-        return actors
-    log.warning("the run goes on with %d of %d actors", sum(not actor.gave_up for actor in actors), len(actors))
     return []
 
 

@@ -17,11 +17,13 @@ import errno
 import logging
 import math
 import socket
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from impulse.bus.config import endpoint_parts
+from impulse.deploy.runtime import process_roles
+from impulse.deploy.runtime.process_roles import LaunchPlan
 
 if TYPE_CHECKING:
     from impulse.deploy.run_config import RunConfig
@@ -41,18 +43,19 @@ class PreflightError(Exception):
 
 
 def run_preflight(config: RunConfig, run_dir: Path, *, resume: bool, curriculum_service: bool,
-                  cpu_only: bool = False, init_from: Path | None = None) -> None:
+                  cpu_only: bool = False, init_from: Path | None = None,
+                  credential_roles: Sequence[str] | None = None) -> None:
     """Every check the run needs, cheapest first; raises `PreflightError` at the first problem.
 
     `resume`: the run continues from `run_dir`'s checkpoints (`--resume`). `curriculum_service`: the launch starts
     the curriculum service, which always resumes from its own checkpoints when there are any. `cpu_only`: keep JAX
     in this process on the CPU (for the launcher; not for tests that share a process with others). `init_from`:
-    the run directory or shipped agent whose policy a new run starts from (`--init-from`)."""
-    from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER
-
-    roles = [LEARNER, *([CURRICULUM] if curriculum_service else []), *([ACTOR] if config.actors.num_actors else []),
-             *([EVALUATOR] if config.evaluator.levels else [])]
-    check_credentials(config, roles)
+    the run directory or shipped agent whose policy a new run starts from (`--init-from`). `credential_roles`: the
+    bus roles whose credentials the processes present (default: those of the processes a launch of `config`
+    starts, `process_roles.credential_roles`)."""
+    if credential_roles is None:
+        credential_roles = process_roles.credential_roles(LaunchPlan(config, run_dir, resume=resume))
+    check_credentials(config, credential_roles)
     check_hub_port(config)
     check_scalar_sinks(config)
     level_sets = [] if config.uses_curriculum_service else [("env.levels", config.env.levels)]

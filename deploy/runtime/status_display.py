@@ -25,7 +25,7 @@ import logging
 import shutil
 import sys
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection, Mapping
 from typing import Any, NamedTuple, TextIO
 
 from impulse.deploy.runtime.progress import Column, LiveArea, fitted_table, interactive
@@ -94,6 +94,11 @@ class Part(NamedTuple):
     column: str = DETAILS
     cell: str | None = None
     """As the table's cell says it (None: `text`)."""
+
+
+StatusParts = Callable[[str, dict[str, Any], Mapping[str, Any]], list[Part]]
+"""A role's reading of one process's status into fields, from its name, its status and every process's newest
+status (an actor's row shows the lag the learner reports for it)."""
 
 
 def _body(parts: list[Part]) -> str:
@@ -411,13 +416,11 @@ def _exited_phase(child: Child) -> str:
     return "exited" if child.last_exit == 0 else f"exited: {describe_exit(child.last_exit)}"
 
 
-def status_block(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
-                 curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
-                 recorder_name: str = "recorder", stopping: Collection[str] = ()) -> StatusBlock:
+def status_block(statuses: dict[str, dict[str, Any]], children: list[Child],
+                 parts: Mapping[str, StatusParts | None], stopping: Collection[str] = ()) -> StatusBlock:
     """Every child with its process state, then its latest status (`current_status`), read into fields by its
-    role's function; the children in `stopping` are being stopped by the launcher."""
-    learner = statuses.get(learner_name)
-    lags = learner.get("actor_lag", {}) if isinstance(learner, dict) else {}
+    role's reader in `parts` (by child name; None for a process that publishes no status, such as the viewer:
+    `deploy.runtime.process_roles.parts_by_child`); the children in `stopping` are being stopped by the launcher."""
     width = max(len(c.name) for c in children)
     rows = []
     for child in children:
@@ -428,41 +431,31 @@ def status_block(statuses: dict[str, dict[str, Any]], children: list[Child], lea
                                    f"{child.name}  {state}" if child.error_line or child.gave_up else None))
             continue
         status = current_status(child, statuses.get(child.name))
+        read = parts.get(child.name)
         try:
-            if child.name == viewer_name:
-                parts = [Part(f"Rerun viewer (its address is logged above and in {child.log_path})"),
-                         Part("", PHASE, "running")]
+            if read is None:
+                fields = [Part(f"no status of its own (its log: {child.log_path})"), Part("", PHASE, "running")]
             elif status is None:  # nothing heard yet: say how long it has been
                 elapsed = time.monotonic() - child.started_at
-                parts = [Part(starting_part(elapsed), PHASE, f"starting {elapsed:.0f} s")]
-            elif child.name == learner_name:
-                parts = learner_parts(status)
-            elif child.name == curriculum_name:
-                parts = curriculum_parts(status)
-            elif child.name == evaluator_name:
-                parts = evaluator_parts(status)
-            elif child.name == recorder_name:
-                parts = recorder_parts(status)
+                fields = [Part(starting_part(elapsed), PHASE, f"starting {elapsed:.0f} s")]
             else:
-                parts = actor_parts(status, lags.get(child.name) if isinstance(lags, dict) else None)
-            body = _body(parts)
+                fields = read(child.name, status, statuses)
+            body = _body(fields)
         except (TypeError, ValueError, KeyError, AttributeError):  # a status frame with fields of the wrong types
-            parts = [Part("malformed status", PHASE)]
+            fields = [Part("malformed status", PHASE)]
             body = "malformed status"
         if child.name in stopping:  # the launcher's word over the process's own
-            parts = [part for part in parts if part.column != PHASE] + [Part("", PHASE, "stopping")]
+            fields = [part for part in fields if part.column != PHASE] + [Part("", PHASE, "stopping")]
         rows.append(ProcessRow(f"{child.name:<{width}}  pid {child.pid} restarts {child.restarts} | {body}",
-                               _cells(child.name, child.restarts, parts)))
+                               _cells(child.name, child.restarts, fields)))
     return StatusBlock(rows)
 
 
-def render(statuses: dict[str, dict[str, Any]], children: list[Child], learner_name: str,
-           curriculum_name: str = "curriculum", viewer_name: str = "viewer", evaluator_name: str = "evaluator",
-           recorder_name: str = "recorder", columns: int | None = None) -> list[str]:
+def render(statuses: dict[str, dict[str, Any]], children: list[Child], parts: Mapping[str, StatusParts | None],
+           columns: int | None = None) -> list[str]:
     """The display's plain lines (a log's): every child with its process state, then its latest status (the line
     of a child that has exited ends with its error line), each cut to `columns` (default: the terminal's width)."""
-    return status_block(statuses, children, learner_name, curriculum_name, viewer_name, evaluator_name,
-                        recorder_name).lines(columns)
+    return status_block(statuses, children, parts).lines(columns)
 
 
 def exited_state(child: Child) -> str:

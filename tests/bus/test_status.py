@@ -43,3 +43,11 @@ def test_drop_totals_sum_incarnations_and_survive_a_restart() -> None:
     assert restored.totals()["actor/written_off"] == 4 + 6
     restored.restore("not a state")
     assert restored.totals()["actor/written_off"] == 10
+
+
+def test_drop_totals_tell_restarts_apart_by_pid_where_no_incarnation_is_sent() -> None:
+    totals = DropTotals()  # the recorder sends no incarnation; every status carries its sender's pid
+    totals.note(Status("recorder", "recorder", {"pid": 100, "rejected": {"bad_shape": 2}}))
+    totals.note(Status("recorder", "recorder", {"pid": 100, "rejected": {"bad_shape": 3}}))
+    totals.note(Status("recorder", "recorder", {"pid": 207, "rejected": {}}))  # killed and started again
+    assert totals.totals() == {"recorder/rejected/bad_shape": 3}

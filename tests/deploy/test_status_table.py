@@ -13,6 +13,7 @@ from pathlib import Path
 import pyte
 import pytest
 from impulse.deploy.runtime import status_display
+from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.progress import (
     PROGRESS_COLUMNS,
     SKIPPED_NON_FINITE,
@@ -75,7 +76,7 @@ def _drawn(renderable, columns: int) -> list[str]:
 @pytest.mark.parametrize("columns", [80, 120, 200])
 def test_the_status_table_fits_the_terminal_keeping_what_matters_first(columns: int) -> None:
     statuses, children = _run()
-    lines = _drawn(status_block(statuses, children, "learner"), columns)
+    lines = _drawn(status_block(statuses, children, parts_by_child(children)), columns)
     assert all(len(line) <= columns for line in lines), lines
     header, *rows = lines
     for shown in ("process", "phase", "alarms", "progress", "solved", "drops"):
@@ -96,18 +97,18 @@ def test_the_status_table_fits_the_terminal_keeping_what_matters_first(columns: 
 
 def test_a_process_being_stopped_shows_it_and_an_exited_one_how_it_ended() -> None:
     statuses, children = _run()
-    block = status_block(statuses, children, "learner", stopping={"actor-0"})
+    block = status_block(statuses, children, parts_by_child(children), stopping={"actor-0"})
     actor = next(line for line in _drawn(block, 120) if line.startswith("actor-0"))
     assert actor.split()[1] == "stopping", actor
     done = _child("actor-3", None)
     done.last_exit = 0
-    [header, row] = _drawn(status_block({}, [done], "learner"), 80)
+    [header, row] = _drawn(status_block({}, [done], parts_by_child([done])), 80)
     assert row.split()[:2] == ["actor-3", "exited"], row
 
 
 def test_the_plain_lines_of_a_log_keep_their_words_and_name_a_phase_out_of_the_ordinary() -> None:
     statuses, children = _run()
-    lines = render(statuses, children, "learner", columns=300)
+    lines = render(statuses, children, parts_by_child(children), columns=300)
     assert lines[0].startswith("learner     pid 101 restarts 0 | v25 epoch 1 | SKIPPED 2 non-finite updates | "
                                "evaluating 42 levels x 20 attempts 12 s | update 25/977 | 0.26 upd/s"), lines[0]
     assert lines[2].endswith("| levels handmade:s_easy_car_right (1 level) | waiting for credit"), lines[2]
@@ -130,7 +131,7 @@ def test_an_entered_display_on_a_terminal_redraws_the_table_in_place(monkeypatch
     with StatusDisplay(stream=terminal, columns=80) as display:
         for update in (25, 26, 27):
             statuses["learner"]["update"] = update
-            display.show(status_block(statuses, children, "learner"))
+            display.show(status_block(statuses, children, parts_by_child(children)))
     screen = pyte.Screen(80, 20)
     pyte.Stream(screen).feed(terminal.getvalue().replace("\n", "\r\n"))
     shown = [line.rstrip() for line in screen.display if line.strip()]

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, error_line, is_failure
 
@@ -146,7 +147,7 @@ def test_the_status_display_shows_how_a_child_ended(tmp_path: Path) -> None:
     waiting = child(tmp_path, "", "actor-1")
     waiting.last_exit, waiting.restart_at = -signal.SIGSEGV, time.monotonic() + 4.2
     waiting.error_line = "Fatal Python error: Segmentation fault"
-    lines = render({}, [gave_up, waiting], "learner", columns=140)
+    lines = render({}, [gave_up, waiting], parts_by_child([gave_up, waiting]), columns=140)
     assert lines[0].startswith("actor-0  exit status 1; gave up after 3 identical failures (restarts 2) | "
                                "engine.levels.sets.LevelSetError: /x/bad.json")
     assert len(lines[0]) == 140 and lines[0].endswith("...")
@@ -155,7 +156,7 @@ def test_the_status_display_shows_how_a_child_ended(tmp_path: Path) -> None:
     cannot = child(tmp_path, "", "learner")
     cannot.last_exit, cannot.gave_up, cannot.streak = EXIT_CANNOT_RUN, True, 1
     cannot.error_line = "impulse learner: the learner's update needs about 23.2 GiB"
-    assert render({}, [cannot], "learner", columns=200) == [
+    assert render({}, [cannot], parts_by_child([cannot]), columns=200) == [
         "learner  exit status 78; cannot run with this configuration (restarts 0) | impulse learner: the learner's "
         "update needs about 23.2 GiB"]
 
@@ -167,7 +168,7 @@ def test_a_process_that_has_said_nothing_yet_shows_how_long_it_has_been_starting
     supervisor.start(quiet.name)
     try:
         quiet.started_at -= 42  # as if it had been compiling for 42 s
-        [line] = render({}, [quiet], "learner", columns=200)
+        [line] = render({}, [quiet], parts_by_child([quiet]), columns=200)
         assert line.startswith(f"actor-0  pid {quiet.pid} restarts 0 | starting for 42 s (importing JAX, compiling")
     finally:
         supervisor.stop([quiet.name], 5)
@@ -213,7 +214,7 @@ def _check_redraws(children: list[Child], columns: int) -> None:
     terminal = _Terminal(columns)
     display = StatusDisplay(stream=terminal)
     for update in (12, 13, 14):  # three redraws of the same block
-        lines = render({"learner": {**learner, "update": update}}, children, "learner", columns=columns)
+        lines = render({"learner": {**learner, "update": update}}, children, parts_by_child(children), columns=columns)
         display.show(lines)
     shown = [row.rstrip() for row in terminal.screen.display]
     assert shown[:4] == [line.rstrip() for line in lines], shown  # in place: the last block on the first rows

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from impulse.deploy.runtime import status_display
+from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.status_display import render
 from impulse.deploy.runtime.supervisor import (
     CUT_SHORT,
@@ -209,7 +210,7 @@ def test_a_restarted_child_shows_starting_until_its_own_first_status(tmp_path: P
     supervisor.start(actor.name)
     try:
         statuses = {"actor-0": _actor_status(7)}
-        [line] = render(statuses, [actor], "learner", columns=300)
+        [line] = render(statuses, [actor], parts_by_child([actor]), columns=300)
         assert f"pid {actor.pid} " in line and "1,000 steps/s" in line
         first = actor.pid
         statuses["actor-0"] = _actor_status(7)  # its last words, heard after the display's last redraw
@@ -221,14 +222,14 @@ def test_a_restarted_child_shows_starting_until_its_own_first_status(tmp_path: P
                 supervisor.restart_later(ended)
             supervisor.restart_due()
             time.sleep(0.01)
-        [line] = render(statuses, [actor], "learner", columns=300)
+        [line] = render(statuses, [actor], parts_by_child([actor]), columns=300)
         assert f"pid {actor.pid} restarts 1 | starting for" in line, line
         statuses["actor-0"] = {**_actor_status(8), "steps_per_s": 2000.0}  # the new incarnation's first status
-        [line] = render(statuses, [actor], "learner", columns=300)
+        [line] = render(statuses, [actor], parts_by_child([actor]), columns=300)
         assert f"pid {actor.pid} restarts 1 | 2,000 steps/s" in line, line
         # A status that says it comes from another process is never shown as this one's.
         statuses["actor-0"] = {**_actor_status(8), "pid": first}
-        [line] = render(statuses, [actor], "learner", columns=300)
+        [line] = render(statuses, [actor], parts_by_child([actor]), columns=300)
         assert "starting for" in line, line
     finally:
         supervisor.stop([actor.name], 5)
