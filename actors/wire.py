@@ -35,23 +35,58 @@ padded copy (benchmarks/RESULTS.md, "The compact trajectory format").
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
-from impulse.actors.trajectory import TrajectoryBatch
+from impulse.actors.trajectory import EpisodeStats, Trajectory, TrajectoryBatch
 from impulse.bus.codec import Deferred, Kind, Message, Rejected, tree_hash
 from impulse.bus.schema import ArraySpec, Schema, check
-from impulse.engine.env.observations import symbolic_length, symbolic_rows
+from impulse.engine.env.actions import action_space
+from impulse.engine.env.observations import observation_shape, symbolic_length, symbolic_rows
+from impulse.engine.env.spec import EnvSpec
+from impulse.engine.levels.level import LEVEL_ID_WORDS
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.pytree import path_name, tree_from_arrays
 
 TRAJECTORY_FINITE = ("steps/obs", "steps/log_prob", "steps/value", "steps/reward", "steps/episode_return",
                      "bootstrap_obs")
 """Float arrays of a trajectory that must hold no NaN or Inf (a NaN reward would poison the update)."""
+
+
+def trajectory_template(spec: EnvSpec, num_envs: int, num_steps: int) -> TrajectoryBatch:
+    """The shapes and dtypes (`jax.ShapeDtypeStruct` leaves) of the batch an actor of `num_envs` environments of
+    `spec` sends after `num_steps` steps: what the learner's update is compiled for and what every receiver checks
+    frames against. Written out from the observation's and the action's shapes rather than traced through a
+    rollout (which costs seconds in every process that needs it); tests/actors/test_wire.py checks it against the
+    traced rollout for every observation and action kind."""
+    shape = jax.ShapeDtypeStruct
+    one_obs = observation_shape(spec)
+    bootstrap_obs = jax.tree.map(lambda leaf: shape((num_envs, *leaf.shape), leaf.dtype), one_obs)
+    action = action_space(spec)
+
+    def per_step(dtype: Any, *tail: int) -> jax.ShapeDtypeStruct:
+        return shape((num_steps, num_envs, *tail), dtype)
+
+    steps = Trajectory(
+        obs=jax.tree.map(lambda leaf: per_step(leaf.dtype, *leaf.shape), one_obs),
+        action=per_step(jnp.dtype(action.dtype), *action.shape),
+        log_prob=per_step(jnp.float32), value=per_step(jnp.float32), reward=per_step(jnp.float32),
+        done=per_step(jnp.bool_), solved=per_step(jnp.bool_), truncated=per_step(jnp.bool_),
+        episode_return=per_step(jnp.float32), level_id=per_step(jnp.uint32, LEVEL_ID_WORDS),
+    )
+    scalar = functools.partial(shape, ())
+    counts = {name: scalar(jnp.int32) for name in EpisodeStats._fields}
+    return TrajectoryBatch(
+        steps=steps, bootstrap_obs=bootstrap_obs, behaviour_version=scalar(jnp.int32),
+        train_mask=per_step(jnp.bool_), actor_id=scalar(jnp.int32), seq=scalar(jnp.int32),
+        episodes=EpisodeStats(**{**counts, "return_sum": scalar(jnp.float32)}),
+    )
 
 
 def _specs(template: Any, finite: tuple[str, ...] | bool) -> dict[str, ArraySpec]:

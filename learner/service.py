@@ -51,9 +51,8 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 from impulse.actors.process import actor_index
-from impulse.actors.rollout import rollout, start_rollout
-from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
-from impulse.actors.wire import TrajectoryWire, weights_hash
+from impulse.actors.trajectory import TrajectoryBatch, episode_metrics
+from impulse.actors.wire import TrajectoryWire, trajectory_template, weights_hash
 from impulse.bus.codec import Message, Rejected
 from impulse.bus.credits import encode_credit
 from impulse.bus.evaluations import decode_evaluation
@@ -65,10 +64,7 @@ from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, re
 from impulse.bus.trajectories import decode_trajectory
 from impulse.bus.weights import encode_weights
 from impulse.curriculum.stats import metric_columns
-from impulse.engine.env.spec import EnvParams
-from impulse.engine.levels.level import level_from_scene, stack_levels
 from impulse.engine.memory import check_fits, warn_if_gpu_sized
-from impulse.engine.physics.building import empty_scene
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError, fine_tuning_origin, read_starting_policy
@@ -129,20 +125,6 @@ class LearnerError(RuntimeError):
     """The learner cannot start (existing run without --resume, unusable checkpoint)."""
 
 
-def batch_template(agent: Agent, env_params: EnvParams, num_envs: int, num_steps: int) -> TrajectoryBatch:
-    """The shapes and dtypes of the trajectory batch an actor with this config sends (traced, never run)."""
-    levels = stack_levels([level_from_scene(empty_scene(agent.spec.sizes))])
-
-    def one_batch() -> TrajectoryBatch:
-        carry = start_rollout(agent.spec, env_params, levels, num_envs, jax.random.PRNGKey(0))
-        params = agent.init(jax.random.PRNGKey(0))
-        carry, steps, train_mask, episodes, _ = rollout(agent.act, params, agent.spec, env_params, carry, levels,
-                                                        num_steps)
-        return make_batch(steps, carry.obs, 0, train_mask=train_mask, episodes=episodes)
-
-    return jax.eval_shape(one_batch)
-
-
 def claim_epoch(run_dir: Path, restored: int) -> int:
     """A learner epoch never used before in `run_dir`: one above both the epoch of the checkpoint resumed
     (`restored`) and the last one claimed there, written down (atomically) before it is used."""
@@ -166,7 +148,7 @@ class LearnerService:
 
     def __init__(self, ppo: PPOConfig, learner: LearnerConfig, checkpoint: CheckpointConfig, *, seed: int,
                  num_updates: int, batches_in_flight: int, status_every_s: float, run_dir: Path, config_toml: str,
-                 bus: Bus, agent: Agent, env_params: EnvParams, resume: bool = False, init_from: Path | None = None,
+                 bus: Bus, agent: Agent, resume: bool = False, init_from: Path | None = None,
                  wire_compact: bool = False, group: HostGroup = ONE_HOST):
         """`num_updates`: the run's length; `batches_in_flight`: the most the actors may have sent unacknowledged
         (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints;
@@ -211,8 +193,8 @@ class LearnerService:
 
         # The update sees the group's batch: every process's environments side by side.
         group_ppo = dataclasses.replace(ppo, num_envs=ppo.num_envs * group.count)
-        self._template = batch_template(agent, env_params, ppo.num_envs, ppo.num_steps)
-        self._group_template = (batch_template(agent, env_params, group_ppo.num_envs, ppo.num_steps)
+        self._template = trajectory_template(agent.spec, ppo.num_envs, ppo.num_steps)
+        self._group_template = (trajectory_template(agent.spec, group_ppo.num_envs, ppo.num_steps)
                                 if group.several else self._template)
         self._update = self.parallel.jit_update(
             lambda state, batch, key: ppo_update(state, batch, key, apply_fn=agent.apply,

@@ -4,9 +4,10 @@ The folders mirror the rooms (`tests/engine/physics`, `tests/engine/env`, `tests
 tests live in one package, `tests.support` (scenes, level samples, launched processes, paths), imported by its
 full name; pytest's `pythonpath` puts the checkout on `sys.path`, nothing else is added to it.
 
-JAX's persistent compilation cache lives under `<repo>/.cache/jax` (ignored by git), so a second `make test` on
-the same machine, or CI after a developer's run, skips recompiling the engine's jitted functions; only
-compilations slower than half a second are stored, which keeps the cache small.
+JAX's persistent compilation cache is the one every Impulse process uses (`deploy.runtime.compile_cache`, under
+`<repo>/.cache/jax`, ignored by git), so the test processes and the processes they launch share what each compiled,
+and a second `make test` on the same machine skips recompiling. Every program is stored, the small ones too: the
+launched processes each run hundreds of them as they start.
 
 `make test` runs the suite as three streams side by side (pytest-xdist, `-n 3 --dist loadgroup`): tests marked
 `heavy` (they start processes of their own: launches, Zenoh sessions, viewers, training subprocesses; or train
@@ -19,13 +20,10 @@ the compilation cache above. The split balances the two light streams (each abou
 
 from __future__ import annotations
 
-import jax
 import pytest
+from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
-from tests.support.paths import REPO
-
-jax.config.update("jax_compilation_cache_dir", str(REPO / ".cache" / "jax"))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+enable_compile_cache()
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -53,16 +53,15 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
         print("impulse recorder: where should it write? set recorder.path=PATH (or pass --out PATH)",
               file=sys.stderr)
         return EXIT_USAGE
+    from impulse.actors.wire import trajectory_template
     from impulse.bus.session import Bus
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
     from impulse.engine.env.spec import env_from_config
-    from impulse.learner.agent import make_agent
     from impulse.learner.dataset import DatasetError, DatasetWriter
     from impulse.learner.recorder import RECORDER_ID, RecorderService
-    from impulse.learner.service import batch_template
 
-    spec, env_params = env_from_config(config.env)
-    template = batch_template(make_agent(config.network, spec), env_params, config.ppo.num_envs, config.ppo.num_steps)
+    spec, _ = env_from_config(config.env)
+    template = trajectory_template(spec, config.ppo.num_envs, config.ppo.num_steps)
     try:
         writer = DatasetWriter(path, config.env, config.network, max_bytes=int(config.recorder.max_gigabytes * 1e9),
                                when_full=config.recorder.when_full)

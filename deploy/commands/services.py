@@ -118,7 +118,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
                 config.ppo, config.learner, config.checkpoint, seed=config.seed, num_updates=config.num_updates,
                 batches_in_flight=config.actors.num_actors * config.actors.credits,
                 status_every_s=config.actors.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
-                bus=bus, agent=agent, env_params=env_params, resume=args.resume, init_from=init_from,
+                bus=bus, agent=agent, resume=args.resume, init_from=init_from,
                 wire_compact=config.actors.wire_compact, group=group)
         except LearnerError as err:
             print(f"impulse learner: {err}", file=sys.stderr)

@@ -21,5 +21,9 @@ def enable_compile_cache() -> Path:
         root = Path.home() / ".cache" / "impulse"
     directory = root / "jax"
     jax.config.update("jax_compilation_cache_dir", str(directory))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # Every program, however quick to compile: a process's start runs hundreds of small ones (building levels,
+    # initialising a network, op by op) whose compiles, summed, take seconds, and reading them back takes a
+    # fraction of that (benchmarks/RESULTS.md, "Process start").
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return directory

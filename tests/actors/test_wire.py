@@ -8,7 +8,9 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-from impulse.actors.wire import checked_tree, trajectory_schema, weights_hash, weights_schema
+from impulse.actors.rollout import rollout, start_rollout
+from impulse.actors.trajectory import make_batch
+from impulse.actors.wire import checked_tree, trajectory_schema, trajectory_template, weights_hash, weights_schema
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.schema import check
 from impulse.bus.stamp import Stamp
@@ -16,10 +18,11 @@ from impulse.bus.weights import decode_weights, encode_weights
 from impulse.curriculum.results import level_results
 from impulse.curriculum.wire import LEVEL_RESULTS_SCHEMA, results_arrays
 from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.level import level_from_scene, stack_levels
+from impulse.engine.physics.building import empty_scene
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.config import NetworkConfig
-from impulse.learner.service import batch_template
 
 RUN = "wire-test"
 NETWORK = NetworkConfig(kind="entity", width=16, depth=1, entity_encoder_size=16, entity_heads=2, entity_head_size=8)
@@ -38,9 +41,35 @@ def random_like(template, seed: int):
     return jax.tree.map(fill, template)
 
 
+def traced_batch(spec: EnvSpec, network: NetworkConfig, num_envs: int, num_steps: int):
+    """The batch a rollout of `spec` makes, as shapes (traced, never run): what `trajectory_template` writes out."""
+    agent = make_agent(network, spec)
+    levels = stack_levels([level_from_scene(empty_scene(spec.sizes))])
+
+    def one_batch():
+        carry = start_rollout(spec, EnvParams(), levels, num_envs, jax.random.key(0))
+        params = agent.init(jax.random.key(0))
+        carry, steps, train_mask, episodes, _ = rollout(agent.act, params, spec, EnvParams(), carry, levels,
+                                                        num_steps)
+        return make_batch(steps, carry.obs, 0, train_mask=train_mask, episodes=episodes)
+
+    return jax.eval_shape(one_batch)
+
+
+@pytest.mark.parametrize(("observation", "action", "network"), [
+    ("entity", "multi_discrete", NETWORK), ("pixels", "continuous", NetworkConfig(kind="cnn")),
+    ("symbolic", "discrete", NetworkConfig(kind="flat", width=16, depth=1)),
+    ("blind", "multi_discrete", NetworkConfig(kind="flat", width=16, depth=1))])
+def test_the_trajectory_template_is_what_a_rollout_makes(observation, action, network):
+    spec = dataclasses.replace(EnvSpec(), observation=observation, action=action)
+    written, traced = trajectory_template(spec, 3, 2), traced_batch(spec, network, 3, 2)
+    assert jax.tree.structure(written) == jax.tree.structure(traced)
+    shapes = lambda tree: [(leaf.shape, leaf.dtype) for leaf in jax.tree.leaves(tree)]  # noqa: E731
+    assert shapes(written) == shapes(traced)
+
+
 def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
-    agent = make_agent(NETWORK, EnvSpec())
-    template = batch_template(agent, EnvParams(), num_envs=4, num_steps=3)
+    template = trajectory_template(EnvSpec(), num_envs=4, num_steps=3)
     batch = random_like(template, 0)
     frame = encode(Kind.TRAJECTORY, tree_arrays(batch), run=RUN, seq=1)
     received = checked_tree(decode(bytes(frame), run=RUN, kinds=Kind.TRAJECTORY), trajectory_schema(template),
@@ -54,7 +83,7 @@ def test_trajectory_batch_round_trips_bit_for_bit_and_results_by_level_id():
     check(message, LEVEL_RESULTS_SCHEMA)
     assert int(message.arrays["episodes"].sum()) == int(np.asarray(batch.steps.done).sum())
 
-    other = batch_template(agent, EnvParams(), num_envs=5, num_steps=3)  # an actor with another batch shape
+    other = trajectory_template(EnvSpec(), num_envs=5, num_steps=3)  # an actor with another batch shape
     frame = encode(Kind.TRAJECTORY, tree_arrays(random_like(other, 1)), run=RUN)
     with pytest.raises(Rejected) as refused:
         checked_tree(decode(bytes(frame), run=RUN), trajectory_schema(template), template)

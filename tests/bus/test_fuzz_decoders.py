@@ -47,6 +47,7 @@ from impulse.actors.wire import (
     TrajectoryWire,
     checked_tree,
     trajectory_schema,
+    trajectory_template,
     weights_hash,
     weights_schema,
 )
@@ -87,12 +88,12 @@ from impulse.curriculum.wire import (
     results_arrays,
     results_from_message,
 )
-from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.env.spec import EnvSpec
 from impulse.engine.levels.level import LEVEL_ID_WORDS
 from impulse.engine.pytree import path_name, tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.config import NetworkConfig
-from impulse.learner.service import LEARNER_ID, batch_template
+from impulse.learner.service import LEARNER_ID
 
 RUN = "fuzz-run"
 CASES = 10_000
@@ -310,7 +311,7 @@ def targets() -> dict[str, Target]:
     rng = np.random.default_rng(0)
     agent = make_agent(NETWORK, EnvSpec())
 
-    traj_template = batch_template(agent, EnvParams(), num_envs=2, num_steps=2)
+    traj_template = trajectory_template(EnvSpec(), num_envs=2, num_steps=2)
     traj_schema = trajectory_schema(traj_template)
     traj_max_bytes = 2 * sum(spec.dtype.itemsize * math.prod(spec.shape) for spec in traj_schema.arrays.values())
     traj_max_bytes += 1 << 20  # as the learner bounds its frames

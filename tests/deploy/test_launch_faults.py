@@ -27,6 +27,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from impulse.actors.wire import trajectory_template
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.keys import LEARNER, SCHEMA_MAJOR
 from impulse.bus.weights import LEARNER_NONCE
@@ -34,10 +35,8 @@ from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.engine.env.spec import env_from_config
 from impulse.engine.pytree import tree_arrays
-from impulse.learner.agent import make_agent
 from impulse.learner.checkpoint import Checkpointer
 from impulse.learner.dataset import open_dataset
-from impulse.learner.service import batch_template
 from impulse.monitor.runs import SHARED_COLUMNS
 from rerun.chunk import RrdReader
 
@@ -68,9 +67,8 @@ STEPS_PER_UPDATE = 64 * 64
 def zero_batch_arrays() -> dict[str, np.ndarray]:
     """A well-formed trajectory batch of the quick config, all zeros."""
     config = resolve_config(RunConfig, QUICK_LAUNCH)
-    spec, env_params = env_from_config(config.env)
-    template = batch_template(make_agent(config.network, spec), env_params, config.ppo.num_envs,
-                              config.ppo.num_steps)
+    spec, _ = env_from_config(config.env)
+    template = trajectory_template(spec, config.ppo.num_envs, config.ppo.num_steps)
     return tree_arrays(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template))
 
 
