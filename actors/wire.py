@@ -35,7 +35,6 @@ padded copy (benchmarks/RESULTS.md, "The compact trajectory format").
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -44,7 +43,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from impulse.actors.trajectory import EpisodeStats, Trajectory, TrajectoryBatch
+from impulse.actors.trajectory import Trajectory, TrajectoryBatch, make_batch
 from impulse.bus.codec import Deferred, Kind, Message, Rejected, tree_hash
 from impulse.bus.schema import ArraySpec, Schema, check
 from impulse.engine.env.actions import action_space
@@ -63,8 +62,8 @@ def trajectory_template(spec: EnvSpec, num_envs: int, num_steps: int) -> Traject
     """The shapes and dtypes (`jax.ShapeDtypeStruct` leaves) of the batch an actor of `num_envs` environments of
     `spec` sends after `num_steps` steps: what the learner's update is compiled for and what every receiver checks
     frames against. Written out from the observation's and the action's shapes rather than traced through a
-    rollout (which costs seconds in every process that needs it); tests/actors/test_wire.py checks it against the
-    traced rollout for every observation and action kind."""
+    rollout (which costs seconds in every process that needs it); the per-batch fields come from `make_batch`
+    itself. tests/actors/test_wire.py checks it against a traced rollout for each observation and action kind."""
     shape = jax.ShapeDtypeStruct
     one_obs = observation_shape(spec)
     bootstrap_obs = jax.tree.map(lambda leaf: shape((num_envs, *leaf.shape), leaf.dtype), one_obs)
@@ -80,13 +79,7 @@ def trajectory_template(spec: EnvSpec, num_envs: int, num_steps: int) -> Traject
         done=per_step(jnp.bool_), solved=per_step(jnp.bool_), truncated=per_step(jnp.bool_),
         episode_return=per_step(jnp.float32), level_id=per_step(jnp.uint32, LEVEL_ID_WORDS),
     )
-    scalar = functools.partial(shape, ())
-    counts = {name: scalar(jnp.int32) for name in EpisodeStats._fields}
-    return TrajectoryBatch(
-        steps=steps, bootstrap_obs=bootstrap_obs, behaviour_version=scalar(jnp.int32),
-        train_mask=per_step(jnp.bool_), actor_id=scalar(jnp.int32), seq=scalar(jnp.int32),
-        episodes=EpisodeStats(**{**counts, "return_sum": scalar(jnp.float32)}),
-    )
+    return jax.eval_shape(make_batch, steps, bootstrap_obs, 0)
 
 
 def _specs(template: Any, finite: tuple[str, ...] | bool) -> dict[str, ArraySpec]:
