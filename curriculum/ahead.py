@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 
 import jax
+
 from impulse.engine.levels.level import Level
 
 log = logging.getLogger(__name__)

@@ -19,6 +19,8 @@ ScoreFunction = Literal["maxmc", "pvl", "l1_value_loss", "learnability"]
 Prioritization = Literal["rank", "power"]
 
 METHODS: tuple[str, ...] = ("dr", "plr", "accel", "sfl")
+"""The method names, as `curriculum.methods.METHODS` registers them (that package imports this module, so the
+names are repeated here; a test keeps the two alike)."""
 SCORE_FUNCTIONS: tuple[str, ...] = ("maxmc", "pvl", "l1_value_loss", "learnability")
 PRIORITIZATIONS: tuple[str, ...] = ("rank", "power")
 SFL_SCORINGS: tuple[str, ...] = ("online", "batch")
@@ -123,8 +125,9 @@ class CurriculumConfig:
     """SFL: fraction of every batch drawn (uniformly) from the buffer; the rest are fresh candidates."""
     candidate_episodes: int | None = None
     """Finished episodes a new candidate needs before it is scored and offered to the buffer; a candidate that has
-    fewer is handed out again in later batches. None: 4 for SFL (a solve rate needs several episodes), 1 for PLR
-    and ACCEL (Kinetix scores a level from the episodes of one rollout)."""
+    fewer is handed out again in later batches. None: the method's default (its `default_candidate_episodes`): 4
+    for SFL (a solve rate needs several episodes), 1 for PLR and ACCEL (Kinetix scores a level from the episodes of
+    one rollout)."""
     score_memory: float = 0.9
     """Solve counts of buffered levels decay by this factor at every new result (1 keeps all history, 0 only
     the newest window); their learnability follows the current policy rather than its history."""
@@ -155,13 +158,6 @@ class CurriculumConfig:
                 problems.append(f"curriculum.{name} must be >= 1, got {getattr(self, name)}")
         if problems:
             raise ValueError("; ".join(problems))
-
-
-def candidate_episodes(config: CurriculumConfig) -> int:
-    """The episodes a candidate needs, with the method's default filled in."""
-    if config.candidate_episodes is not None:
-        return config.candidate_episodes
-    return 4 if config.method == "sfl" else 1
 
 
 def knob_problems(config: CurriculumConfig) -> list[str]:

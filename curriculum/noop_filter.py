@@ -13,6 +13,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.env.actions import noop_action
 from impulse.engine.env.episodes import Act, first_episodes
 from impulse.engine.env.spec import EnvParams, EnvSpec

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
 from impulse.curriculum.state import Buffer, Knobs
 
 Array = jax.Array

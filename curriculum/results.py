@@ -23,6 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.levels.level import LEVEL_ID_WORDS
 
 Array = jax.Array

@@ -1,6 +1,6 @@
 """The curriculum service: the authority on levels in a distributed run.
 
-It owns the curriculum state (`curriculum.algorithms`) and talks to the rest of the run only over the bus:
+It owns the curriculum state (`curriculum.methods`) and talks to the rest of the run only over the bus:
 
 - `levels/sample` (queryable): an actor asks for its next batch of B levels and gets a LEVELS frame (the levels,
   whether each is trained on, where each came from);
@@ -48,6 +48,7 @@ from typing import Any, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.bus.codec import Rejected
 from impulse.bus.control import control_reply, encode_refusal, encode_report
 from impulse.bus.inbox import IncomingQuery
@@ -58,10 +59,10 @@ from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
 from impulse.curriculum.ahead import LevelMaker
-from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
+from impulse.curriculum.methods import Curriculum
 from impulse.curriculum.results import empty_results
-from impulse.curriculum.state import CurriculumState, config_with_knobs, knobs_from_config
+from impulse.curriculum.state import CurriculumState, config_with_knobs
 from impulse.curriculum.stats import (
     buffer_summary,
     inspect_report,
@@ -452,7 +453,7 @@ class CurriculumService:
             raise ValueError(f"curriculum.{fixed[0]} is fixed for the life of a run; the live knobs are "
                              f"{', '.join(LIVE_KNOBS)}")
         if changed:
-            self.state = self.state._replace(knobs=knobs_from_config(updated))
+            self.state = self.state._replace(knobs=self.curriculum.knobs(updated))
             self.knob_changes += 1
             for name, (old, new) in changed.items():
                 log.info("curriculum knob %s: %s -> %s (from the next sample on)", name, old, new)

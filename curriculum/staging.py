@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.curriculum.results import LevelResults
 from impulse.curriculum.state import Counters, Knobs, Staging
 from impulse.engine.levels.level import Level
@@ -64,7 +65,7 @@ def take_candidates(
 
     take = lambda x: x[fresh_row]  # noqa: E731
     fresh_levels = jax.tree.map(take, fresh.levels)
-    levels = jax.tree.map(lambda old, new: jnp.where(_rows(handed, old), old, new),
+    levels = jax.tree.map(lambda old, new: jnp.where(row_mask(handed, old), old, new),
                           jax.tree.map(lambda x: x[jnp.minimum(handed_slot, size - 1)], staging.levels),
                           fresh_levels)
     origin = jnp.where(handed, staging.origin[jnp.minimum(handed_slot, size - 1)], take(fresh.origin))
@@ -94,7 +95,9 @@ def take_candidates(
     return staging, counters, levels, origin
 
 
-def _rows(mask: Array, like: Array) -> Array:
+def row_mask(mask: Array, like: Array) -> Array:
+    """`mask` [R] shaped to broadcast against `like` [R, ...] (one value per row), for a `jnp.where` that picks
+    whole rows of a batched leaf."""
     return mask.reshape(mask.shape + (1,) * (like.ndim - 1))
 
 

@@ -18,7 +18,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from impulse.curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig, candidate_episodes
+
+from impulse.curriculum.config import PRIORITIZATIONS, SCORE_FUNCTIONS, CurriculumConfig
 from impulse.engine.levels.level import LEVEL_ID_WORDS, Level
 
 Array = jax.Array
@@ -43,7 +44,10 @@ class Knobs(NamedTuple):
     score_memory: Array
 
 
-def knobs_from_config(config: CurriculumConfig) -> Knobs:
+def knobs_from_config(config: CurriculumConfig, default_candidate_episodes: int) -> Knobs:
+    """`config`'s live knobs as arrays. `default_candidate_episodes`: the method's own count, used where
+    `config.candidate_episodes` is None (`Curriculum.default_candidate_episodes`; `Curriculum.knobs` passes it)."""
+    episodes = default_candidate_episodes if config.candidate_episodes is None else config.candidate_episodes
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     i32 = lambda x: jnp.asarray(x, jnp.int32)  # noqa: E731
     return Knobs(
@@ -56,7 +60,7 @@ def knobs_from_config(config: CurriculumConfig) -> Knobs:
         robust=jnp.asarray(config.robust, bool),
         num_edits=i32(config.num_edits),
         sfl_ratio=f32(config.sfl_ratio),
-        candidate_episodes=i32(candidate_episodes(config)),
+        candidate_episodes=i32(episodes),
         score_memory=f32(config.score_memory),
     )
 
@@ -153,8 +157,8 @@ def _repeat(level: Level, n: int) -> Level:
     return jax.tree.map(lambda x: jnp.zeros((n,) + x.shape, x.dtype), level)
 
 
-def empty_state(config: CurriculumConfig, example: Level, batch_size: int) -> CurriculumState:
-    """An empty buffer and staging area shaped after one (unbatched) `example` level."""
+def empty_state(config: CurriculumConfig, example: Level, batch_size: int, knobs: Knobs) -> CurriculumState:
+    """An empty buffer and staging area shaped after one (unbatched) `example` level, with the live `knobs`."""
     n, s = config.buffer_size, config.staging_factor * batch_size
     i32 = lambda k: jnp.zeros(k, jnp.int32)  # noqa: E731
     f32 = lambda k: jnp.zeros(k, jnp.float32)  # noqa: E731
@@ -165,5 +169,5 @@ def empty_state(config: CurriculumConfig, example: Level, batch_size: int) -> Cu
     staging = Staging(_repeat(example, s), jnp.zeros(s, bool), i32(s), i32(s), ids(s), i32(s), i32(s), i32(s), i32(s),
                       f32(s), f32(s), f32(s), f32(s), i32(s))
     counters = Counters(*([zero] * len(Counters._fields)))
-    return CurriculumState(buffer, staging, counters, knobs_from_config(config), i32(batch_size),
+    return CurriculumState(buffer, staging, counters, knobs, i32(batch_size),
                            jnp.zeros((), bool))

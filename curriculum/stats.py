@@ -15,6 +15,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.curriculum.config import LIVE_KNOBS, CurriculumConfig
 from impulse.curriculum.priority import replay_distribution
 from impulse.curriculum.state import CurriculumState, config_with_knobs

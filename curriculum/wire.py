@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+
 from impulse.bus.codec import Kind, Message, Rejected
 from impulse.bus.schema import ArraySpec, Schema, check
 from impulse.curriculum.results import LevelResults, results_from_host, results_to_host

@@ -149,7 +149,8 @@ def inspect_checkpoint(args: argparse.Namespace, config: RunConfig, run_dir: Pat
     """`inspect --checkpoint [STEP]`: the report of the buffer a checkpoint holds (read only: a corrupt checkpoint
     is named, never moved)."""
     import jax
-    from impulse.curriculum.algorithms import Curriculum
+
+    from impulse.curriculum.methods import make_curriculum
     from impulse.curriculum.stats import inspect_report, top_levels
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.pytree import tree_arrays
@@ -167,7 +168,7 @@ def inspect_checkpoint(args: argparse.Namespace, config: RunConfig, run_dir: Pat
               file=sys.stderr)
         return EXIT_FAILED
     spec, env_params = env_from_config(config.env)
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     template = jax.eval_shape(curriculum.init, jax.random.PRNGKey(0))
     with Checkpointer(directory) as checkpoints:
         step = checkpoints.latest_step() if args.checkpoint < 0 else args.checkpoint
@@ -204,6 +205,7 @@ def inspect(args: argparse.Namespace, config: RunConfig) -> int:
 def _render(config: RunConfig, arrays: dict, report: dict, out: Path) -> None:
     import jax
     import numpy as np
+
     from impulse.engine.env.spec import env_from_config
     from impulse.engine.levels.generator import sample_random_level
     from impulse.engine.pytree import tree_from_arrays
@@ -297,7 +299,7 @@ def serve(args: argparse.Namespace) -> int:
     enable_compile_cache()
     from impulse.bus.roles import CURRICULUM_ROLE
     from impulse.bus.session import Bus
-    from impulse.curriculum.algorithms import Curriculum
+    from impulse.curriculum.methods import make_curriculum
     from impulse.curriculum.service import CURRICULUM_ID, CurriculumService
     from impulse.deploy.runtime.monitoring import CurriculumLogger, open_monitor
     from impulse.deploy.runtime.runloop import LoopOptions, run_loop
@@ -305,7 +307,7 @@ def serve(args: argparse.Namespace) -> int:
     from impulse.learner.checkpoint import CURRICULUM, Checkpointer, CheckpointError
 
     spec, env_params = env_from_config(config.env)
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     checkpoint_dir = run_dir / "curriculum" / config.checkpoint.directory
     checkpoint_config = dataclasses.replace(config.checkpoint, keep_best=False)
 

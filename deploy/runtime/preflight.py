@@ -180,6 +180,7 @@ def _train_template(config: RunConfig) -> Any:
     """The shapes of the learner's training state (network, optimiser state, policy version) for `config`."""
     import jax
     import numpy as np
+
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
     from impulse.learner.update import TrainState, make_optimizer
@@ -201,12 +202,13 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
     state (method, buffer size, level sizes), as `impulse curriculum serve --resume` will restore it."""
     log.info("checking that the curriculum's checkpoint in %s fits this config", directory)
     import jax
-    from impulse.curriculum.algorithms import Curriculum
+
+    from impulse.curriculum.methods import make_curriculum
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.checkpoint import CURRICULUM
 
     spec, env_params = env_from_config(config.env)
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     template = jax.eval_shape(curriculum.init, jax.random.PRNGKey(config.seed))
     _restore(directory, dataclasses.replace(config.checkpoint, keep_best=False), CURRICULUM, template,
              "cannot resume from the curriculum's")

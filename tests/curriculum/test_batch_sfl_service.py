@@ -10,11 +10,12 @@ import time
 import jax
 import numpy as np
 import pytest
+
 from impulse.actors.wire import weights_hash
 from impulse.bus.session import Bus
 from impulse.bus.stamp import Stamp
 from impulse.bus.weights import encode_weights
-from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.service import CurriculumService
 from impulse.curriculum.state import ORIGIN_REPLAY
 from impulse.deploy.config import resolve_config
@@ -25,7 +26,6 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.candidate_scorer import PolicyScorer
 from impulse.learner.checkpoint import CURRICULUM, Checkpointer
-
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
 pytestmark = pytest.mark.heavy
@@ -56,7 +56,7 @@ def small_setup(*overrides: str):
         "ppo.num_envs=8", "network.width=16", "network.depth=1", *overrides])
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
-    curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+    curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     return config, env_params, agent, agent.init(jax.random.PRNGKey(0)), curriculum
 
 

@@ -11,13 +11,15 @@ import time
 
 import numpy as np
 import pytest
+from starlette.testclient import TestClient
+
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.control import control_reply, control_request
 from impulse.bus.levels import encode_level_results
 from impulse.bus.session import Bus
-from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.service import CurriculumService
 from impulse.curriculum.state import ORIGIN_NEW
 from impulse.curriculum.wire import (
@@ -32,8 +34,6 @@ from impulse.learner.checkpoint import CURRICULUM, Checkpointer
 from impulse.studio.app import make_app
 from impulse.studio.console import CurriculumLink
 from impulse.studio.level_io import load_document
-from starlette.testclient import TestClient
-
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.curriculum_service import BATCH, SPEC, resolve_knobs, start_service
 from tests.support.launch_procs import free_port
@@ -151,7 +151,7 @@ def test_new_levels_pass_the_noop_filter_ahead_of_the_requests(hub, tmp_path):
     config = CurriculumConfig(method="dr", noop_filter=True, levels_ahead=2)
     with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, Bus(hub.config, RUN, "actor", "actor-0") as actor:
         checkpoints = Checkpointer(tmp_path / "ckpt")
-        service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "",
+        service = CurriculumService(make_curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "",
                                     resolve_knobs, item=CURRICULUM)
         service.start()  # returns once the first filtered batch is made
         assert service.maker is not None and service.maker.made >= 1

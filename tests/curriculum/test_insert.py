@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import jax
 import numpy as np
-from impulse.curriculum.algorithms import Curriculum
+
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import make_curriculum
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels import handmade
 from impulse.engine.levels.kinetix_json import load_kinetix_level
@@ -14,7 +15,7 @@ from impulse.engine.levels.level import level_id_values
 
 
 def test_insert_fills_empty_slots_then_replaces_the_lowest_score() -> None:
-    curriculum = Curriculum(CurriculumConfig(method="plr", buffer_size=3, noop_filter=False), EnvSpec(),
+    curriculum = make_curriculum(CurriculumConfig(method="plr", buffer_size=3, noop_filter=False), EnvSpec(),
                             EnvParams(), 4)
     insert = jax.jit(curriculum.insert)
     state = jax.jit(curriculum.init)(jax.random.PRNGKey(0))

@@ -11,13 +11,13 @@ import time
 import jax
 import numpy as np
 import pytest
+
 from impulse.curriculum.ahead import LevelMaker
-from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import Curriculum, make_curriculum
 from impulse.curriculum.state import ORIGIN_NEW, ORIGIN_REPLAY
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import level_id_values
-
 from tests.support.quick_compile import quick_jit
 
 BATCH = 4
@@ -31,7 +31,7 @@ def ids(levels) -> list[int]:
 @functools.cache
 def curriculum(method: str) -> Curriculum:
     config = CurriculumConfig(method=method, buffer_size=2, min_fill=0.5, replay_prob=1.0, noop_filter=False)
-    return Curriculum(config, SPEC, EnvParams(), BATCH)
+    return make_curriculum(config, SPEC, EnvParams(), BATCH)
 
 
 @functools.cache

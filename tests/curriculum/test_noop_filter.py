@@ -6,10 +6,10 @@ import functools
 
 import jax
 import numpy as np
+
 from impulse.curriculum.noop_filter import noop_solves, sample_filtered_levels
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.physics.sizes import SIZE_S
-
 from tests.support.quick_compile import quick_jit
 
 SPEC = EnvSpec(sizes=SIZE_S)

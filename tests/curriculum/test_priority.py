@@ -8,11 +8,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from impulse.curriculum.algorithms import Curriculum
+
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.priority import eviction_slot, pick_replays, replay_distribution, score_of
 from impulse.curriculum.results import results_from_host
-from impulse.curriculum.state import empty_state, knobs_from_config
+from impulse.curriculum.state import empty_state
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import level_from_scene, level_id_words
 from impulse.engine.physics.building import empty_scene
@@ -25,7 +26,7 @@ BATCH = 2
 
 def make_state(config: CurriculumConfig, scores=(), last_sampled=(), clock=0):
     """A buffer whose first len(scores) slots are filled with ids 1, 2, ... and the given scores."""
-    state = empty_state(config, EXAMPLE, BATCH)
+    state = empty_state(config, EXAMPLE, BATCH, knobs_of(config))
     n = len(scores)
     buffer = state.buffer
     ids = np.stack([level_id_words(i + 1) for i in range(n)]) if n else np.zeros((0, 2), np.uint32)
@@ -38,8 +39,13 @@ def make_state(config: CurriculumConfig, scores=(), last_sampled=(), clock=0):
     return state._replace(buffer=buffer, counters=state.counters._replace(clock=jnp.asarray(clock, jnp.int32)))
 
 
+def knobs_of(config: CurriculumConfig):
+    """The live knobs a curriculum of `config` starts with."""
+    return make_curriculum(config, SPEC, EnvParams(), BATCH).knobs(config)
+
+
 def knobs(**changes):
-    return knobs_from_config(CurriculumConfig(**changes))
+    return knobs_of(CurriculumConfig(**changes))
 
 
 def test_rank_prioritisation_matches_hand_computation():
@@ -125,7 +131,7 @@ def _stage(state, ids):
 def learnability_plr():
     config = CurriculumConfig(method="plr", buffer_size=2, score="learnability", staleness_coef=0.0,
                               candidate_episodes=2, score_memory=1.0)
-    return config, jax.jit(Curriculum(config, SPEC, EnvParams(), BATCH).update)
+    return config, jax.jit(make_curriculum(config, SPEC, EnvParams(), BATCH).update)
 
 
 def test_insertion_waits_for_episodes_fills_free_slots_then_replaces_only_a_strictly_better(learnability_plr):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.curriculum.results import level_results, results_from_host, results_to_host
 from impulse.engine.levels.level import level_id_values, level_id_words
 

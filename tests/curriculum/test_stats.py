@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from impulse.curriculum.stats import METRIC_COLUMNS, metric_columns
 
 

@@ -13,15 +13,15 @@ import functools
 import jax
 import numpy as np
 import pytest
-from impulse.curriculum.algorithms import Curriculum
+
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.priority import score_weights
 from impulse.curriculum.results import results_from_host
-from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, knobs_from_config
+from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import level_id_values, level_id_words
 from impulse.engine.physics.validate import validate_scene
-
 from tests.support.quick_compile import quick_jit
 
 SPEC = EnvSpec()
@@ -48,7 +48,7 @@ def compiled(method: str, sfl_scoring: str = "online"):
 
 @functools.cache
 def _compiled(method: str, sfl_scoring: str):
-    curriculum = Curriculum(config(method=method, sfl_scoring=sfl_scoring), SPEC, EnvParams(), BATCH)
+    curriculum = make_curriculum(config(method=method, sfl_scoring=sfl_scoring), SPEC, EnvParams(), BATCH)
     return curriculum, quick_jit(curriculum.sample), quick_jit(curriculum.update)
 
 
@@ -60,7 +60,9 @@ def _init():
 
 def start(seed: int, **settings):
     """The empty state `init` gives a curriculum configured by `settings` (its live knobs)."""
-    return _init()(jax.random.PRNGKey(seed))._replace(knobs=knobs_from_config(config(**settings)))
+    configured = config(**settings)
+    knobs = make_curriculum(configured, SPEC, EnvParams(), BATCH).knobs(configured)
+    return _init()(jax.random.PRNGKey(seed))._replace(knobs=knobs)
 
 
 def play(batch, rng: np.random.Generator, episodes: int, version: int):

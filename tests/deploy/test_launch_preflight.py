@@ -16,11 +16,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
 from impulse.deploy.config import config_to_toml, resolve_config, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.learner.checkpoint import CURRICULUM, TRAIN, Checkpointer
-
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, free_port, service_pids
 
 ROLES = ("learner", "actor", "curriculum")
@@ -103,13 +103,13 @@ def test_resume_with_another_network_is_refused_naming_the_checkpoint_directory(
 
 def test_a_curriculum_checkpoint_of_another_buffer_size_is_refused(tmp_path: Path) -> None:
     """The curriculum service always resumes its own checkpoints, so they are checked without --resume too."""
-    from impulse.curriculum.algorithms import Curriculum
+    from impulse.curriculum.methods import make_curriculum
     from impulse.engine.env.spec import env_from_config
 
     run_dir = tmp_path / "run"
     config = config_for(run_dir, "env.levels=random", "curriculum=plr", "curriculum.buffer_size=16")
     spec, env_params = env_from_config(config.env)
-    state = jax.eval_shape(Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs).init,
+    state = jax.eval_shape(make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs).init,
                            jax.random.PRNGKey(0))
     directory = run_dir / "curriculum" / "checkpoints"
     with Checkpointer(directory, dataclasses.replace(config.checkpoint, keep_best=False)) as checkpoints:

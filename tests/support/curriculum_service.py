@@ -11,8 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from impulse.bus.session import Bus
-from impulse.curriculum.algorithms import Curriculum
 from impulse.curriculum.config import CurriculumConfig
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.service import CurriculumService
 from impulse.deploy.config import ConfigError, apply_overrides
 from impulse.engine.env.spec import EnvParams, EnvSpec
@@ -34,7 +34,7 @@ def start_service(bus: Bus, directory: Path, resume: bool) -> tuple[CurriculumSe
     """A PLR service of 16 levels on `bus`, checkpointing into `directory`, started (compiled) and ready."""
     config = CurriculumConfig(method="plr", buffer_size=16, noop_filter=False, replay_prob=0.0)
     checkpoints = Checkpointer(directory)
-    service = CurriculumService(Curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "", resolve_knobs,
+    service = CurriculumService(make_curriculum(config, SPEC, EnvParams(), BATCH), bus, checkpoints, "", resolve_knobs,
                                 item=CURRICULUM, resume=resume)
     # As the run loop does in `impulse curriculum serve`: a cold compile on a loaded machine outlasts a query.
     service.start()
