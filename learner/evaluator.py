@@ -27,7 +27,7 @@ from impulse.bus.status import StatusPublisher
 from impulse.engine.env.spec import EnvParams
 from impulse.learner.agent import Agent
 from impulse.learner.config import EvaluatorConfig
-from impulse.learner.scoring import LevelSets, Scored, evaluation_columns, score_policy
+from impulse.learner.scoring import LevelSets, Scored, evaluating_phase, evaluation_columns, score_policy
 
 log = logging.getLogger("impulse.evaluator")
 
@@ -52,6 +52,9 @@ class EvaluatorService:
         self.evaluations = 0
         self.skipped = 0
         self.last_seconds = 0.0
+        self.scoring: tuple[int, float] | None = None
+        """(policy version, wall-clock start) of the scoring under way, which holds the loop: its status says so
+        before it starts, and the launcher's display counts its seconds."""
 
     def _due(self) -> bool:
         if self.follow.params is None:
@@ -71,8 +74,13 @@ class EvaluatorService:
         if self.scored_at is not None and epoch == self.scored_at[0]:
             skipped = max(0, (version - self.scored_at[1]) // self.config.every_updates - 1)
         start = time.perf_counter()
-        scored = score_policy(self.agent, self.follow.params, self.env_params, self.sets,
-                              jax.random.PRNGKey(self.seed + 1 + version), self.config.attempts)
+        self.scoring = (version, time.time())
+        self._status.publish(self.status())
+        try:
+            scored = score_policy(self.agent, self.follow.params, self.env_params, self.sets,
+                                  jax.random.PRNGKey(self.seed + 1 + version), self.config.attempts)
+        finally:
+            self.scoring = None
         self.last_seconds = time.perf_counter() - start
         self.bus.stamp.acting_for(epoch, version)
         self._results.put(encode_evaluation(self.bus.stamp, scored.table, scored.groups, skipped))
@@ -101,7 +109,16 @@ class EvaluatorService:
             "levels": len(self.sets.names),
             "rejected": self.bus.rejects.counts(),
             **self.follow.counts,
+            **self._phase(),
         }
+
+    def _phase(self) -> dict[str, Any]:
+        """The blocking phase, while it scores: which policy, on how many levels, since when."""
+        if self.scoring is None:
+            return {}
+        version, since = self.scoring
+        return {"phase": evaluating_phase(len(self.sets.names), self.config.attempts), "phase_since": since,
+                "scoring_version": version}
 
     def start(self) -> None:
         """Nothing to prepare: it scores once weights arrive."""

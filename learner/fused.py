@@ -18,9 +18,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.actors.rollout import RolloutCarry, rollout, start_rollout
 from impulse.actors.trajectory import episode_metrics, make_batch
-from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.methods import Curriculum
 from impulse.curriculum.state import ORIGIN_MUTATED, ORIGIN_NEW, ORIGIN_REPLAY, CurriculumState
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import Level
@@ -60,12 +61,18 @@ class FusedTrainer:
     def optimizer(self):
         return make_optimizer(self.ppo, self.num_updates)
 
+    def init_train(self, key: Array) -> TrainState:
+        """Fresh parameters from `key` with a fresh optimizer state, at policy version 0: the `train` part of
+        `init`, and, through `jax.eval_shape`, the shapes a checkpoint's policy is restored into (without tracing
+        environments or a curriculum)."""
+        params = self.agent.init(key)
+        return TrainState(params, self.optimizer.init(params), jnp.zeros((), jnp.int32))
+
     def init(self, key: Array, levels: Level | None) -> FusedCarry:
         """Fresh parameters and `ppo.num_envs` environments started on the level batch (staggered): the fixed
         one, or the curriculum's first."""
         init_key, level_key, env_key, key = jax.random.split(key, 4)
-        params = self.agent.init(init_key)
-        train = TrainState(params, self.optimizer.init(params), jnp.zeros((), jnp.int32))
+        train = self.init_train(init_key)
         curriculum, flags = None, None
         if self.curriculum is not None:
             curriculum_key, sample_key = jax.random.split(level_key)

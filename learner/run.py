@@ -19,8 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import jax
+
 from impulse.bus.service import CycleReport, Progress
-from impulse.curriculum.algorithms import Curriculum
+from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.stats import buffer_summary, metric_columns
 from impulse.engine.env.spec import EnvParams, env_from_config
 from impulse.engine.levels.level import Level
@@ -47,6 +48,7 @@ from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import (
     LevelScored,
     LevelSets,
+    evaluating_phase,
     evaluation_columns,
     format_scores,
     load_level_sets,
@@ -58,11 +60,6 @@ log = logging.getLogger(__name__)
 PhaseReport = Callable[[str], None]
 """Told what a run does now, when it starts a phase that takes a while ("compiling the training step (64 envs x
 64 steps)"): a command's progress display. The same phases are logged."""
-
-
-def evaluating_phase(levels: int, attempts: int) -> str:
-    """How an evaluation's phase is named wherever it is shown: "evaluating 42 levels x 20 attempts"."""
-    return f"evaluating {levels} level{'s' if levels != 1 else ''} x {attempts} attempt{'s' if attempts != 1 else ''}"
 
 
 FINAL_EVALUATION = "evaluating the final policy"
@@ -108,7 +105,7 @@ def build(config: TrainingSetup) -> tuple[FusedTrainer, Agent, list[str], Level 
     num_updates = config.ppo.updates_for(config.total_env_steps)
     curriculum = None
     if levels is None:
-        curriculum = Curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
+        curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
     elif config.curriculum.method != "dr":
         raise RunError(f"curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum picks "
                        f"among generated levels), not {config.env.levels!r}")
@@ -315,13 +312,13 @@ def final_evaluation(config: TrainingSetup, agent: Agent, env_params: EnvParams,
 
 
 def restore_policy(config: TrainingSetup, run_dir: Path, step: int | None = None,
-                   trainer: FusedTrainer | None = None, train_levels: Level | None = None) -> Restored:
+                   trainer: FusedTrainer | None = None) -> Restored:
     """The `train` item (the policy) of a run's checkpoint, newest intact unless `step`, whichever mode wrote it;
-    `trainer` and `train_levels` from `build(config)` when the caller has them already. A reader: a corrupt newer
-    checkpoint is skipped and left where it is (the run, or the shipped agent, is not this process's to change)."""
+    `trainer` from `build(config)` when the caller has it already. A reader: a corrupt newer checkpoint is skipped
+    and left where it is (the run, or the shipped agent, is not this process's to change)."""
     if trainer is None:
-        trainer, _, _, train_levels = build(config)
-    template = jax.eval_shape(trainer.init, jax.random.PRNGKey(config.seed), train_levels).train
+        trainer = build(config)[0]
+    template = jax.eval_shape(trainer.init_train, jax.random.PRNGKey(config.seed))
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         try:
             return checkpoints.restore({TRAIN: template}, step, set_aside=False)
@@ -391,7 +388,7 @@ def evaluate_run(
         if sets is None:
             raise RunError("no evaluation levels: pass --levels")
     _report(on_phase, f"restoring the policy of {run_dir}")
-    restored = restore_policy(config, run_dir, step, trainer, train_levels)
+    restored = restore_policy(config, run_dir, step, trainer)
     items, counters = restored.items, restored.counters
     params = items[TRAIN].params
     attempts = attempts or config.eval.attempts

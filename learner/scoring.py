@@ -110,6 +110,12 @@ class Scored(NamedTuple):
         return float(np.mean([s["solve_rate"] for s in self.table.values()])) if self.table else float("nan")
 
 
+def evaluating_phase(levels: int, attempts: int) -> str:
+    """How an evaluation's phase is named wherever it is shown (the trainers' progress, the evaluator's status):
+    "evaluating 42 levels x 20 attempts"."""
+    return f"evaluating {levels} level{'s' if levels != 1 else ''} x {attempts} attempt{'s' if attempts != 1 else ''}"
+
+
 LevelScored = Callable[[int, int, str, float], None]
 """`on_level(done, total, name, solve_rate)`: told of each level's score as it is known."""
 

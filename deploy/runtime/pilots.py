@@ -24,8 +24,8 @@ def load_pilot(checkpoint: str) -> Any:
     try:
         run_dir, step = locate_checkpoint(path)
         config = resolve_config(RunConfig, run_dir / "config.toml", [])
-        trainer, agent, _, levels = build(config)
-        restored = restore_policy(config, run_dir, step, trainer, levels)
+        trainer, agent, _, _ = build(config)
+        restored = restore_policy(config, run_dir, step, trainer)
     except (FileNotFoundError, ConfigError, RunError, ValueError) as err:
         raise LevelInputError(f"cannot load an agent from {checkpoint}: {err}") from None
     name = f"{run_dir.name} (update {restored.step})"

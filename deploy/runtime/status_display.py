@@ -204,12 +204,14 @@ def actor_line(status: dict[str, Any] | None, lag: int | None) -> str:
 
 
 def evaluator_parts(status: dict[str, Any]) -> list[Part]:
-    """The evaluator's fields: the newest policy it holds, the last one it scored and how, what it skipped."""
+    """The evaluator's fields: the newest policy it holds, the last one it scored and how, what it skipped; while
+    it scores, which policy, on how many levels, for how long (its phase)."""
+    scoring = phase_parts(status, "evaluating") if status.get("phase") else []
     if status.get("scored_version") is None:
         held = status.get("policy_version", -1)
         if held < 0:
             return [Part("waiting for the learner's weights", PHASE, "waiting for weights")]
-        return [Part(f"v{held}"), Part("scoring its first policy", PHASE, f"scoring v{held}")]
+        return [Part(f"v{held}"), *(scoring or [Part("scoring its first policy", PHASE, f"scoring v{held}")])]
     groups = " ".join(f"{name} {rate:.0%}" for name, rate in sorted(status.get("groups", {}).items()))
     mean = _number(status.get("mean"), "{:.0%}")
     seconds = _number(status.get("seconds"), "{:.1f}")
@@ -218,7 +220,7 @@ def evaluator_parts(status: dict[str, Any]) -> list[Part]:
             Part(f"scored v{status['scored_version']}: mean {mean}{' ' + groups if groups else ''} in {seconds} s",
                  cell=f"{groups + ' ' if groups else ''}in {seconds} s"),
             Part(f"{status.get('evaluations', 0)} evaluations, {status.get('skipped', 0)} points skipped"),
-            Part(f"rejected {rejected}", BREAKDOWN), Part("", PHASE, "evaluating"),
+            Part(f"rejected {rejected}", BREAKDOWN), *(scoring or [Part("", PHASE, "evaluating")]),
             Part("", PROGRESS, f"scored v{status['scored_version']}"), Part("", SOLVED, mean),
             Part("", DROPS, f"{rejected:,}")]
 

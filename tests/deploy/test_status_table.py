@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pyte
 import pytest
+from rich.console import Console
+from rich.text import Text
+
 from impulse.deploy.runtime import status_display
 from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.progress import (
@@ -23,8 +26,6 @@ from impulse.deploy.runtime.progress import (
 )
 from impulse.deploy.runtime.status_display import StatusDisplay, render, status_block
 from impulse.deploy.runtime.supervisor import Child
-from rich.console import Console
-from rich.text import Text
 
 
 class _Running:
@@ -175,3 +176,54 @@ def test_a_heartbeat_off_a_terminal_says_its_first_phase_then_that_a_quiet_one_s
     assert any(message.startswith("compiling the evaluation: ") and message.endswith(" s so far")
                for message in said), said
     assert not any(message.startswith("loading:") for message in said), "a phase changed before its beat is quiet"
+
+
+def test_an_evaluator_that_is_scoring_says_on_how_many_levels_and_for_how_long() -> None:
+    scored = {"policy_version": 9, "scored_version": 6, "evaluations": 2, "skipped": 0, "seconds": 41.0,
+              "mean": 0.25, "groups": {"kinetix:s": 0.25}, "levels": 74, "rejected": {}}
+    assert "| evaluating |" not in status_display.evaluator_line(scored)  # between scorings: the usual phase
+    scoring = {**scored, "phase": "evaluating 74 levels x 20 attempts", "phase_since": time.time() - 30,
+               "scoring_version": 9}
+    line = status_display.evaluator_line(scoring)
+    assert "evaluating 74 levels x 20 attempts 30 s" in line and "scored v6: mean 25%" in line, line
+    first = {**scoring, "scored_version": None}
+    assert "evaluating 74 levels x 20 attempts 30 s" in status_display.evaluator_line(first)
+    assert "scoring its first policy" in status_display.evaluator_line({**first, "phase": None})
+
+
+def test_log_lines_scroll_above_the_table_and_leave_no_stale_block(monkeypatch) -> None:
+    """The launcher's way of drawing: 24 log lines, each followed by a redraw, on an 80 x 40 terminal whose stderr
+    the log handler writes to. At the end the screen holds one table, at the bottom, and the newest log lines, in
+    order, above it: no block of an earlier drawing is left between them."""
+    statuses, children = _run()
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    terminal = Terminal()
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setattr("sys.stderr", terminal)
+    handler = logging.StreamHandler(terminal)  # as `impulse launch` logs: a root handler on stderr
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    logger = logging.getLogger("tests.status_table.scroll")
+    try:
+        with StatusDisplay(stream=terminal, columns=80) as display:
+            for line in range(24):
+                statuses["learner"]["update"] = 25 + line
+                display.show(status_block(statuses, children, parts_by_child(children)))
+                logger.warning("log line %02d", line)
+            display.show(status_block(statuses, children, parts_by_child(children)))
+    finally:
+        root.removeHandler(handler)
+    screen = pyte.Screen(80, 40)
+    pyte.Stream(screen).feed(terminal.getvalue().replace("\n", "\r\n"))
+    shown = [line.rstrip() for line in screen.display if line.strip()]
+    headers = [i for i, line in enumerate(shown) if line.split()[:2] == ["process", "phase"]]
+    assert len(headers) == 1, "\n".join(shown)
+    logged = shown[:headers[0]]
+    assert len(logged) >= 20 and all(line.startswith("log line") for line in logged), "\n".join(shown)
+    assert logged == [f"log line {n:02d}" for n in range(24 - len(logged), 24)], "\n".join(shown)
+    assert "update 48/977" in shown[headers[0] + 1], "\n".join(shown)
