@@ -38,6 +38,7 @@ from collections import deque
 from typing import Any, NamedTuple
 
 import jax
+
 from impulse.actors.wire import weights_schema
 from impulse.bus.codec import Rejected
 from impulse.bus.keys import LEARNER, Keys

@@ -14,6 +14,7 @@ from typing import Protocol
 
 import jax
 import jax.numpy as jnp
+
 from impulse.bus.codec import Rejected
 from impulse.bus.levels import decode_level_batch
 from impulse.bus.session import Bus

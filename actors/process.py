@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import jax
 import numpy as np
+
 from impulse.actors.config import ActorConfig
 from impulse.actors.follow import LearnerFollower
 from impulse.actors.levels import LevelSource

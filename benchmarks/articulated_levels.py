@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from impulse.engine.levels.kinetix_json import save_kinetix_level
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, level_from_scene
 from impulse.engine.physics.building import add_circle, add_rectangle, add_revolute_joint, empty_scene

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
+
 from impulse.benchmarks._harness import REPO
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig

@@ -44,6 +44,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
 from impulse.benchmarks.scripted_actions import engine_actions
 from impulse.engine.levels.kinetix_json import load_kinetix_level

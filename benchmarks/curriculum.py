@@ -34,6 +34,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from impulse.benchmarks.plot import PALETTE, Panel, Series, mean_curves, render
 from impulse.curriculum.config import METHODS

@@ -52,6 +52,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig

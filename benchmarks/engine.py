@@ -18,6 +18,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+
 from impulse.benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels, time_jitted
 from impulse.engine.levels.kinetix_json import load_kinetix_level
 from impulse.engine.physics.options import SCHEDULES as SOLVERS

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+
 from impulse.benchmarks._harness import REPO, emit, progress
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"
@@ -292,6 +293,7 @@ def record_batch(config: Any) -> Any:
     """A trajectory batch of a real rollout with the config's agent (random initial weights) on random levels, as
     host arrays: what an actor of this run sends."""
     import jax
+
     from impulse.actors.rollout import rollout, start_rollout
     from impulse.actors.trajectory import make_batch
     from impulse.engine.env.spec import env_from_config

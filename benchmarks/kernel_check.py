@@ -20,6 +20,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.benchmarks._harness import emit, environment, progress, require_levels
 from impulse.engine.levels.generator import sample_random_levels
 from impulse.engine.levels.kinetix_json import load_kinetix_level

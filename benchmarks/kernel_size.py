@@ -29,6 +29,8 @@ from collections.abc import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
+from jax.extend import core as jex_core
+
 from impulse.benchmarks._harness import emit, environment, progress
 from impulse.engine.physics.building import empty_scene
 from impulse.engine.physics.options import SolverOptions
@@ -36,7 +38,6 @@ from impulse.engine.physics.params import SimParams
 from impulse.engine.physics.sizes import SceneSizes, size_preset
 from impulse.engine.physics.state import SimState
 from impulse.engine.physics.step import step
-from jax.extend import core as jex_core
 
 OP_LINE = re.compile(r'^\s*(?:%[^=]*=\s*)?"?[a-z_]+\.[a-z_.]+', re.MULTILINE)
 """A line of MLIR text that holds an operation (`%x = stablehlo.add ...`, `"stablehlo.case"(...)`, `func.return`)."""

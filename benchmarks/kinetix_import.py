@@ -40,6 +40,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.benchmarks._harness import LEVELS_DIR, emit, environment, progress, require_levels
 from impulse.benchmarks.reference_env import run_reference
 from impulse.engine.env.observation_types import EntityObservation

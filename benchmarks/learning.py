@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from impulse.benchmarks._harness import LEVELS_DIR, REPO, emit, environment, progress
 from impulse.benchmarks.plot import Panel, Series, render
 

@@ -17,6 +17,7 @@ import argparse
 import time
 
 import jax
+
 from impulse.benchmarks._harness import emit, environment, progress, time_jitted
 from impulse.engine.levels.generator import sample_random_level
 from impulse.engine.levels.mutations import MutationConfig, mutate_level

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+
 from impulse.benchmarks._harness import REPO, emit, environment, progress
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"

@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.benchmarks._harness import emit, environment, progress
 from impulse.engine.env.api import Env, make_env
 from impulse.engine.env.env import reset_batch, reset_from_batch

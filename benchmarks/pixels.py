@@ -36,6 +36,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.benchmarks import env as env_bench
 from impulse.benchmarks._harness import DEFAULT_LEVELS, emit, environment, progress, require_levels
 from impulse.benchmarks.compat_jax2d import action_sequence, level_name, resolve_levels

@@ -34,6 +34,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
 from impulse.actors.rollout import rollout
 from impulse.actors.trajectory import make_batch
 from impulse.benchmarks._harness import emit, environment, progress, time_jitted

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from impulse.benchmarks._harness import emit, environment, progress
 
 DEFAULT_LEVELS = ("s_hop_over", "s_easy_car_right")
@@ -81,6 +82,7 @@ async def _play(url: str, level: str, warmup: int, steps: int, agent: str | None
 
 def run(levels: list[str], warmup: int, steps: int, agent: str | None = None) -> list[dict[str, Any]]:
     import uvicorn
+
     from impulse.deploy.runtime.pilots import load_pilot
     from impulse.studio.app import make_app
 

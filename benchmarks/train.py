@@ -21,6 +21,7 @@ import time
 from typing import NamedTuple
 
 import jax
+
 from impulse.actors.rollout import rollout
 from impulse.actors.trajectory import make_batch
 from impulse.benchmarks._harness import emit, environment, progress, require_levels, time_jitted

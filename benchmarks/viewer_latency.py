@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from impulse.benchmarks._harness import REPO, emit, progress
 
 DEFAULT_CONFIG = REPO / "configs" / "quick-launch.toml"

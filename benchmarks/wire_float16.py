@@ -30,6 +30,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.benchmarks._harness import REPO, emit, environment, progress
 
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"

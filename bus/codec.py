@@ -56,6 +56,7 @@ from functools import lru_cache
 from typing import Any, NamedTuple
 
 import numpy as np
+
 from impulse.bus.keys import SCHEMA_MAJOR
 
 MAGIC = b"IMPZ"

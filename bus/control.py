@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
+
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.stamp import Stamp
 

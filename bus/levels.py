@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+
 from impulse.bus.codec import Kind, Message, decode, encode
 from impulse.bus.stamp import Stamp
 

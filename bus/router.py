@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+
 from impulse.bus.config import RouterConfig, is_loopback
 from impulse.bus.keys import LEARNER, PREFIX, SCHEMA_MAJOR
 from impulse.bus.roles import WEIGHTS_CACHE, Role

@@ -12,6 +12,7 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+
 from impulse.bus.codec import TREE_HASH_META, Kind, Message, Rejected, flatten, wire_dtype
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import zenoh
 import zenoh.ext
+
 from impulse.bus.config import BusConfig, check_positive
 from impulse.bus.inbox import AliveWatcher, Inbox, Mailbox, QueryInbox
 from impulse.bus.keys import Keys, check_name, check_role

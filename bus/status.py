@@ -16,6 +16,7 @@ from collections import Counter
 from typing import Any, NamedTuple
 
 import zenoh
+
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.inbox import Received
 from impulse.bus.keys import Keys

@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
+
 from impulse.bus.codec import Deferred, Kind, Message, Rejected, decode, encode
 from impulse.bus.stamp import Stamp
 

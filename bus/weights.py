@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
+
 from impulse.bus.codec import TREE_HASH_META, Kind, Message, decode, encode
 from impulse.bus.stamp import Stamp
 

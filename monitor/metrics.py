@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import rerun as rr
+
 from impulse.engine.levels.drawing import SceneDrawing
 from impulse.monitor.draw import log_scene
 

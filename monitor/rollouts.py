@@ -27,6 +27,7 @@ from typing import Any
 import jax
 import numpy as np
 import rerun as rr
+
 from impulse.engine.env.state import EnvState
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.level import level_id_values

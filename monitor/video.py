@@ -16,9 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image, ImageDraw
+
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.monitor.png import render_scene
-from PIL import Image, ImageDraw
 
 FORMATS = (".gif", ".webp", ".mp4")
 DEFAULT_FPS = 30.0

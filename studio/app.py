@@ -55,6 +55,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect, Request
+from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
 from impulse.curriculum.client import CurriculumUnreachable
 from impulse.engine.levels.drawing import scene_drawing
 from impulse.engine.levels.summary import size_class
@@ -78,13 +86,6 @@ from impulse.studio.scene import actuator_settings, scene_json
 from impulse.studio.security import BodyTooLarge, Guard
 from impulse.studio.solvable import unsolvable_reasons
 from impulse.studio.solve_rates import DEFAULT_ATTEMPTS, SolveRates
-from starlette.applications import Starlette
-from starlette.concurrency import run_in_threadpool
-from starlette.requests import ClientDisconnect, Request
-from starlette.responses import FileResponse, JSONResponse, Response
-from starlette.routing import Mount, Route, WebSocketRoute
-from starlette.staticfiles import StaticFiles
-from starlette.websockets import WebSocket, WebSocketDisconnect
 
 log = logging.getLogger(__name__)
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.bus.config import BusConfig
 from impulse.curriculum.client import CurriculumClient
 from impulse.engine.env.spec import EnvParams, EnvSpec

@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
+
 from impulse.engine.levels import handmade
 from impulse.engine.levels.sets import GLOB_CHARACTERS, LevelSetError, kinetix_levels_root
 from impulse.engine.levels.summary import size_class
@@ -29,7 +31,6 @@ from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.physics.state import SimState
 from impulse.monitor.png import render_level
 from impulse.studio.level_io import LevelInputError, load_file
-from PIL import Image
 
 HANDMADE = "handmade"
 SAVED = "saved"

@@ -32,6 +32,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.engine.env.actions import NUM_ACTION_DIMS, action_space, actuation
 from impulse.engine.env.env import reset, step
 from impulse.engine.env.spec import EnvParams, EnvSpec

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.kinetix_json import KinetixLevel
 from impulse.engine.levels.summary import describe_sizes, size_class

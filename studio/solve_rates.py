@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+
 from impulse.engine.levels.level import Level, stack_levels
 from impulse.engine.levels.summary import size_class
 from impulse.learner.scoring import LevelSets, score_policy

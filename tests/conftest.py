@@ -21,6 +21,7 @@ the compilation cache above. The split balances the two light streams (each abou
 from __future__ import annotations
 
 import pytest
+
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 
 enable_compile_cache()

@@ -52,13 +52,35 @@ def test_the_wheel_holds_impulse_alone_with_every_package(wheel: Path) -> None:
 
 def test_the_wheel_imports_and_runs_from_its_own_files(wheel: Path, tmp_path: Path) -> None:
     zipfile.ZipFile(wheel).extractall(tmp_path / "site")
-    script = ("import sys; sys.path.insert(0, sys.argv[1])\n"
+    # Without the checkout, which an editable install of this venv puts on sys.path: the wheel's files alone.
+    script = ("import os, sys\n"
+              "sys.path = [sys.argv[1]] + [p for p in sys.path if os.path.realpath(p or '.') != sys.argv[2]]\n"
               "import importlib.util, impulse, impulse.deploy.cli as cli\n"
               "assert impulse.__file__.startswith(sys.argv[1]), impulse.__file__\n"
-              "assert all(importlib.util.find_spec(room) is None for room in sys.argv[2:]), 'a room at top level'\n"
+              "assert all(importlib.util.find_spec(room) is None for room in sys.argv[3:]), 'a room at top level'\n"
               "raise SystemExit(cli.main(['levels', 'show', sys.argv[1] + "
               "'/impulse/engine/levels/handmade/s_easy_car_right.json']))\n")
-    shown = subprocess.run([sys.executable, "-c", script, str(tmp_path / "site"), *ROOMS], cwd=tmp_path,
-                           capture_output=True, text=True, timeout=300)
+    shown = subprocess.run([sys.executable, "-c", script, str(tmp_path / "site"), str(REPO.resolve()), *ROOMS],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert shown.returncode == 0, shown.stderr[-3000:]
     assert "s_easy_car_right" in shown.stdout or "green" in shown.stdout.lower(), shown.stdout[-2000:]
+
+
+def test_the_package_is_a_plain_folder_of_links_to_the_rooms() -> None:
+    """No import-path tricks: impulse/ holds one link per room, so the checkout imports as it is, installed or not."""
+    package = REPO / "impulse"
+    for room in ROOMS:
+        assert (package / room).is_symlink() and (package / room).resolve() == REPO / room, room
+    assert "__path__" not in (package / "__init__.py").read_text()
+
+
+def test_a_script_beside_a_clone_named_impulse_imports_the_package(tmp_path: Path) -> None:
+    """A folder holding the clone under the name `impulse` and a script of one's own: the script's `import impulse`
+    gets the package (its public face included), not the clone's top folder as an empty namespace."""
+    (tmp_path / "impulse").symlink_to(REPO, target_is_directory=True)
+    script = ("import impulse, sys\n"
+              "print(impulse.__file__)\n"
+              "assert impulse.make_env is not None and impulse.RunConfig is not None\n")
+    shown = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert Path(shown.stdout.strip()).resolve() == (REPO / "impulse" / "__init__.py").resolve(), shown.stdout

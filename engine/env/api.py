@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import jax
+
 from impulse.engine.env.actions import ActionSpace, action_space, noop_action, random_action
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.env import reset_from_batch, step

@@ -32,6 +32,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.env.actions import actuation
 from impulse.engine.env.observations import observe
 from impulse.engine.env.reward import dense_reward, goal_distance, pair_roles, sparse_reward

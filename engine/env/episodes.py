@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.env.env import reset_batch
 from impulse.engine.env.env import step as env_step
 from impulse.engine.env.spec import EnvParams, EnvSpec

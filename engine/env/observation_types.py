@@ -8,6 +8,7 @@ that networks sized for Kinetix fit unchanged.
 from __future__ import annotations
 
 import jax
+
 from impulse.engine.pytree import pytree_dataclass
 
 Array = jax.Array

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env.observation_types import EntityObservation, PixelObservation
 from impulse.engine.env.pixels import pixel_observation
 from impulse.engine.env.spec import EnvSpec

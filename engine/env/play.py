@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.env.episodes import first_episodes
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.env.state import EnvState

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.levels.level import Level
 from impulse.engine.physics.pairs import PairTables
 from impulse.engine.physics.state import SimState

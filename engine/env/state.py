@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.levels.level import Level
 from impulse.engine.physics.state import SimState
 from impulse.engine.pytree import pytree_dataclass

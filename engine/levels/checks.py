@@ -28,6 +28,7 @@ reach, a green shape that touches red before it can reach blue.
 from __future__ import annotations
 
 import numpy as np
+
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, level_sizes
 from impulse.engine.physics.sizes import SceneSizes
 

@@ -20,6 +20,7 @@ import hashlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.physics.state import SimState
 from impulse.engine.pytree import pytree_dataclass

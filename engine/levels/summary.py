@@ -4,6 +4,7 @@ when it cannot: `engine.levels.checks`), shapes, joints, thrusters and what each
 from __future__ import annotations
 
 import numpy as np
+
 from impulse.engine.levels.checks import unsolvable_reasons
 from impulse.engine.levels.level import NUM_MOTOR_BINDINGS, NUM_THRUSTER_BINDINGS, ROLE_NAMES, Level
 from impulse.engine.physics.params import SimParams

@@ -8,6 +8,7 @@ impulse of base_thruster_power * power * action * dt along its direction.
 from __future__ import annotations
 
 import jax.numpy as jnp
+
 from impulse.engine.physics.geometry import cross, nonzero, rotate
 from impulse.engine.physics.joint_solver import JointRows
 from impulse.engine.physics.params import SimParams

@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.physics.context import Impulses, StepContext
 from impulse.engine.physics.geometry import cross_scalar_vector, dot, nonzero
 from impulse.engine.physics.joint_solver import JointSolverState

@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics.geometry import cross, cross_scalar_vector, dot, nonzero
 from impulse.engine.physics.narrowphase import Contacts
 from impulse.engine.physics.pairs import PairTables

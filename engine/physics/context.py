@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import jax
+
 from impulse.engine.physics.contact_solver import ContactRows
 from impulse.engine.physics.joint_solver import JointRows
 from impulse.engine.physics.narrowphase import Contacts

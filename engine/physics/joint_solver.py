@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+
 from impulse.engine.physics.geometry import cross, nonzero, rotate
 from impulse.engine.physics.params import CARRIED_IMPULSE_CAP, SimParams
 from impulse.engine.physics.slots import one_hot_rows, read_body, spread_to_bodies, sum_onto_bodies

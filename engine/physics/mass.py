@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Literal
 
 import jax.numpy as jnp
+
 from impulse.engine.physics.geometry import cross, dot, nonzero
 
 Array = jnp.ndarray

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+
 from impulse.engine.physics.geometry import cross, dot, nonzero, rotate
 from impulse.engine.physics.pairs import PairTables
 from impulse.engine.physics.state import SimState

@@ -19,6 +19,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+
 from impulse.engine.physics.sizes import SceneSizes
 
 

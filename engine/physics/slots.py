@@ -16,6 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics.pairs import PairTables
 
 Array = jax.Array

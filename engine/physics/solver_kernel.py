@@ -43,6 +43,9 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as pallas_triton
+
 from impulse.engine.physics.contact_solver import ContactRows
 from impulse.engine.physics.context import Impulses, StepContext
 from impulse.engine.physics.joint_solver import JointSolverState
@@ -51,8 +54,6 @@ from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.params import CARRIED_IMPULSE_CAP
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.engine.physics.slots import by_phase, in_slot_order, phase_bodies
-from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as pallas_triton
 
 Array = jax.Array
 

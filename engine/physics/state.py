@@ -8,6 +8,7 @@ lives in its own arrays. All leaves have a leading slot axis; a batch of scenes 
 from __future__ import annotations
 
 import jax
+
 from impulse.engine.pytree import pytree_dataclass
 
 Array = jax.Array

@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.physics.actuators import apply_motors, apply_thrusters, thruster_positions
 from impulse.engine.physics.batched_contacts import batch_slots, solve_contacts
 from impulse.engine.physics.contact_solver import ContactRows, contact_rows, solve_phase, warm_start

@@ -7,6 +7,7 @@ the hot path.
 from __future__ import annotations
 
 import numpy as np
+
 from impulse.engine.physics.building import arena_polygon_count, connected_by_joints
 from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.sizes import SceneSizes

@@ -11,6 +11,7 @@ from functools import partial
 
 import jax
 import pytest
+
 from impulse.actors.follow import PACE_WINDOW
 from impulse.actors.levels import LocalLevels
 from impulse.actors.process import Actor
@@ -25,7 +26,6 @@ from impulse.engine.env.spec import env_from_config
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import make_agent
 from impulse.learner.curriculum_inputs import batch_level_results
-
 from tests.support.launch_procs import QUICK_LAUNCH, TINY_BATCH, free_port
 
 pytestmark = pytest.mark.heavy

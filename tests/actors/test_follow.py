@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
+
 from impulse.actors import follow
 from impulse.actors.follow import LearnerFollower
 from impulse.actors.wire import weights_hash

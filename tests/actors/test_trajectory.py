@@ -9,6 +9,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.actors.trajectory import make_batch
 from impulse.curriculum.results import level_results, results_to_host
@@ -17,7 +18,6 @@ from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.level import level_id_values
 from impulse.engine.levels.sets import load_level_set
 from impulse.engine.physics.sizes import SIZE_S
-
 from tests.support.quick_compile import quick_jit
 
 SPEC = EnvSpec(sizes=SIZE_S, max_timesteps=12)

@@ -8,6 +8,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
+
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.actors.trajectory import make_batch
 from impulse.actors.wire import checked_tree, trajectory_schema, trajectory_template, weights_hash, weights_schema

@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+
 from impulse.actors.wire import FILL, ROWS, TrajectoryWire
 from impulse.benchmarks.distributed import rollout_batch
 from impulse.bus.codec import Kind, Rejected, decode, encode

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from impulse.benchmarks.compat_jax2d import (
     ContactLog,
     checkpoints,

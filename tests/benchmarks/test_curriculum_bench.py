@@ -7,8 +7,9 @@ import math
 from pathlib import Path
 
 import pytest
-from impulse.benchmarks.plot import Panel, Series, main, mean_curves, nice_ticks, render
 from PIL import Image
+
+from impulse.benchmarks.plot import Panel, Series, main, mean_curves, nice_ticks, render
 
 
 def test_nice_ticks_cover_the_range_in_round_steps() -> None:

@@ -4,6 +4,7 @@ its floors are positive and below it (no processes; one tiny jitted rollout)."""
 from __future__ import annotations
 
 import pytest
+
 from impulse.benchmarks.distributed import bytes_per_step
 
 

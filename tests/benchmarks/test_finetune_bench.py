@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import pytest
+
 from impulse.benchmarks.finetune import main, summarise
 
 

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 import pytest
-from impulse.benchmarks.open_loop import constant_plans, main, window_plans
 
+from impulse.benchmarks.open_loop import constant_plans, main, window_plans
 from tests.support.paths import REPO
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from impulse.benchmarks.pixels import compare_images, differing, not_uniform
 
 

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import pytest
+
 from impulse.benchmarks.reference_env import ReferenceEnvError, run_reference
 
 

@@ -7,8 +7,8 @@ import ast
 from pathlib import Path
 
 import numpy as np
-from impulse.benchmarks.scripted_actions import engine_actions
 
+from impulse.benchmarks.scripted_actions import engine_actions
 from tests.support.paths import REPO
 
 BENCHMARKS = REPO / "benchmarks"

@@ -7,6 +7,7 @@ import time
 
 import pytest
 import rerun as rr
+
 from impulse.benchmarks.viewer_latency import new_rows, summarise
 
 

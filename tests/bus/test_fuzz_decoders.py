@@ -42,6 +42,7 @@ from typing import Any
 import jax
 import numpy as np
 import pytest
+
 from impulse.actors.wire import (
     TRAJECTORY_FINITE,
     TrajectoryWire,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from impulse.bus.keys import SCHEMA_MAJOR, Keys, check_name
 
 

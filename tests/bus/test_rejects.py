@@ -6,6 +6,7 @@ import logging
 import threading
 
 import pytest
+
 from impulse.bus.rejects import RejectCounter
 
 

@@ -7,10 +7,10 @@ import shutil
 from pathlib import Path
 
 import pytest
+
 from impulse.bus.config import RouterConfig
 from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, PROTOCOL_ROLES, Role
 from impulse.bus.router import CredentialsError, access_rules, router_zenoh_config
-
 from tests.support.credentials import make_credentials
 
 

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from impulse.bus.codec import TREE_HASH_META, Kind, Message, Rejected, decode, encode, tree_hash
 from impulse.bus.schema import ArraySpec, Schema, check
 

@@ -14,11 +14,11 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 import zenoh
+
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.inbox import AliveWatcher
 from impulse.bus.session import PEER_LISTEN, Bus, Hub, zenoh_config
-
 from tests.support.bus_procs import BusProcess
 
 pytestmark = pytest.mark.heavy

@@ -4,6 +4,7 @@ counters over their restarts without counting a live process twice."""
 from __future__ import annotations
 
 import pytest
+
 from impulse.bus.codec import Kind, Rejected, encode
 from impulse.bus.inbox import Received
 from impulse.bus.keys import Keys

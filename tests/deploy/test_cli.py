@@ -10,9 +10,9 @@ import tomllib
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.commands import bench
-
 from tests.support.paths import REPO
 
 REPO_ROOT = REPO

@@ -19,6 +19,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.cli import EXIT_BROKEN_PIPE, main
 from impulse.deploy.config import (
     MAX_CONFIG_BYTES,
@@ -29,7 +30,6 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.config_reference import keys
 from impulse.deploy.run_config import MAX_RUN_NAME, RunConfig, check_run_name
-
 from tests.support.paths import REPO
 
 SEED = 53

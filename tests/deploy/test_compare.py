@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config, write_resolved_config
 from impulse.deploy.run_config import RunConfig

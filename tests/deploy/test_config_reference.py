@@ -5,9 +5,9 @@ near a wrong name."""
 from __future__ import annotations
 
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.config_reference import as_markdown, keys
-
 from tests.support.paths import REPO
 
 

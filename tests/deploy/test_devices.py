@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from impulse.deploy.config import ConfigError, resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.devices import VISIBLE, restrict_gpus, visible_gpus

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from impulse.bus.service import CycleReport, Progress
 from impulse.deploy.runtime.log_setup import LogHandler, TextFormatter
 from impulse.deploy.runtime.progress import MetricsFile, ProgressLine

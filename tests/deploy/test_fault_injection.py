@@ -20,13 +20,13 @@ import time
 import jax
 import numpy as np
 import pytest
+
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.engine.env.spec import env_from_config
 from impulse.learner.agent import make_agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.update import TrainState, make_optimizer
-
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.launch_procs import (
     SMALL_BATCH,

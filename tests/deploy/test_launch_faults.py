@@ -27,6 +27,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
+
 from impulse.actors.wire import trajectory_template
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.keys import LEARNER, SCHEMA_MAJOR
@@ -38,8 +40,6 @@ from impulse.engine.pytree import tree_arrays
 from impulse.learner.checkpoint import Checkpointer
 from impulse.learner.dataset import open_dataset
 from impulse.monitor.runs import SHARED_COLUMNS
-from rerun.chunk import RrdReader
-
 from tests.support.launch_procs import (
     QUICK_LAUNCH,
     REPO,

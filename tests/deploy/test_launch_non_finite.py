@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.engine.env.spec import env_from_config
@@ -16,7 +17,6 @@ from impulse.learner.agent import make_agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.non_finite import SKIPPED_COLUMN
 from impulse.learner.update import TrainState, make_optimizer
-
 from tests.support.launch_procs import TINY_BATCH, free_port, metrics, start_launch, stop_launch, tail
 
 pytestmark = pytest.mark.heavy

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from impulse.curriculum.stats import histogram
 from impulse.deploy.cli import main
 from impulse.deploy.commands.curriculum import format_report, integer_bins
 from impulse.engine.levels.kinetix_json import save_kinetix_level
 from impulse.engine.physics.sizes import SIZE_S
-
 from tests.support.monitor_scenes import small_level
 from tests.support.paths import REPO, SHARED_LEVELS
 

@@ -11,6 +11,8 @@ import av
 import jax
 import numpy as np
 import pytest
+from PIL import Image
+
 from impulse.deploy.cli import main
 from impulse.engine.levels.drawing import ROLE_COLOURS
 from impulse.engine.levels.kinetix_json import level_to_json_dict, load_kinetix_level, save_kinetix_level
@@ -19,8 +21,6 @@ from impulse.engine.physics.building import empty_scene
 from impulse.engine.physics.sizes import SIZE_M, SIZE_S
 from impulse.monitor.png import world_to_pixel
 from impulse.monitor.video import BORDER, UNSOLVED_FRAME
-from PIL import Image
-
 from tests.support.bad_level_files import write_bad_inputs
 from tests.support.monitor_scenes import BLUE_AT, GREEN_AT, small_level
 from tests.support.paths import REPO

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.runtime.run_dirs import locate_checkpoint
 
 

@@ -5,8 +5,8 @@ from the first update (the actor's random stream includes its incarnation, and i
 from __future__ import annotations
 
 import pytest
-from impulse.deploy.cli import main
 
+from impulse.deploy.cli import main
 from tests.support.launch_procs import TINY_BATCH, free_port, metrics, start_launch, stop_launch, tail
 
 pytestmark = pytest.mark.heavy

@@ -8,6 +8,7 @@ import logging
 from collections.abc import Iterator
 
 import pytest
+
 from impulse.deploy.runtime.log_setup import configure_logging
 
 

@@ -23,13 +23,13 @@ from pathlib import Path
 
 import pytest
 import zenoh
+
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.evaluations import encode_evaluation
 from impulse.bus.keys import Keys
 from impulse.bus.session import zenoh_config
 from impulse.bus.stamp import Stamp
-
 from tests.support.credentials import make_credentials
 from tests.support.launch_procs import QUICK_LAUNCH, REPO, TINY_BATCH, StatusWatcher, free_port, tail, wait_for
 from tests.support.namespaces import Hosts, why_not

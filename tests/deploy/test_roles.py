@@ -8,7 +8,6 @@ import sys
 
 from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, OPERATOR_ROLE, PROTOCOL_ROLES
 from impulse.deploy.commands import COMMANDS, run_roles
-
 from tests.support.paths import REPO
 
 

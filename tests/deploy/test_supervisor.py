@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.status_display import StatusDisplay, render
 from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, error_line, is_failure

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.runtime import status_display
 from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.status_display import render

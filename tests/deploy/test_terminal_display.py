@@ -18,8 +18,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from impulse.deploy.cli import main
 
+from impulse.deploy.cli import main
 from tests.support.launch_procs import QUICK_LAUNCH, TINY_BATCH, free_port
 from tests.support.paths import REPO
 from tests.support.terminal import TerminalRun, run_in_terminal

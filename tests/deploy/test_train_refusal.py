@@ -8,7 +8,6 @@ from pathlib import Path
 
 from impulse.deploy.cli import main
 from impulse.deploy.runtime.run_dirs import remove_unstarted_run
-
 from tests.support.paths import REPO
 
 QUICK = REPO / "configs" / "quick-cpu.toml"

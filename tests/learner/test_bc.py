@@ -10,13 +10,13 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.spec import env_from_config
 from impulse.learner.agent import make_agent
 from impulse.learner.bc import clone, cloning_data, is_kinetix_dataset, kinetix_cloning_data, select_episodes
 from impulse.learner.config import BCConfig, NetworkConfig
 from impulse.learner.dataset import DatasetError, DatasetWriter, open_dataset
-
 from tests.learner.test_dataset import ENV, NETWORK, episode
 
 KINETIX = Path(__file__).resolve().parents[1] / "fixtures" / "kinetix" / "offline" / "flat"

@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from impulse.learner.checkpoint import Checkpointer, CheckpointError, CorruptCheckpointError
 
+from impulse.learner.checkpoint import Checkpointer, CheckpointError, CorruptCheckpointError
 from tests.support.checkpoint_damage import largest_file, truncate
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
+
 from impulse.engine.io_errors import DiskFullError, lift_write_limits, limit_writes
 from impulse.learner.checkpoint import ORBAX_TMP, Checkpointer
 from impulse.learner.config import CheckpointConfig

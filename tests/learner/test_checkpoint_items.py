@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
+
 from impulse.learner.checkpoint import Checkpointer, CheckpointError
 
 TRAIN = {"params": {"w": np.arange(6, dtype=np.float32).reshape(2, 3)}, "version": np.array(4, np.int32)}

@@ -14,11 +14,11 @@ import time
 import numpy as np
 import pytest
 import zarr
+
 from impulse.actors.trajectory import EpisodeStats, Trajectory, TrajectoryBatch
 from impulse.engine.levels.level import level_id_words
 from impulse.learner.dataset import DatasetError, DatasetWriter, Episode, folder_bytes, open_dataset
 from impulse.learner.recorder import EpisodeAssembler
-
 from tests.support.paths import REPO
 
 ENV = {"size": "s", "observation": "entity", "levels": ["a", "b"]}

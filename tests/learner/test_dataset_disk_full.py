@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+
 from impulse.engine.io_errors import lift_write_limits, limit_writes
 from impulse.learner import dataset
 from impulse.learner.dataset import PARTIAL, DatasetWriter, Episode, folder_bytes, open_dataset

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.spec import EnvSpec
 from impulse.learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for

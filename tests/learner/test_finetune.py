@@ -20,12 +20,12 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.run import build
-
 from tests.support.launch_procs import TINY_BATCH, free_port
 from tests.support.paths import REPO
 from tests.support.scalars import expected_points, metrics_rows, tensorboard_points

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.run import build

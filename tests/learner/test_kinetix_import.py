@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.observation_types import EntityObservation, PixelObservation
@@ -31,7 +32,6 @@ from impulse.learner.kinetix_import import (
     read_pickle,
 )
 from impulse.learner.networks import make_network
-
 from tests.support.paths import FIXTURES as TEST_FIXTURES
 from tests.support.paths import REPO
 

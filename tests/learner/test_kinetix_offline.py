@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from impulse.engine.env.observations import observe
 from impulse.engine.env.spec import EnvSpec
 from impulse.engine.levels.kinetix_json import LevelFileError

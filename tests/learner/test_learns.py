@@ -8,13 +8,13 @@ import json
 
 import jax
 import pytest
+
 from impulse.deploy.commands.train import train_run
 from impulse.deploy.config import config_to_toml, resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.evaluate import evaluate
 from impulse.learner.run import build
 from impulse.monitor.runs import EVAL_COLUMNS, SHARED_COLUMNS
-
 from tests.support.paths import REPO
 
 pytestmark = pytest.mark.heavy

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.learner.config import PPOConfig
 from impulse.learner.distributions import Categorical
 from impulse.learner.losses import (

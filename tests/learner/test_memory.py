@@ -10,6 +10,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import pytest
+
 from impulse.actors.levels import LocalLevels
 from impulse.actors.process import Actor, actor_name
 from impulse.bus.roles import ACTOR_ROLE
@@ -23,7 +24,6 @@ from impulse.engine.env.spec import env_from_config
 from impulse.engine.memory import DoesNotFit, check_fits, free_bytes, program_bytes
 from impulse.learner.agent import make_agent
 from impulse.learner.curriculum_inputs import batch_level_results
-
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
 SMALL = ("ppo.num_envs=8", "ppo.num_steps=8", "ppo.num_minibatches=1", "env.observation=symbolic", "network.kind=flat",

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.observations import observation_shape
 from impulse.engine.env.spec import EnvSpec
@@ -19,7 +20,6 @@ from impulse.engine.physics.sizes import size_preset
 from impulse.learner.config import NetworkConfig
 from impulse.learner.distributions import Categorical, DiagGaussian, MultiCategorical, distribution_for
 from impulse.learner.networks import count_parameters, describe_parameters, make_network, parameter_counts
-
 from tests.support.learner_dummies import SIZES, dummy_observation, permute_shapes, scramble_inactive
 from tests.support.quick_compile import quick_jit
 

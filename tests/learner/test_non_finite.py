@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
@@ -27,7 +28,6 @@ from impulse.learner.non_finite import (
 )
 from impulse.learner.run import RunError, build, export_policy
 from impulse.learner.update import keep_if_finite
-
 from tests.support.paths import REPO
 
 QUICK = REPO / "configs" / "quick-cpu.toml"

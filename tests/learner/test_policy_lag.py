@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import pytest
+
 from impulse.learner.update import check_policy_lag
 
 
@@ -17,6 +18,7 @@ def test_the_update_measures_lag_from_the_batch_versions():
     """`ppo_update` reports learner version minus the batch's behaviour version; fused batches carry the
     learner's own version, hence lag 0."""
     import jax
+
     from impulse.actors.trajectory import Trajectory, make_batch
     from impulse.engine.env.observations import observation_shape
     from impulse.engine.env.spec import EnvSpec
@@ -49,6 +51,7 @@ def test_the_clip_centred_on_the_learner():
     learner's policy (all 1: nothing clipped), where the classic clip measures them from the behaviour's."""
     import jax
     import numpy as np
+
     from impulse.actors.trajectory import Trajectory, make_batch
     from impulse.engine.env.observations import observation_shape
     from impulse.engine.env.spec import EnvSpec

@@ -9,7 +9,6 @@ import json
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.run import evaluate_run
-
 from tests.support.paths import REPO
 
 AGENT = REPO / "pretrained" / "general-s"

@@ -17,13 +17,13 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
 from impulse.learner.checkpoint import Checkpointer
 from impulse.learner.run import build, fused_checkpoint_items
 from impulse.monitor.scalars import event_files
-
 from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.paths import REPO
 from tests.support.scalars import expected_points, metrics_rows, tensorboard_points

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.learner.returns import gae, vtrace
 
 T, B = 7, 3

@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
+
 from impulse.actors.rollout import rollout, start_rollout
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels.drawing import FIXED_NEUTRAL, ROLE_COLOURS, scene_drawing
@@ -27,8 +29,6 @@ from impulse.monitor.metrics import log_scalars
 from impulse.monitor.png import render_scene, world_to_pixel
 from impulse.monitor.rollouts import RolloutFrames, contact_points, log_rollout
 from impulse.monitor.stream import Monitor, open_recording
-from rerun.chunk import RrdReader
-
 from tests.support.launch_procs import free_port, wait_for
 from tests.support.monitor_scenes import small_level
 from tests.support.paths import REPO

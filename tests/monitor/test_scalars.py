@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
@@ -21,8 +23,6 @@ from impulse.deploy.runtime.monitoring import scalar_sinks_for
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.deploy.runtime.progress import MetricsFile
 from impulse.monitor.scalars import TENSORBOARD_DIR, TensorBoardSink, event_files
-from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
-
 from tests.support.launch_procs import free_port
 from tests.support.scalars import expected_points, metrics_rows, tensorboard_points, wandb_run
 

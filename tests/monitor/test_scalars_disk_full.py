@@ -11,11 +11,11 @@ import re
 from pathlib import Path
 
 import pytest
+from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
 from impulse.engine.io_errors import lift_write_limits, limit_writes
 from impulse.monitor import scalars
 from impulse.monitor.scalars import TensorBoardSink, event_files
-from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
-
 from tests.support.scalars import tensorboard_points
 
 FREE = r"\(\d+(\.\d)? [KMGT]?i?B free of \d+(\.\d)? [KMGT]?i?B\)"

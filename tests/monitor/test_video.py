@@ -12,11 +12,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from PIL import Image
+
 from impulse.engine.env.state import initial_state
 from impulse.engine.levels.sets import load_level_set
 from impulse.engine.physics.sizes import SIZE_S
 from impulse.monitor.video import BORDER, SOLVED_FRAME, UNSOLVED_FRAME, episode_grid_frames, save_video
-from PIL import Image
 
 STEPS = 4
 

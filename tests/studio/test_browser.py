@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from impulse.bus.session import Bus
 from impulse.engine.levels.level import level_id_values
 from impulse.engine.levels.sets import LevelSetError, kinetix_levels_root
-
 from tests.support.browser import browser_page, missing_browser
 from tests.support.studio_server import Served, free_port, serving
 
@@ -84,7 +84,6 @@ def server(tmp_path_factory: pytest.TempPathFactory, hub, runs_dir: Path):
     from impulse.studio.app import make_app
     from impulse.studio.console import CurriculumLink
     from impulse.studio.security import new_token
-
     from tests.support.curriculum_service import SPEC
 
     levels_dir = tmp_path_factory.mktemp("studio-levels")
@@ -251,7 +250,6 @@ def test_watching_the_shipped_agent_play(server, page) -> None:
 def test_curriculum_console_shows_the_buffer_sends_a_level_and_changes_a_knob(hub, server, page, shots: Path,
                                                                               tmp_path: Path) -> None:
     from impulse.curriculum.stats import live_knob_values
-
     from tests.support.curriculum_service import serving
 
     with Bus(hub.config, RUN, "curriculum", "curriculum") as bus, serving(bus, tmp_path / "ckpt") as service:

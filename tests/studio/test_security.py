@@ -25,11 +25,11 @@ import time
 from pathlib import Path
 
 import pytest
+
 from impulse.deploy.cli import build_parser
 from impulse.engine.levels import handmade
 from impulse.studio.app import MAX_BODY_BYTES, make_app
 from impulse.studio.security import TOKEN_COOKIE, new_token
-
 from tests.support.studio_server import Served, serving
 
 CAR = "s_easy_car_right"

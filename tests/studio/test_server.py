@@ -19,6 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
+from starlette.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
 from impulse.deploy.cli import main
 from impulse.engine.levels import handmade
 from impulse.engine.levels.handmade.files import level_differences
@@ -27,10 +31,6 @@ from impulse.engine.levels.sets import LevelSetError, kinetix_levels_root
 from impulse.engine.physics.sizes import SIZE_S
 from impulse.studio.app import make_app
 from impulse.studio.level_io import load_document
-from PIL import Image
-from starlette.testclient import TestClient
-from starlette.websockets import WebSocketDisconnect
-
 from tests.support.paths import REPO
 
 CAR = "s_easy_car_right"  # a motorised green wheel (motor binding 0) that drives right into a blue ball
@@ -368,6 +368,7 @@ def tiny_pilot():
     """A small untrained entity-network agent for S levels, standing in for a checkpoint (loading one is
     `impulse eval`'s code, tested there)."""
     import jax
+
     from impulse.engine.env.spec import EnvParams, EnvSpec
     from impulse.learner.agent import make_agent
     from impulse.learner.config import NetworkConfig

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+
 from impulse.engine.levels.kinetix_json import level_to_json_dict
 from impulse.engine.levels.level import level_from_scene
 from impulse.engine.physics.building import empty_scene

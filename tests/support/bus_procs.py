@@ -27,11 +27,11 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
 from impulse.bus.codec import Kind, Rejected, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus, run_hub
-
 from tests.support.paths import REPO
 
 REPO_ROOT = REPO

@@ -13,6 +13,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env import env
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.env.state import EnvState

@@ -19,7 +19,6 @@ from impulse.bus.config import BusConfig
 from impulse.bus.keys import OPERATOR
 from impulse.bus.session import Bus
 from impulse.bus.status import read_status
-
 from tests.support.paths import REPO
 
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"

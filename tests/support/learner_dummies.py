@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env.observation_types import (
     ATTENTION_CHANNELS,
     CIRCLE_FEATURES,

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import jax
 import numpy as np
+
 from impulse.engine.levels.generator import sample_random_levels
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, ROLE_RED, Level
 from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes

@@ -7,6 +7,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.levels.level import level_from_scene
 from impulse.engine.physics.building import add_circle, add_rectangle, add_revolute_joint, add_thruster, empty_scene
 from impulse.engine.physics.sizes import SIZE_S

@@ -12,10 +12,10 @@ import sys
 
 import jax
 import numpy as np
+
 from impulse.actors.trajectory import EpisodeStats
 from impulse.learner.hosts import broadcast_from_leader, global_batch, join_hosts, local_copy
 from impulse.learner.sharding import DataParallel, learner_devices
-
 from tests.support.sharded_update_check import NUM_ENVS, update_case
 
 

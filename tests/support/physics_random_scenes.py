@@ -13,6 +13,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics import (
     SimState,
     add_circle,
@@ -22,7 +23,6 @@ from impulse.engine.physics import (
     add_thruster,
 )
 from impulse.engine.physics.geometry import rotate
-
 from tests.support.physics_sim import SIZES, arena_scene
 
 NUM_FREE_POLYGONS = SIZES.num_polygons - SIZES.num_static_polygons

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics import SceneSizes, SimParams, SimState, SolverOptions, empty_scene, step
 from impulse.engine.physics.pairs import pair_tables
 

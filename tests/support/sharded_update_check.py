@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.actors.trajectory import Trajectory, make_batch
 from impulse.engine.env.observations import observation_shape
 from impulse.engine.env.spec import EnvSpec

@@ -33,6 +33,7 @@ def free_port() -> int:
 def serving(app: Any, token: str | None) -> Iterator[Served]:
     """Serve `app` (built by `make_app(..., token=token)`) until the block ends."""
     import uvicorn
+
     from impulse.studio.app import UVICORN_SETTINGS
     from impulse.studio.security import studio_address
 

@@ -16,6 +16,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics.state import SimState
 
 Array = jax.Array

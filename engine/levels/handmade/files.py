@@ -11,6 +11,7 @@ import sys
 
 import jax
 import numpy as np
+
 from impulse.engine.levels import handmade
 from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level, save_kinetix_level
 from impulse.engine.levels.level import Level

@@ -12,6 +12,7 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.levels.level import ROLE_NEUTRAL, Level, level_from_scene
 from impulse.engine.physics.building import (
     add_circle,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from impulse.engine.env.actions import action_space, engine_actions, noop_action, random_action, unified_action
 
+from impulse.engine.env.actions import action_space, engine_actions, noop_action, random_action, unified_action
 from tests.support.env_scenes import (
     CONTINUOUS_SPEC,
     DISCRETE_SPEC,

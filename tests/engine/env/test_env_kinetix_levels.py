@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.benchmarks._harness import LEVELS_DIR
 from impulse.engine.env import env
 from impulse.engine.env.actions import random_action

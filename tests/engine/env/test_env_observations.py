@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.env.observation_types import (
     ATTENTION_CHANNELS,
     CIRCLE_FEATURES,
@@ -29,7 +30,6 @@ from impulse.engine.physics import (
     add_thruster,
     empty_scene,
 )
-
 from tests.support.env_scenes import GREEN_BALL, SPEC, quiet_scene, rollout, start
 from tests.support.paths import REPO
 

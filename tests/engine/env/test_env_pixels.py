@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.env import env
 from impulse.engine.env.observations import observation_shape
 from impulse.engine.env.pixels import pixel_geometry, render_pixels

@@ -5,10 +5,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env import env
 from impulse.engine.env.observations import observe
 from impulse.engine.levels.level import ROLE_BLUE, stack_levels
-
 from tests.support.env_scenes import (
     BATCH,
     GREEN_BALL,

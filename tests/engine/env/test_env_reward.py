@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+
 from impulse.engine.env.state import UNSET_DISTANCE
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_from_scene
 from impulse.engine.physics import add_circle, add_rectangle, add_revolute_joint, empty_scene
-
 from tests.support.env_scenes import (
     BOX,
     CHUNK,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.spec import EnvParams, EnvSpec, env_from_config
 from impulse.engine.physics import SIZE_M, SimParams

@@ -7,6 +7,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import pytest
+
 from impulse.engine.levels.draws import DrawLayout
 from impulse.engine.levels.generator import SHAPE_ADD_DRAWS, SHAPE_DRAWS, THRUSTER_DRAWS
 

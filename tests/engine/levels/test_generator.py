@@ -9,12 +9,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.benchmarks.kernel_check import trajectories
 from impulse.engine.levels.generator import GeneratorConfig, sample_random_level, sample_random_levels
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED
 from impulse.engine.physics.options import SolverOptions
 from impulse.engine.physics.params import SimParams
-
 from tests.support.level_samples import SIZES, STAT_COUNTS, host_levels, problems, random_levels, summary, take
 
 # Kinetix's measured statistics of unfiltered random levels (reference digest, table 9.4): sample size, then the

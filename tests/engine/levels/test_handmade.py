@@ -10,6 +10,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+
 from impulse.engine.env.play import play_batch
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.levels import handmade

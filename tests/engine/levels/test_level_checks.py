@@ -7,10 +7,10 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+
 from impulse.engine.levels.checks import NO_BLUE, NO_GREEN, TOUCH_MARGIN, unsolvable_reasons
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_NEUTRAL, Level
 from impulse.engine.physics.sizes import SIZE_S, SceneSizes
-
 from tests.support.monitor_scenes import GREEN_AT, small_level
 
 BOX, BLUE, RED = 4, 5, 6  # the small level's green box, blue (fixed) ball and red ball

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.levels.kinetix_json import (
     MAX_LEVEL_FILE_BYTES,
     LevelFileError,
@@ -38,7 +39,6 @@ from impulse.engine.physics.options import SolverOptions
 from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.params import SimParams
 from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
-
 from tests.support.bad_level_files import good_level_text, truncation_point, write_bad_inputs
 from tests.support.paths import REPO
 

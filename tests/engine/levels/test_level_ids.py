@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+
 from impulse.engine.levels.kinetix_json import load_kinetix_level, save_kinetix_level
 from impulse.engine.levels.level import (
     content_level_id,
@@ -14,7 +15,6 @@ from impulse.engine.levels.level import (
     with_content_id,
 )
 from impulse.engine.levels.sets import load_level_set
-
 from tests.support.level_samples import SIZES, random_levels
 
 

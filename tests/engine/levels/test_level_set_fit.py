@@ -9,13 +9,13 @@ import shutil
 from pathlib import Path
 
 import pytest
+
 from impulse.engine.levels import handmade
 from impulse.engine.levels.kinetix_json import LevelDoesNotFit, load_kinetix_level
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import LevelSetError, load_level_set, size_needed
 from impulse.engine.physics.sizes import SIZE_L, SIZE_M, SIZE_S, SceneSizes
 from impulse.learner.scoring import load_level_sets
-
 from tests.support.paths import SHARED_LEVELS
 
 LOGGER = "impulse.engine.levels.sets"

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from impulse.deploy.run_config import RunConfig
 from impulse.engine.levels.sets import (
     KINETIX_LEVELS_ENV,
@@ -23,7 +24,6 @@ from impulse.engine.levels.sets import (
 from impulse.engine.physics.sizes import SIZE_L, SIZE_S
 from impulse.learner.run import RunError, _eval_sets, _levels
 from impulse.learner.scoring import format_scores, kinetix_groups
-
 from tests.support.bad_level_files import good_level_text, write_bad_inputs
 from tests.support.paths import SHARED_LEVELS
 

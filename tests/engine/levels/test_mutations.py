@@ -11,6 +11,7 @@ import functools
 import jax
 import numpy as np
 import pytest
+
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, ROLE_RED, level_id_values
 from impulse.engine.levels.mutations import (
     EDIT_NAMES,
@@ -20,7 +21,6 @@ from impulse.engine.levels.mutations import (
     mutate_level,
     mutate_levels,
 )
-
 from tests.support.level_samples import SIZES, host_levels, problems, summary, to_host
 
 # Per-operator tests run on L levels (room left for additions, fixed joints present), one compiled program for all

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.physics import (
     add_circle,
     add_rectangle,
@@ -15,7 +16,6 @@ from impulse.engine.physics import (
     add_thruster,
     validate_scene,
 )
-
 from tests.support.physics_random_scenes import build_scenes, draw_actions, draw_parameters
 from tests.support.physics_sim import (
     CHUNK,

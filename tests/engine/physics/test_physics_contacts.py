@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from impulse.engine.physics import add_circle, add_rectangle, add_revolute_joint
 
+from impulse.engine.physics import add_circle, add_rectangle, add_revolute_joint
 from tests.support.physics_sim import (
     DT,
     FLOOR_TOP,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from impulse.engine.physics import add_circle, add_fixed_joint, add_rectangle
 
+from impulse.engine.physics import add_circle, add_fixed_joint, add_rectangle
 from tests.support.physics_sim import (
     PARAMS,
     arena_scene,
@@ -99,8 +99,8 @@ def test_a_motor_driven_weld_of_light_bodies_carries_its_whole_impulse():
     parted the half cheetah from Jax2D by 17 cm; under it this test fails)."""
     import jax
     import jax.numpy as jnp
-    from impulse.engine.physics import add_revolute_joint, step
 
+    from impulse.engine.physics import add_revolute_joint, step
     from tests.support.physics_sim import OPTIONS, SIZES
 
     state = arena_scene()

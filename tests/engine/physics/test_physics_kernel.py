@@ -15,13 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.benchmarks._harness import LEVELS_DIR
 from impulse.benchmarks.kernel_check import compare, shared_levels
 from impulse.benchmarks.kernel_size import kernel_equations
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.spec import env_from_config
 from impulse.engine.physics import SIZE_L, SIZE_S, SolverOptions, step
-
 from tests.support.level_samples import host_levels
 
 # Measured (2026-12-02) after 120 steps: 1.9e-5 m over the NUM_SCENES scenes (the unrolled kernel before it: 5.0e-6 m),

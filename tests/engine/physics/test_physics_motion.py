@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from impulse.engine.physics import add_circle, add_rectangle, add_revolute_joint, add_thruster
 
+from impulse.engine.physics import add_circle, add_rectangle, add_revolute_joint, add_thruster
 from tests.support.physics_sim import (
     DT,
     PARAMS,

@@ -7,10 +7,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.physics import SolverOptions, add_circle, add_rectangle, add_revolute_joint
 from impulse.engine.physics.batched_contacts import BATCH, batch_slots
 from impulse.engine.physics.pairs import pair_tables
-
 from tests.support.physics_sim import (
     CHUNK,
     DT,

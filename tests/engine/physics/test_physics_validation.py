@@ -7,6 +7,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from impulse.engine.physics import (
     SceneError,
     add_circle,
@@ -17,7 +18,6 @@ from impulse.engine.physics import (
     check_scene,
     validate_scene,
 )
-
 from tests.support.paths import SHARED_LEVELS
 from tests.support.physics_sim import SIZES, arena_scene, non_finite_leaves, run, set_body_field
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics import SceneSizes, add_circle, add_rectangle, add_revolute_joint, empty_scene
 from impulse.engine.physics.building import write_body, write_joint
 
