@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from impulse.bus.codec import Rejected
-from impulse.bus.levels import decode_level_batch
+from impulse.bus.levels import LEVEL_QUERY_TIMEOUT_S, decode_level_batch
 from impulse.bus.session import Bus
 from impulse.curriculum.state import ORIGIN_NEW, LevelBatch
 from impulse.curriculum.wire import level_batch_from_message, level_batch_schema
@@ -41,6 +41,10 @@ class LevelSource(Protocol):
     waiting: bool
     """Whether the last `next_batch` is still waiting for levels (shown on the status line)."""
 
+    template: LevelBatch
+    """The shapes and dtypes of every batch `next_batch` hands out (`jax.ShapeDtypeStruct` leaves), known before
+    the first: the actor compiles its rollout for them while it waits for levels."""
+
     def next_batch(self, key: Array, while_waiting: Callable[[], bool] | None = None) -> LevelBatch | None:
         """The level batch (leading axis K, K fixed for the source) for the next rollout. `while_waiting` is
         called now and then if the levels are slow to come (the actor keeps its status line fresh with it); when
@@ -64,6 +68,7 @@ class LocalLevels:
             raise ValueError("random levels come from the curriculum service (CurriculumLevels), not a local set")
         self.names, levels = load_level_set(env.levels, sizes)
         self._batch = fixed_batch(levels)
+        self.template = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self._batch)
         count = len(self.names)
         self.description = f"{env.levels} ({count} level{'s' if count != 1 else ''})"
 
@@ -79,7 +84,7 @@ class CurriculumLevels:
 
     reports_results = True
 
-    def __init__(self, bus: Bus, template: LevelBatch, method: str, timeout_s: float = 5.0):
+    def __init__(self, bus: Bus, template: LevelBatch, method: str, timeout_s: float = LEVEL_QUERY_TIMEOUT_S):
         self.bus = bus
         self.template = template
         self.schema = level_batch_schema(template)

@@ -16,9 +16,10 @@ One cycle (driven by the shared run loop):
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
 
-Starting. Before its first cycle the actor fetches its first level batch, resets its environments on it and compiles
-its rollout ahead of time, then checks the compiled program against the memory free (`engine.memory.check_fits`):
-one that does not fit is refused with the sizes and an override (`impulse actor` then exits with the status that
+Starting. Before its first cycle the actor compiles its rollout ahead of time for the shapes of its level source's
+batches (while a curriculum service may still be starting), checks the compiled program against the memory free
+(`engine.memory.check_fits`), then fetches its first level batch and resets its environments on it. A program
+that does not fit is refused with the sizes and an override (`impulse actor` then exits with the status that
 makes `impulse launch` give up at once), instead of being killed by the kernel in its first rollout.
 
 Weights. The actor follows the learner (`actors.follow.LearnerFollower`): it adopts only intact, strictly newer
@@ -335,26 +336,34 @@ class Actor:
         return not self._stop_requested
 
     def start(self) -> None:
-        """Fetch the first level batch (from the curriculum service, waiting for it as long as no stop is asked),
-        reset the environments on it, and compile the rollout and check that it fits in memory (`DoesNotFit`,
-        naming the sizes and an override that would fit), before the actor waits for weights and takes levels."""
+        """Compile the rollout for the level source's batch shapes and check that it fits in memory (`DoesNotFit`,
+        naming the sizes and an override that would fit), then fetch the first level batch (from the curriculum
+        service, waiting for it as long as no stop is asked) and reset the environments on it, before the actor
+        waits for weights and takes levels."""
         self.key, level_key, rollout_key = jax.random.split(self.key, 3)
+        template = self.levels.template
+
+        def start_on(batch: Any, key: jax.Array) -> Any:
+            return start_rollout(self.agent.spec, self.env_params, batch.levels, self.num_envs, key, batch.train)
+
+        # Compiled from the batches' shapes before the first batch comes, so that the compile overlaps the wait
+        # for a curriculum service that is itself still compiling.
+        self._compile_rollout(jax.eval_shape(start_on, template, rollout_key), template)
         first = self.levels.next_batch(level_key, self._keep_waiting_for_levels)
         if first is None:  # only a stop request ends a wait without levels
             return
-        self.carry = start_rollout(self.agent.spec, self.env_params, first.levels, self.num_envs, rollout_key,
-                                   first.train)
+        self.carry = start_on(first, rollout_key)
         rows = self.num_envs + int(first.train.shape[0])  # a window touches at most E + K levels
         level_results = self.level_results
         self._level_results = jax.jit(lambda params, batch: level_results(params, batch, rows))
-        self._compile_rollout(first)
 
-    def _compile_rollout(self, batch: Any) -> None:
-        """Compile the rollout for the weights' shapes, the carry and a level batch like `batch` (the program the
-        first cycle runs: `jit` reuses it), and refuse it when it needs more memory than this device has free."""
+    def _compile_rollout(self, carry: Any, batch: Any) -> None:
+        """Compile the rollout for the shapes of the weights, a carry like `carry` and a level batch like `batch`
+        (the program the first cycle runs: `jit` reuses it), and refuse it when it needs more memory than this
+        device has free."""
         log.info("compiling the rollout (%s envs x %s steps) ...", self.num_envs, self.num_steps)
         started = time.perf_counter()
-        compiled = self._rollout.lower(self._params_template, self.carry, batch).compile()
+        compiled = self._rollout.lower(self._params_template, carry, batch).compile()
         log.info("compiled the rollout in %.1f s", time.perf_counter() - started)
         check_fits(compiled, f"{self.name}'s rollout", self.num_envs, self.num_steps)
 

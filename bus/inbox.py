@@ -90,7 +90,7 @@ class Mailbox:
         self.capacity = capacity
         self.drop_oldest = drop_oldest
         self.dropped = 0
-        self._samples: deque[zenoh.Sample] = deque()
+        self._samples: deque[tuple[float, zenoh.Sample]] = deque()  # (time.monotonic() on arrival, sample)
         self._lock = threading.Lock()
 
     def __call__(self, sample: zenoh.Sample) -> None:
@@ -100,10 +100,15 @@ class Mailbox:
                 if not self.drop_oldest:
                     return
                 self._samples.popleft()
-            self._samples.append(sample)
+            self._samples.append((time.monotonic(), sample))
 
     def try_recv(self) -> zenoh.Sample | None:
         """The oldest queued sample, or None."""
+        arrived = self.try_recv_arrived()
+        return None if arrived is None else arrived[1]
+
+    def try_recv_arrived(self) -> tuple[float, zenoh.Sample] | None:
+        """The oldest queued sample with the `time.monotonic()` of its arrival, or None."""
         with self._lock:
             return self._samples.popleft() if self._samples else None
 
@@ -137,14 +142,21 @@ class IncomingQuery:
     waiting for its timeout.
     """
 
-    def __init__(self, query: zenoh.Query, reply_key: str) -> None:
+    def __init__(self, query: zenoh.Query, reply_key: str, arrived: float | None = None) -> None:
+        """`arrived`: the `time.monotonic()` at which zenoh handed the query over (None: now)."""
         self._query = query
+        self.arrived = time.monotonic() if arrived is None else arrived
         self._reply_key = reply_key
         self.key = str(query.key_expr)
         self.parameters: dict[str, str] = dict(query.parameters)
         payload = query.payload
         self.payload: bytes | None = payload.to_bytes() if payload is not None else None
         self.answered = False
+
+    @property
+    def waited_s(self) -> float:
+        """Seconds since the query arrived: one that waited longer than its asker waits is answered in vain."""
+        return time.monotonic() - self.arrived
 
     def reply(self, payload: bytes | bytearray, *, attachment: bytes | None = None) -> None:
         """Send `payload` to the asker and finish the query."""
@@ -179,13 +191,14 @@ class QueryInbox:
         """Queries dropped so far because the mailbox was full."""
         return self.mailbox.dropped
 
-    def _incoming(self, query: zenoh.Query) -> IncomingQuery:
+    def _incoming(self, arrived_query: tuple[float, zenoh.Query]) -> IncomingQuery:
+        arrived, query = arrived_query
         # Replies must name a concrete key: the queryable's own, or (serving a pattern) the one asked for.
-        return IncomingQuery(query, self.key if self._concrete else str(query.key_expr))
+        return IncomingQuery(query, self.key if self._concrete else str(query.key_expr), arrived)
 
     def poll(self, max_items: int | None = None) -> list[IncomingQuery]:
         """Every query waiting now (at most `max_items`), without blocking."""
-        return _drain(self.mailbox.try_recv, self._incoming, max_items)
+        return _drain(self.mailbox.try_recv_arrived, self._incoming, max_items)
 
     def wait(self, timeout_s: float) -> IncomingQuery | None:
         """The next query, waiting up to `timeout_s` seconds for it; None if none came."""

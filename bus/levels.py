@@ -17,6 +17,13 @@ import numpy as np
 from impulse.bus.codec import Kind, Message, decode, encode
 from impulse.bus.stamp import Stamp
 
+LEVEL_QUERY_TIMEOUT_S = 10.0
+"""How long an actor waits for the answer to one level query before it asks again."""
+LEVEL_QUERY_EXPIRY_S = LEVEL_QUERY_TIMEOUT_S / 2
+"""A level query that has waited this long in the curriculum service's queue is refused rather than served: the
+rest of its asker's wait may not cover a sample, and a service that serves queries whose askers have gone (each
+asking again every timeout) falls behind for good, serving every batch in vain while the actors wait."""
+
 
 def encode_level_batch(stamp: Stamp, arrays: Mapping[str, np.ndarray]) -> bytearray:
     """A batch of levels served now (numbered by the stamp's LEVELS sequence)."""

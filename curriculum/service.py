@@ -53,7 +53,7 @@ from impulse.bus.codec import Rejected
 from impulse.bus.control import control_reply, encode_refusal, encode_report
 from impulse.bus.inbox import IncomingQuery
 from impulse.bus.keys import CURRICULUM
-from impulse.bus.levels import decode_level_results, encode_level_batch
+from impulse.bus.levels import LEVEL_QUERY_EXPIRY_S, decode_level_results, encode_level_batch
 from impulse.bus.roles import CURRICULUM_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
@@ -182,6 +182,8 @@ class CurriculumService:
         self.refills = 0
         self.requests_held = 0
         """Level queries refused while the buffer waited for its first scoring (batch-scored SFL)."""
+        self.expired_queries = 0
+        """Level queries refused because they waited `bus.levels.LEVEL_QUERY_EXPIRY_S` or more in the queue."""
         self.injected = 0
         self.policy_version = 0
         self.incarnation = secrets.randbits(31)
@@ -420,6 +422,10 @@ class CurriculumService:
         if wanted is not None and wanted != str(self.curriculum.batch_size):
             query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
             return 0
+        if query.waited_s >= LEVEL_QUERY_EXPIRY_S:
+            self.expired_queries += 1
+            query.reply_error(f"the query waited {query.waited_s:.1f} s for the service, too long to serve")
+            return 0
         if self.filling:
             self.requests_held += 1
             query.reply_error("the level buffer is being filled: a candidate scoring is under way")
@@ -528,6 +534,7 @@ class CurriculumService:
                                      "filter_seconds": round(self.maker.filter_seconds, 1)}}
                    if self.maker is not None else {}),
                 "rejected": self.bus.rejects.counts(), "dropped_inbox_full": self._results.dropped,
+                "dropped_expired_queries": self.expired_queries,
                 "dropped_queries": sum(queries.dropped for queries in (self._sample_queries, self._knob_queries,
                                                                        self._inspect_queries, self._inject_queries)),
                 **{k: json_scalar(v) for k, v in summary.items()}}

@@ -7,6 +7,7 @@ reason."""
 from __future__ import annotations
 
 import json
+import threading
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ from starlette.testclient import TestClient
 from impulse.bus.codec import Kind, decode, encode
 from impulse.bus.config import BusConfig
 from impulse.bus.control import control_reply, control_request
-from impulse.bus.levels import encode_level_results
+from impulse.bus.levels import LEVEL_QUERY_EXPIRY_S, LEVEL_QUERY_TIMEOUT_S, encode_level_results
 from impulse.bus.session import Bus
 from impulse.curriculum.config import CurriculumConfig
 from impulse.curriculum.methods import make_curriculum
@@ -45,8 +46,6 @@ RUN = "curriculum-test"
 
 def serve_until(service: CurriculumService, asked, timeout_s: float = 30.0):
     """Run `asked()` (a blocking bus query) in a thread while the service polls in this one."""
-    import threading
-
     box: dict = {}
     thread = threading.Thread(target=lambda: box.update(answer=asked()))
     thread.start()
@@ -85,6 +84,20 @@ def test_service_serves_applies_tunes_refuses_and_restarts(hub, tmp_path):
 
         first = serve_until(service, sample)
         assert (np.asarray(first.origin) == ORIGIN_NEW).all() and np.asarray(first.train).all()
+
+        # A query that waited in the queue for half its asker's patience (the service busy elsewhere) is refused at
+        # once rather than served after its asker has given up: a service serving only such queries never catches up.
+        late = threading.Thread(target=lambda: actor.get(actor.keys.levels_sample, parameters=f"n={BATCH}",
+                                                         timeout_s=LEVEL_QUERY_TIMEOUT_S))
+        late.start()
+        time.sleep(LEVEL_QUERY_EXPIRY_S + 0.5)
+        served = service.samples
+        refused_at = time.monotonic()
+        while late.is_alive():
+            service.cycle()
+            time.sleep(0.01)
+        assert time.monotonic() - refused_at < 2, "the asker should hear the refusal at once"
+        assert service.samples == served and service.status()["dropped_expired_queries"] == 1
         ids = level_id_values(np.asarray(first.levels.level_id))
 
         # Results for the batch: every level gets two episodes, one solved, so each is scored and inserted.
