@@ -7,9 +7,9 @@ stepping itself is the engine's one episode loop (`engine.env.episodes.episode_l
 and what training keeps of each step.
 
 Levels reach the environments through `levels` (a `Level` batch of K, shared by all environments): an episode
-that ends restarts on the next level of the batch (see `engine.env.env`). Every step records the id of the level
-it was played on (`EnvState.level`), so results are credited by level id even when the caller swaps the batch
-while episodes are running (`actors.trajectory.level_results`). The caller wraps the steps into a
+that ends restarts on the next level of the batch (see `engine.env.env.reset_batch`). Every step records the id of
+the level it was played on (`EnvState.level`), so results are credited by level id even when the caller swaps the
+batch while episodes are running (`curriculum.results.level_results`). The caller wraps the steps into a
 `TrajectoryBatch` with the bootstrap observation (`carry.obs` after the rollout), its policy version and the train
 mask.
 
@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.actors.trajectory import EpisodeStats, Trajectory
 from impulse.engine.env.actions import actuation
 from impulse.engine.env.env import reset_batch

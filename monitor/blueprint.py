@@ -7,7 +7,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import rerun.blueprint as rrb
-from impulse.engine.levels.drawing import ARENA_METRES
+
+from impulse.engine.arena import ARENA_METRES
 from impulse.monitor.metrics import CURRICULUM, METRICS
 from impulse.monitor.rollouts import env_entity
 

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 import rerun as rr
-from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing
+
+from impulse.engine.arena import ARENA_METRES
+from impulse.engine.levels.drawing import SceneDrawing
 
 OUTLINE_RADIUS = 0.025
 SPOKE_RADIUS = 0.015

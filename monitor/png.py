@@ -11,12 +11,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing, scene_drawing
-from impulse.engine.levels.level import Level
-from impulse.engine.physics.state import SimState
 from PIL import Image, ImageDraw
 
-PIXELS_PER_METRE = 100.0  # Kinetix's pixels_per_unit: the arena is 500 x 500 pixels at scale 1
+from impulse.engine.arena import ARENA_METRES, PIXELS_PER_METRE
+from impulse.engine.levels.drawing import SceneDrawing, scene_drawing
+from impulse.engine.levels.level import Level
+from impulse.engine.physics.state import SimState
+
 BACKGROUND = (255, 255, 255)
 OUTLINE_DARKEN = 0.55
 LINK_OUTLINE = (30, 30, 30)

@@ -44,6 +44,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from impulse.engine.arena import ARENA_METRES
 from impulse.engine.levels.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
@@ -66,7 +68,6 @@ from impulse.engine.physics.mass import circle_mass_properties, polygon_mass_pro
 from impulse.engine.physics.sizes import SceneSizes
 from impulse.studio.level_io import LevelInputError
 
-ARENA_METRES = 5.0
 MIN_SIZE = 0.05
 MAX_SIZE = 2.0
 """Shapes are 5 cm to 2 m across (Kinetix's editor allows at most 2 m: its `max_shape_size`)."""

@@ -12,7 +12,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from impulse.engine.levels.drawing import ARENA_METRES, SceneDrawing
+
+from impulse.engine.arena import ARENA_METRES
+from impulse.engine.levels.drawing import SceneDrawing
 from impulse.engine.levels.level import ROLE_NAMES, Level
 
 DIGITS = 4

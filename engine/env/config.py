@@ -1,7 +1,7 @@
 """Settings of the Kinetix-compatible task layer.
 
 Defaults follow Kinetix 3.0.x's training setup so that results compare with its published numbers. This is a
-plain dataclass that imports nothing from the project, because the engine room depends on no other room.
+plain dataclass (it imports only the engine's config checks and arena constants).
 `engine.env.spec.env_from_config` turns it into the environment's static `EnvSpec` and dynamic `EnvParams`.
 """
 
@@ -10,11 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from impulse.engine.arena import SCREEN_PIXELS
 from impulse.engine.config_checks import check_range
-
-_SCREEN_PIXELS = 500
-"""Side of Kinetix's square screen in pixels, which env.pixel_downscale must divide: `engine.env.pixels`'s
-SCREEN_PIXELS, repeated here because this module imports nothing from the project."""
 
 
 @dataclass(frozen=True)
@@ -55,7 +52,7 @@ class EnvConfig:
     def __post_init__(self) -> None:
         for name in ("frame_skip", "max_timesteps", "pixel_downscale"):
             check_range(f"env.{name}", getattr(self, name), at_least=1)
-        if _SCREEN_PIXELS % self.pixel_downscale:
-            raise ValueError(f"env.pixel_downscale must be a divisor of {_SCREEN_PIXELS} (the screen's side in "
+        if SCREEN_PIXELS % self.pixel_downscale:
+            raise ValueError(f"env.pixel_downscale must be a divisor of {SCREEN_PIXELS} (the screen's side in "
                              f"pixels), got {self.pixel_downscale}")
         check_range("env.dense_reward_scale", self.dense_reward_scale, at_least=0)

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from impulse.engine.arena import PIXELS_PER_METRE, SCREEN_PIXELS
 from impulse.engine.env.observation_types import PixelObservation
 from impulse.engine.levels.drawing import FIXED_NEUTRAL, MOTOR_BINDING_COLOURS, ROLE_COLOURS, UNBOUND
 from impulse.engine.levels.level import Level
@@ -39,10 +41,6 @@ from impulse.engine.physics.state import SimState
 
 Array = jax.Array
 
-SCREEN_PIXELS = 500
-"""Side of the full-resolution image (downscale 1): Kinetix's screen_dim."""
-PIXELS_PER_METRE = 100
-"""Kinetix's pixels_per_unit at downscale 1: the 5 m arena fills the screen."""
 WINDOW_METRES = 2
 """Side of the square around each shape's centre outside which it is not drawn (Kinetix's max_shape_size)."""
 JOINT_GLYPH_PIXELS = 6

@@ -15,10 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from impulse.engine.levels.level import ROLE_NEUTRAL, Level
 from impulse.engine.physics.state import SimState
-
-ARENA_METRES = 5.0
 
 Colour = tuple[int, int, int]
 ROLE_COLOURS: tuple[Colour, ...] = (

@@ -37,6 +37,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
+from impulse.engine.arena import ARENA_METRES
 from impulse.engine.levels.draws import DrawLayout
 from impulse.engine.levels.level import (
     NUM_MOTOR_BINDINGS,
@@ -50,7 +52,6 @@ from impulse.engine.levels.level import (
     random_level_id,
 )
 from impulse.engine.physics.building import (
-    ARENA_SIZE,
     FLOOR_TOP,
     empty_scene,
     put_rows,
@@ -409,17 +410,17 @@ def _free_placement(draws: ShapeAddDraws, shape: SampledShape, role: Array, conf
     half with the bottom bias. Connected shapes are never fixed."""
     margin = jnp.maximum(_SQRT2 * shape.half.max(), shape.radius)
     low = jnp.stack([margin, margin + FLOOR_TOP])
-    high = jnp.stack([ARENA_SIZE - margin, ARENA_SIZE - margin])
+    high = jnp.stack([ARENA_METRES - margin, ARENA_METRES - margin])
     opposite = draws.opposite_side < config.opposite_side_chance
-    high = high.at[0].add(jnp.where(opposite & (role == ROLE_GREEN), -ARENA_SIZE / 2.0, 0.0))
-    low = low.at[0].add(jnp.where(opposite & (role == ROLE_BLUE), ARENA_SIZE / 2.0, 0.0))
+    high = high.at[0].add(jnp.where(opposite & (role == ROLE_GREEN), -ARENA_METRES / 2.0, 0.0))
+    low = low.at[0].add(jnp.where(opposite & (role == ROLE_BLUE), ARENA_METRES / 2.0, 0.0))
     position = _between(draws.free_position, low, high)
     mass = 1.0 / shape.inverse_mass
     fix_chance = jnp.minimum(config.fixate_chance_min + config.fixate_chance_scale * mass, config.fixate_chance_max)
     fixed = (draws.fixate < fix_chance) & ~force_no_fixate & ~connected
     bias = config.fixate_bottom_bias + config.fixate_bottom_bias_special_role * (role != ROLE_NEUTRAL)
-    to_bottom = fixed & (draws.fixate_at_bottom < bias) & (position[1] >= ARENA_SIZE / 2.0)
-    return position.at[1].add(jnp.where(to_bottom, -ARENA_SIZE / 2.0, 0.0)), fixed
+    to_bottom = fixed & (draws.fixate_at_bottom < bias) & (position[1] >= ARENA_METRES / 2.0)
+    return position.at[1].add(jnp.where(to_bottom, -ARENA_METRES / 2.0, 0.0)), fixed
 
 
 class _Anchors(NamedTuple):

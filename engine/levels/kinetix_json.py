@@ -31,6 +31,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from impulse.engine.arena import PIXELS_PER_METRE, SCREEN_PIXELS
 from impulse.engine.levels.level import (
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
@@ -50,10 +52,8 @@ from impulse.engine.physics.validate import validate_scene
 
 # Values Kinetix writes beside the scene; fixed in every size (see the digest's section on embedded params).
 MAX_TIMESTEPS = 256
-PIXELS_PER_UNIT = 100
 DENSE_REWARD_SCALE = 0.1
 NUM_SHAPE_ROLES = 4
-SCREEN_DIM = 500
 DOWNSCALE = 4
 SOLVER_BATCH_SIZE = 16
 MAX_SHAPE_SIZE = 2
@@ -875,7 +875,7 @@ def level_to_json_dict(
         value = float(getattr(params, f.name))
         env_params[f.name] = int(value) if f.name in _INTEGER_PARAMS and value.is_integer() else value
     env_params.update(
-        max_timesteps=MAX_TIMESTEPS, pixels_per_unit=PIXELS_PER_UNIT, dense_reward_scale=DENSE_REWARD_SCALE,
+        max_timesteps=MAX_TIMESTEPS, pixels_per_unit=PIXELS_PER_METRE, dense_reward_scale=DENSE_REWARD_SCALE,
         num_shape_roles=NUM_SHAPE_ROLES,
     )
     static_env_params = {
@@ -888,7 +888,7 @@ def level_to_json_dict(
         "solver_batch_size": SOLVER_BATCH_SIZE,
         "do_warm_starting": bool(options.warm_starting),
         "num_static_fixated_polys": sizes.num_static_polygons,
-        "screen_dim": {"0": SCREEN_DIM, "1": SCREEN_DIM},
+        "screen_dim": {"0": SCREEN_PIXELS, "1": SCREEN_PIXELS},
         "downscale": DOWNSCALE,
         "frame_skip": int(frame_skip),
         "max_shape_size": MAX_SHAPE_SIZE,

@@ -35,6 +35,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
+from impulse.engine.arena import ARENA_METRES
 from impulse.engine.levels.draws import DrawLayout
 from impulse.engine.levels.generator import (
     SHAPE_ADD_DRAWS,
@@ -51,7 +53,7 @@ from impulse.engine.levels.generator import (
     uniforms,
 )
 from impulse.engine.levels.level import ROLE_BLUE, ROLE_GREEN, Level, random_level_id
-from impulse.engine.physics.building import ARENA_SIZE, FLOOR_TOP, connected_by_joints, refresh_collision_filter
+from impulse.engine.physics.building import FLOOR_TOP, connected_by_joints, refresh_collision_filter
 from impulse.engine.physics.geometry import rotate
 from impulse.engine.physics.mass import circle_mass_properties, polygon_mass_properties
 from impulse.engine.physics.params import SimParams
@@ -347,7 +349,7 @@ def _change_location(u, level, sizes, config):
     low = jnp.where(group[:, None], position + low_offset, jnp.inf).min(axis=0)
     high = jnp.where(group[:, None], position + high_offset, -jnp.inf).max(axis=0)
     floor = jnp.asarray([0.0, FLOOR_TOP], jnp.float32)
-    shift = jnp.maximum(0.0, floor - low) - jnp.maximum(0.0, high - ARENA_SIZE)
+    shift = jnp.maximum(0.0, floor - low) - jnp.maximum(0.0, high - ARENA_METRES)
     shift = jnp.where(jnp.isfinite(shift), shift, 0.0)
     position = position + jnp.where(group[:, None], shift, 0.0)
     return level.replace(state=state.replace(bodies=bodies.replace(position=position))), jnp.asarray(False)

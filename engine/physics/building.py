@@ -15,6 +15,7 @@ from typing import TypeVar
 
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.physics.mass import MassConvention, circle_mass_properties, polygon_mass_properties
 from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.sizes import SceneSizes
@@ -23,7 +24,6 @@ from impulse.engine.physics.state import Bodies, ContactCache, Joints, SimState,
 Array = jnp.ndarray
 SlotTable = TypeVar("SlotTable", Bodies, Joints, Thrusters)
 
-ARENA_SIZE = 5.0
 FLOOR_TOP = 0.4
 
 

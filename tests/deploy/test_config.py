@@ -7,12 +7,11 @@ from pathlib import Path
 from typing import Literal
 
 import pytest
+
 from impulse.deploy.config import ConfigError, config_to_toml, resolve_config, write_resolved_config
 from impulse.deploy.run_config import RunConfig
-from impulse.engine.env import config as env_config
 from impulse.engine.env.config import EnvConfig
 from impulse.learner.config import PPOConfig
-
 from tests.support.paths import REPO
 
 
@@ -278,12 +277,6 @@ def test_type_column_needs_a_token_wider_than_one() -> None:
     resolve_config(RunConfig, None, ["network.transformer_encoder_size=1"])
     with pytest.raises(ConfigError, match=r"network\.transformer_encoder_size must be >= 2, got 1"):
         resolve_config(RunConfig, None, ["network.transformer_encoder_size=1", "network.shape_type_column=type"])
-
-
-def test_screen_size_matches_the_pixel_renderer() -> None:
-    from impulse.engine.env.pixels import SCREEN_PIXELS
-
-    assert env_config._SCREEN_PIXELS == SCREEN_PIXELS
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.toml")), ids=lambda p: p.name)
