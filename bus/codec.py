@@ -57,7 +57,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from impulse.bus.keys import SCHEMA_MAJOR
+SCHEMA_MAJOR = 2
+"""Major version of the wire format. Incompatible changes bump it, which changes every key (`v1` -> `v2`).
+2: keys under each role's own prefix, no sender name in frames, digests on control frames. A change confined to
+one message family's arrays versions that family instead, inside its frames (the trajectories' formats:
+`bus.trajectories`), so that frames of another format still arrive and are refused and counted."""
 
 MAGIC = b"IMPZ"
 HEADER = struct.Struct("<4sHHIQQIQIQ")

@@ -12,49 +12,35 @@ nowhere else, so a receiver knows who sent a message from the key it arrived on,
 never from a name the message gives itself. The `<actor>` chunk of an actor's keys is not guaranteed (all actors
 share one credential): it tells actors apart, it does not authenticate one.
 
-    <root>/learner/weights/policy       weights broadcast (cached for late joiners under .../@adv/pub/...)
-    <root>/learner/weights/latest       weights queryable (fallback)
-    <root>/learner/credit/<actor>       acknowledgements (credits) for one actor
-    <root>/curriculum/levels/sample     level-batch queryable
-    <root>/curriculum/knobs             live knobs queryable (`impulse curriculum get|set`)
-    <root>/curriculum/inspect           buffer report queryable (`impulse curriculum inspect`)
-    <root>/curriculum/inject            level injection queryable (`impulse curriculum inject`, the studio)
-    <root>/actor/traj/<actor>           trajectory batches
-    <root>/actor/results/<actor>        per-level results
-    <root>/actor/played/<actor>         the level batch an actor plays next (only while a recorder listens)
-    <root>/evaluator/results/<id>       evaluations of the learner's policy on level sets
-    <root>/<role>/status/<id>           status lines (every process)
-    <root>/<role>/alive/<id>            liveliness tokens (every process)
-    <root>/learner/alive/instance-<n>   the learner process's instance token (its nonce, also in its weights)
+Every key is one route's (`bus.routes.ROUTES`: the sender's prefix, the route's chunks, and for a per-sender route
+the sender's id), so the layout is written in one place; `Keys.key(route, ...)` builds any of them, and the named
+methods below are the ones the code uses.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_MAJOR = 2
-"""Major version of the wire format. Incompatible changes bump it, which changes every key (`v1` -> `v2`).
-2: keys under each role's own prefix, no sender name in frames, digests on control frames. A change confined to
-one message family's arrays versions that family instead, inside its frames (the trajectories' formats:
-`bus.trajectories`), so that frames of another format still arrive and are refused and counted."""
+from impulse.bus.codec import SCHEMA_MAJOR  # re-exported: the key carries it too
+from impulse.bus.routes import (  # the role chunks, re-exported: most callers take them from here
+    ACTOR,
+    ALIVE,
+    ANY_ROLE,
+    CURRICULUM,
+    EVALUATOR,
+    LEARNER,
+    OPERATOR,
+    RECORDER,
+    ROUTE,
+    STATUS,
+)
+
+__all__ = ["ACTOR", "ALIVE", "CURRICULUM", "EVALUATOR", "INSTANCE", "LEARNER", "OPERATOR", "PREFIX", "RECORDER",
+           "SCHEMA_MAJOR", "STATUS", "Keys", "check_name", "check_role"]
 
 PREFIX = "impulse"
 """First chunk of every key the system uses."""
 
-LEARNER = "learner"
-CURRICULUM = "curriculum"
-ACTOR = "actor"
-EVALUATOR = "evaluator"
-OPERATOR = "operator"
-"""The `<role>` chunks of the roles whose messages this module names keys for; the operator is any command-line
-tool, the launcher or a watcher. What each role may ask and hear, and the roles added beside them, are
-`bus.roles`; across machines each role has credentials of its own (`bus.router`)."""
-
-RECORDER = "recorder"
-"""The recorder's `<role>` chunk: it publishes only its status and liveliness, which the learner hears."""
-
-STATUS = "status"
-ALIVE = "alive"
 INSTANCE = "instance-"
 """Prefix of the learner's second liveliness token, `<root>/learner/alive/instance-<nonce>`: the random nonce one
 learner process draws at start and puts in every weights frame, so that a follower adopts weights only from the
@@ -104,89 +90,104 @@ class Keys:
         """A key under `role`'s own prefix: only `role` may publish there (where a router enforces it)."""
         return "/".join((self.root, check_role(role), *chunks))
 
+    def key(self, route: str, sender: str | None = None, role: str | None = None) -> str:
+        """The key of route `route` (`bus.routes.ROUTES`): `sender` is the sending process's id for a per-sender
+        route ("*": all of them, a subscription's pattern), `role` the publishing role for a route any role
+        publishes (status lines, liveliness). ValueError when one is missing or not one key chunk."""
+        entry = ROUTE[route]
+        publisher = entry.sender if entry.sender != ANY_ROLE else role
+        if publisher is None:
+            raise ValueError(f"route {route} is published by every role: say which")
+        chunks = entry.topic
+        if entry.per_sender:
+            if sender is None:
+                raise ValueError(f"route {route} has one key per sender: say whose")
+            chunks = (*chunks, sender if sender == "*" else check_name(sender, "id"))
+        return self.own(publisher, *chunks)
+
     # -- the learner's --------------------------------------------------------------------------------------
 
     @property
     def weights_policy(self) -> str:
         """Policy weights broadcast by the learner, cached so that late joiners get the newest."""
-        return self.own(LEARNER, "weights", "policy")
+        return self.key("weights")
 
     @property
     def weights_latest(self) -> str:
         """Queryable fallback for pulling the newest weights."""
-        return self.own(LEARNER, "weights", "latest")
+        return self.key("weights_latest")
 
     def credit(self, actor: str) -> str:
         """Credits the learner grants to one actor (how many trajectories it may have in flight)."""
-        return self.own(LEARNER, "credit", check_name(actor, "actor id"))
+        return self.key("credit", check_name(actor, "actor id"))
 
     # -- the curriculum's -----------------------------------------------------------------------------------
 
     @property
     def levels_sample(self) -> str:
         """Queryable of the curriculum: actors pull batches of levels from it."""
-        return self.own(CURRICULUM, "levels", "sample")
+        return self.key("levels_sample")
 
     @property
     def curriculum_knobs(self) -> str:
         """Queryable of the curriculum: read or change its live knobs (`impulse curriculum get|set`)."""
-        return self.own(CURRICULUM, "knobs")
+        return self.key("curriculum_knobs")
 
     @property
     def curriculum_inspect(self) -> str:
         """Queryable of the curriculum: its buffer statistics and levels (`impulse curriculum inspect`)."""
-        return self.own(CURRICULUM, "inspect")
+        return self.key("curriculum_inspect")
 
     @property
     def curriculum_inject(self) -> str:
         """Queryable of the curriculum: put a level a person sends into its buffer (`impulse curriculum inject`)."""
-        return self.own(CURRICULUM, "inject")
+        return self.key("curriculum_inject")
 
     # -- the actors' ----------------------------------------------------------------------------------------
 
     def traj(self, actor: str) -> str:
         """Trajectories published by one actor to the learner."""
-        return self.own(ACTOR, "traj", check_name(actor, "actor id"))
+        return self.key("traj", check_name(actor, "actor id"))
 
     @property
     def traj_all(self) -> str:
         """Pattern matching every actor's trajectories (the learner's subscription)."""
-        return self.own(ACTOR, "traj", "*")
+        return self.key("traj", "*")
 
     def levels_results(self, actor: str) -> str:
         """Per-level results published by one actor to the curriculum."""
-        return self.own(ACTOR, "results", check_name(actor, "actor id"))
+        return self.key("levels_results", check_name(actor, "actor id"))
 
     @property
     def levels_results_all(self) -> str:
         """Pattern matching every actor's level results (the curriculum's subscription)."""
-        return self.own(ACTOR, "results", "*")
+        return self.key("levels_results", "*")
 
     def levels_played(self, actor: str) -> str:
         """The level batch one actor plays next, published for a recorder."""
-        return self.own(ACTOR, "played", check_name(actor, "actor id"))
+        return self.key("levels_played", check_name(actor, "actor id"))
 
     @property
     def levels_played_all(self) -> str:
         """Pattern matching every actor's played levels (the recorder's subscription)."""
-        return self.own(ACTOR, "played", "*")
+        return self.key("levels_played", "*")
 
     # -- the evaluator's ------------------------------------------------------------------------------------
 
     def evaluation(self, ident: str) -> str:
         """Evaluations of the learner's policies published by one evaluator."""
-        return self.own(EVALUATOR, "results", check_name(ident, "id"))
+        return self.key("evaluations", check_name(ident, "id"))
 
     @property
     def evaluations_all(self) -> str:
         """Pattern matching every evaluator's results (the learner's subscription)."""
-        return self.own(EVALUATOR, "results", "*")
+        return self.key("evaluations", "*")
 
     # -- every process's ------------------------------------------------------------------------------------
 
     def status(self, role: str, ident: str) -> str:
         """Status lines published by one process."""
-        return self.own(role, STATUS, check_name(ident, "id"))
+        return self.key("status", check_name(ident, "id"), role)
 
     def status_pattern(self, role: str | None = None) -> str:
         """Pattern matching the status lines of one role, or of every process when `role` is None."""
@@ -198,7 +199,7 @@ class Keys:
 
     def alive(self, role: str, ident: str) -> str:
         """Liveliness token of one process: present while its session is up."""
-        return self.own(role, ALIVE, check_name(ident, "id"))
+        return self.key("alive", check_name(ident, "id"), role)
 
     def alive_pattern(self, role: str | None = None) -> str:
         """Pattern matching the liveliness tokens of one role, or of every process when `role` is None."""

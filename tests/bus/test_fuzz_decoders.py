@@ -29,6 +29,7 @@ per reader: cases, accepted, rejected by reason, and the largest allocation of o
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import math
 import tracemalloc
@@ -75,6 +76,7 @@ from impulse.bus.evaluations import Evaluation, decode_evaluation, encode_evalua
 from impulse.bus.inbox import Received
 from impulse.bus.keys import Keys
 from impulse.bus.levels import decode_level_batch, decode_level_results, encode_level_batch, encode_level_results
+from impulse.bus.routes import ROUTES
 from impulse.bus.stamp import Stamp
 from impulse.bus.status import Status, StatusPublisher, read_status
 from impulse.bus.trajectories import decode_trajectory, encode_trajectory
@@ -296,6 +298,8 @@ class Target:
     is_frame: bool = True
     hostile_refused_share: float = 0.5
     """Least share of the hostile family refused: lower for readers without a schema, which accept any content."""
+    decoder: str = ""
+    """The decoder under test as the route table names it (`bus.routes.Route.decoder`); "" for the rest."""
 
 
 def reason(error: Exception) -> str:
@@ -385,14 +389,14 @@ def targets() -> dict[str, Target]:
                          "wrong_run"})
     content = framing | {"schema", "non_finite"}
 
-    def target(name: str, kind: Kind, read: Callable[[bytes], Any], check: Callable[[Any], None],
+    def target(name: str, kind: Kind, decoder: str, read: Callable[[bytes], Any], check: Callable[[Any], None],
                reasons: frozenset[str], refusals: tuple[type[Exception], ...] = (Rejected,),
                refused_share: float = 0.5) -> Target:
         return Target(name, tuple(bytes(frame) for frame in frames[kind]), read, check, refusals, reasons,
-                      others(kind), hostile_refused_share=refused_share)
+                      others(kind), hostile_refused_share=refused_share, decoder=decoder)
 
     listed = [
-        target("trajectory", Kind.TRAJECTORY,
+        target("trajectory", Kind.TRAJECTORY, "bus.trajectories.decode_trajectory",
                lambda data: compact_wire.checked(decode_trajectory(data, RUN, traj_max_bytes,
                                                                    compact_wire.format).message),
                check_tree(traj_template, lambda name: any(name == f or name.startswith(f + "/")
@@ -403,29 +407,30 @@ def targets() -> dict[str, Target]:
                                                                   padded_wire.format).message),
                check_tree(traj_template, lambda name: any(name == f or name.startswith(f + "/")
                                                           for f in TRAJECTORY_FINITE)),
-               (Rejected,), content, others(Kind.TRAJECTORY)),
-        target("weights", Kind.WEIGHTS,
+               (Rejected,), content, others(Kind.TRAJECTORY), decoder="bus.trajectories.decode_trajectory"),
+        target("weights", Kind.WEIGHTS, "bus.weights.decode_weights",
                lambda data: checked_tree(decode_weights(data, RUN).message, weights_schema(params_template),
                                          params_template),
                check_tree(params_template, lambda path: True),
                content | {"tree_hash"}),
-        target("credit", Kind.CREDIT, lambda data: decode_credit(data, RUN), check_credit, framing | {"schema"},
-               refused_share=0.3),
-        target("level_results", Kind.LEVEL_RESULTS,
+        target("credit", Kind.CREDIT, "bus.credits.decode_credit", lambda data: decode_credit(data, RUN), check_credit,
+               framing | {"schema"}, refused_share=0.3),
+        target("level_results", Kind.LEVEL_RESULTS, "bus.levels.decode_level_results",
                lambda data: results_from_message(decode_level_results(data, RUN), RESULT_ROWS),
                check_results, content | {"ResultsError"}, (Rejected, ResultsError)),
-        target("levels", Kind.LEVELS,
+        target("levels", Kind.LEVELS, "bus.levels.decode_level_batch",
                lambda data: level_batch_from_message(decode_level_batch(data, RUN), levels_schema, levels_template),
                check_tree(levels_template, lambda path: True), content),
-        target("metrics", Kind.METRICS,
+        target("metrics", Kind.METRICS, "bus.status.read_status",
                lambda data: read_status(Received(key=Keys(RUN).status("actor", "actor-0"), payload=data,
                                                  attachment=None), Keys(RUN)),
                check_status, framing | {"schema"}, refused_share=0.3),
         Target("evaluation", tuple(bytes(frame) for frame in evaluation_frames),
                lambda data: decode_evaluation(data, RUN), check_evaluation, (Rejected,), framing | {"schema"},
-               others(Kind.METRICS), hostile_refused_share=0.3),
-        target("control", Kind.CONTROL, lambda data: decode_report(data, RUN), check_report, framing,
-               refused_share=0.3),
+               others(Kind.METRICS), hostile_refused_share=0.3,
+               decoder="bus.evaluations.decode_evaluation"),
+        target("control", Kind.CONTROL, "bus.control.decode_report", lambda data: decode_report(data, RUN),
+               check_report, framing, refused_share=0.3),
         Target("any_frame", every, lambda data: decode(data, run=RUN), check_message(None), (Rejected,),
                framing - {"wrong_kind"}, hostile_refused_share=0.3),
         Target("control_query", tuple(control_queries), control_reply, check_control, (ValueError,),
@@ -770,6 +775,17 @@ def fuzz(target: Target, rng: np.random.Generator, cases: int) -> Tally:
 
 FRAME_READERS = ("trajectory", "weights", "credit", "level_results", "levels", "metrics", "evaluation", "control",
                  "any_frame")
+
+
+def test_every_route_has_a_fuzzed_decoder() -> None:
+    """Each message family of the route table is read by a decoder this file fuzzes (liveliness carries nothing)."""
+    fuzzed = {target.decoder for target in targets().values()} - {""}
+    routed = {route.decoder for route in ROUTES if route.decoder is not None}
+    assert routed - fuzzed == set(), "routes whose decoder is not fuzzed"
+    assert fuzzed - routed == set(), "fuzzed decoders no route names"
+    for name in routed:  # the names resolve to the functions
+        module, function = name.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(f"impulse.{module}"), function)), name
 
 
 @pytest.mark.parametrize("name", [*FRAME_READERS, "control_query"])
