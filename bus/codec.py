@@ -138,9 +138,10 @@ class Kind(enum.IntEnum):
     LEVELS = 5
     METRICS = 6
     CONTROL = 7
+    EVALUATION = 8
 
 
-DIGESTED_KINDS = frozenset({Kind.WEIGHTS, Kind.CREDIT, Kind.LEVELS, Kind.METRICS, Kind.CONTROL})
+DIGESTED_KINDS = frozenset({Kind.WEIGHTS, Kind.CREDIT, Kind.LEVELS, Kind.METRICS, Kind.CONTROL, Kind.EVALUATION})
 """Kinds that travel with a digest of the whole frame (see the module docstring)."""
 
 

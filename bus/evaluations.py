@@ -40,8 +40,8 @@ def encode_evaluation(stamp: Stamp, levels: Mapping[str, Mapping[str, float]], g
     """The scores of the stamp's policy (epoch and version) as an evaluation frame."""
     meta: dict[str, Any] = {LEVELS: {name: {k: float(v) for k, v in scores.items()} for name, scores in levels.items()},
                             GROUPS: {name: float(rate) for name, rate in groups.items()}, SKIPPED: int(skipped)}
-    return encode(Kind.METRICS, {}, run=stamp.run, policy_version=stamp.policy_version, learner_epoch=stamp.epoch,
-                  seq=stamp.next_seq(Kind.METRICS), meta=meta)
+    return encode(Kind.EVALUATION, {}, run=stamp.run, policy_version=stamp.policy_version,
+                  learner_epoch=stamp.epoch, seq=stamp.next_seq(Kind.EVALUATION), meta=meta)
 
 
 def _number(value: object) -> bool:
@@ -51,7 +51,7 @@ def _number(value: object) -> bool:
 def decode_evaluation(payload: bytes, run: str) -> Evaluation:
     """The evaluation a frame carries; raises `bus.codec.Rejected` unless every level and group has finite
     numbers (solve rates within [0, 1]) and the counts are plausible."""
-    message = decode(payload, run=run, kinds=Kind.METRICS)
+    message = decode(payload, run=run, kinds=Kind.EVALUATION)
     levels, groups, skipped = message.meta.get(LEVELS), message.meta.get(GROUPS), message.meta.get(SKIPPED, 0)
     if not isinstance(levels, dict) or not isinstance(groups, dict) or type(skipped) is not int or skipped < 0:
         raise Rejected("schema", "an evaluation without levels, groups or a skipped count")

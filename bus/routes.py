@@ -86,7 +86,7 @@ ROUTES: tuple[Route, ...] = (
           per_sender=True, summary="per-level results of the episodes played"),
     Route("levels_played", ACTOR, ("played",), Kind.LEVELS, "bus.levels.decode_level_batch", per_sender=True,
           summary="the level batch an actor plays next (published only while a recorder listens)"),
-    Route("evaluations", EVALUATOR, ("results",), Kind.METRICS, "bus.evaluations.decode_evaluation",
+    Route("evaluations", EVALUATOR, ("results",), Kind.EVALUATION, "bus.evaluations.decode_evaluation",
           per_sender=True, summary="scores of the learner's policies on level sets"),
     Route("status", ANY_ROLE, (STATUS,), Kind.METRICS, "bus.status.read_status", per_sender=True,
           summary="status lines, every process's under its own role"),

@@ -378,6 +378,7 @@ def targets() -> dict[str, Target]:
         Kind.LEVELS: levels_frames,
         Kind.METRICS: metrics_frames,
         Kind.CONTROL: control_frames,
+        Kind.EVALUATION: evaluation_frames,
     }
     assert set(frames) == set(Kind), "a message kind without a fuzzed reader"
     every = tuple(bytes(frame) for kind_frames in frames.values() for frame in kind_frames)
@@ -425,10 +426,8 @@ def targets() -> dict[str, Target]:
                lambda data: read_status(Received(key=Keys(RUN).status("actor", "actor-0"), payload=data,
                                                  attachment=None), Keys(RUN)),
                check_status, framing | {"schema"}, refused_share=0.3),
-        Target("evaluation", tuple(bytes(frame) for frame in evaluation_frames),
-               lambda data: decode_evaluation(data, RUN), check_evaluation, (Rejected,), framing | {"schema"},
-               others(Kind.METRICS), hostile_refused_share=0.3,
-               decoder="bus.evaluations.decode_evaluation"),
+        target("evaluation", Kind.EVALUATION, "bus.evaluations.decode_evaluation",
+               lambda data: decode_evaluation(data, RUN), check_evaluation, framing | {"schema"}, refused_share=0.3),
         target("control", Kind.CONTROL, "bus.control.decode_report", lambda data: decode_report(data, RUN),
                check_report, framing, refused_share=0.3),
         Target("any_frame", every, lambda data: decode(data, run=RUN), check_message(None), (Rejected,),
