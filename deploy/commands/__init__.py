@@ -1,8 +1,7 @@
-"""The table of `impulse` subcommands: what each does, which config it resolves, and which issue builds it.
+"""The table of `impulse` subcommands: for each, what it does, the config it resolves, its own options, the function
+that runs it and the role its process holds on a secured router.
 
-Kept apart from argument parsing so that building a command later means filling in one row: its config class
-and its `run` function. A command without `run` says which issue brings it and exits with status 2, so nothing
-pretends to work before it does.
+Kept apart from argument parsing (`deploy.cli`) so that adding a command means adding one row.
 """
 
 from __future__ import annotations

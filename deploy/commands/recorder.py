@@ -10,14 +10,15 @@ import logging
 import sys
 from pathlib import Path
 
-from impulse.bus.keys import ACTOR, RECORDER
+from impulse.bus.keys import RECORDER
 from impulse.bus.roles import LEARNER_BROADCASTS, Role
+from impulse.bus.routes import patterns
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.service")
 
-ROLE = Role(RECORDER, hears=(f"{ACTOR}/traj/*", f"{ACTOR}/played/*", *LEARNER_BROADCASTS))
+ROLE = Role(RECORDER, hears=(*patterns("traj", "levels_played"), *LEARNER_BROADCASTS))
 """What the recorder may do on a router with access control: hear the actors' trajectories and the levels they
 play, and the learner's presence; it publishes only its status."""
 
