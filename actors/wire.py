@@ -43,6 +43,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.actors.trajectory import Trajectory, TrajectoryBatch, make_batch
 from impulse.bus.codec import Deferred, Kind, Message, Rejected, tree_hash
 from impulse.bus.schema import ArraySpec, Schema, check

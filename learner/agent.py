@@ -9,6 +9,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.observations import observation_shape
 from impulse.engine.env.spec import EnvSpec

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+
 from impulse.engine.env.observations import observation_shape, observe
 from impulse.engine.pytree import path_name, tree_from_arrays
 from impulse.learner.agent import Agent

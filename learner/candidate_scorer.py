@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+
 from impulse.actors.follow import LearnerFollower
 from impulse.bus.session import Bus
 from impulse.engine.env.spec import EnvParams

@@ -72,9 +72,10 @@ from typing import Any, NamedTuple
 
 import jax
 import orbax.checkpoint as ocp
+from orbax.checkpoint.checkpoint_managers import preservation_policy
+
 from impulse.engine.io_errors import DiskFullError, check_space, disk_full_code, disk_full_error, disk_usage, writing
 from impulse.learner.config import CheckpointConfig
-from orbax.checkpoint.checkpoint_managers import preservation_policy
 
 log = logging.getLogger(__name__)
 

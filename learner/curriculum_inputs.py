@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+
 from impulse.actors.trajectory import TrajectoryBatch
 from impulse.curriculum.results import LevelResults, level_results
 from impulse.learner.agent import Agent

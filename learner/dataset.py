@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+
 from impulse.engine.io_errors import DiskFullError, check_space, size_text, writing
 from impulse.engine.levels.level import level_id_values
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env.actions import ActionSpace
 
 Array = jax.Array

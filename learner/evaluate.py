@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.actors.rollout import Policy, Watched, rollout, start_rollout
 from impulse.actors.trajectory import Trajectory
 from impulse.engine.env.actions import noop_action

@@ -18,6 +18,7 @@ import time
 from typing import Any
 
 import jax
+
 from impulse.actors.follow import LearnerFollower
 from impulse.bus.evaluations import encode_evaluation
 from impulse.bus.keys import EVALUATOR

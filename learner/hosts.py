@@ -29,8 +29,9 @@ from typing import Any
 
 import jax
 import numpy as np
-from impulse.actors.trajectory import EpisodeStats, TrajectoryBatch, env_axes
 from jax.experimental import multihost_utils
+
+from impulse.actors.trajectory import EpisodeStats, TrajectoryBatch, env_axes
 
 log = logging.getLogger("impulse.learner")
 

@@ -48,6 +48,7 @@ from typing import Any
 
 import jax
 import numpy as np
+
 from impulse.engine.env.actions import action_space
 from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.observations import symbolic_length

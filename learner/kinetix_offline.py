@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.levels.kinetix_json import LevelFileError, level_from_document
 from impulse.engine.levels.level import Level
 from impulse.engine.physics.sizes import SceneSizes

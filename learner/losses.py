@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from impulse.learner.config import PPOConfig
 from impulse.learner.distributions import Distribution
 

@@ -44,6 +44,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env.observation_types import ATTENTION_CHANNELS, EntityObservation, PixelObservation
 from impulse.learner.config import NetworkConfig
 from impulse.learner.distributions import DiagGaussian, Distribution

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
 from impulse.actors.follow import LearnerPresence
 from impulse.actors.trajectory import TrajectoryBatch
 from impulse.actors.wire import TrajectoryWire

@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from impulse.engine.env.spec import EnvParams
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import LevelSetError, kinetix_group, load_level_set

@@ -50,6 +50,7 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
+
 from impulse.actors.process import actor_index
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics
 from impulse.actors.wire import TrajectoryWire, trajectory_template, weights_hash

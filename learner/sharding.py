@@ -20,9 +20,10 @@ from typing import Any
 
 import jax
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
 from impulse.actors.trajectory import TrajectoryBatch, env_axes
 from impulse.learner.config import PPOConfig
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 ENV_AXIS = "envs"
 """Name of the mesh axis the environments are split over."""

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
+
 from impulse.actors.trajectory import Trajectory, TrajectoryBatch
 from impulse.engine.pytree import all_finite
 from impulse.learner.config import PPOConfig

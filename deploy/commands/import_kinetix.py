@@ -84,6 +84,7 @@ def write_checkpoint(config: RunConfig, imported: ImportedPolicy, run_dir: Path)
     checked against the network's own before anything is written."""
     import jax
     import jax.numpy as jnp
+
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
     from impulse.learner.checkpoint import TRAIN, Checkpointer

@@ -207,6 +207,7 @@ def _render_video(args: argparse.Namespace) -> int:
     """`levels render --video`: the levels played with no-op actions (`learner.evaluate.play_episodes`) and drawn
     as `impulse eval --video` draws episodes (`monitor.video.write_episodes_video`)."""
     import jax
+
     from impulse.engine.env.spec import EnvParams, EnvSpec
     from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
     from impulse.engine.levels.level import stack_levels

@@ -119,6 +119,7 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         return EXIT_USAGE
     try:
         import uvicorn
+
         from impulse.studio.app import UVICORN_SETTINGS, make_app
     except ImportError as err:
         print(f"impulse studio: {err.name or err} is not installed: pip install -e . (or starlette and "

@@ -242,6 +242,7 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
 
     def record(names: list[str], episodes: Any, policy_version: int) -> None:
         import numpy as np
+
         from impulse.monitor.blueprint import episodes_blueprint
         from impulse.monitor.rollouts import RolloutFrames, log_rollout
         from impulse.monitor.stream import open_recording

@@ -92,6 +92,7 @@ def clone_into(config: RunConfig, path: Path, dataset: Any, run_dir: Path) -> No
     `config` and write it, its metrics and its scores into `run_dir`."""
     import jax
     import jax.numpy as jnp
+
     from impulse.engine.env.spec import env_from_config
     from impulse.learner.agent import make_agent
     from impulse.learner.bc import EpochStats, clone, cloning_data, kinetix_cloning_data, select_episodes

@@ -102,6 +102,7 @@ class CurriculumLogger:
 
     def _log_buffer(self) -> None:
         import jax
+
         from impulse.curriculum.stats import top_levels
         from impulse.engine.levels.drawing import scene_drawing
         from impulse.monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars

@@ -28,10 +28,11 @@ import time
 from collections.abc import Callable, Collection, Mapping
 from typing import Any, NamedTuple, TextIO
 
-from impulse.deploy.runtime.progress import Column, LiveArea, fitted_table, interactive
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, describe_exit
 from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
 from rich.text import Text
+
+from impulse.deploy.runtime.progress import Column, LiveArea, fitted_table, interactive
+from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, describe_exit
 
 log = logging.getLogger("impulse.launch")
 
