@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from impulse.bus.codec import Rejected
-from impulse.bus.levels import LEVEL_QUERY_TIMEOUT_S, decode_level_batch
+from impulse.bus.levels import LEVEL_QUERY_TIMEOUT_S, WAIT_PARAMETER, decode_level_batch
 from impulse.bus.session import Bus
 from impulse.curriculum.state import ORIGIN_NEW, LevelBatch
 from impulse.curriculum.wire import level_batch_from_message, level_batch_schema
@@ -98,7 +98,8 @@ class CurriculumLevels:
         key_expr = self.bus.keys.levels_sample
         started = last_log = time.monotonic()
         while True:
-            for payload in self.bus.get(key_expr, parameters=f"n={self.size}", timeout_s=self.timeout_s):
+            for payload in self.bus.get(key_expr, parameters=f"n={self.size};{WAIT_PARAMETER}={self.timeout_s:g}",
+                                        timeout_s=self.timeout_s):
                 try:
                     message = decode_level_batch(payload, self.bus.keys.run)
                     batch = level_batch_from_message(message, self.schema, self.template)

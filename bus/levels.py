@@ -19,10 +19,23 @@ from impulse.bus.stamp import Stamp
 
 LEVEL_QUERY_TIMEOUT_S = 10.0
 """How long an actor waits for the answer to one level query before it asks again."""
-LEVEL_QUERY_EXPIRY_S = LEVEL_QUERY_TIMEOUT_S / 2
-"""A level query that has waited this long in the curriculum service's queue is refused rather than served: the
-rest of its asker's wait may not cover a sample, and a service that serves queries whose askers have gone (each
-asking again every timeout) falls behind for good, serving every batch in vain while the actors wait."""
+WAIT_PARAMETER = "wait_s"
+"""The level query's parameter in which an asker says how long it waits for the answer (seconds). The curriculum
+service refuses a query that has waited half that long in its queue (`level_query_expired`) instead of serving it:
+the rest of the wait may not cover a sample, and a service that serves queries whose askers have gone (each
+asking again after its wait) falls behind for good, serving every batch in vain while the actors wait. A query
+without it (a one-shot `get` from a tool or a test) never expires."""
+
+
+def level_query_expired(parameters: Mapping[str, str], waited_s: float) -> bool:
+    """Whether a level query with these `parameters` that has waited `waited_s` in the queue is past serving: its
+    asker said how long it waits (`WAIT_PARAMETER`) and half of that is gone. A malformed value counts as unsaid
+    (it only ever concerns the asker's own query)."""
+    try:
+        wait_s = float(parameters.get(WAIT_PARAMETER, "inf"))
+    except ValueError:
+        return False
+    return wait_s > 0 and waited_s >= wait_s / 2
 
 
 def encode_level_batch(stamp: Stamp, arrays: Mapping[str, np.ndarray]) -> bytearray:

@@ -53,7 +53,7 @@ from impulse.bus.codec import Rejected
 from impulse.bus.control import control_reply, encode_refusal, encode_report
 from impulse.bus.inbox import IncomingQuery
 from impulse.bus.keys import CURRICULUM
-from impulse.bus.levels import LEVEL_QUERY_EXPIRY_S, decode_level_results, encode_level_batch
+from impulse.bus.levels import decode_level_results, encode_level_batch, level_query_expired
 from impulse.bus.roles import CURRICULUM_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
@@ -183,7 +183,8 @@ class CurriculumService:
         self.requests_held = 0
         """Level queries refused while the buffer waited for its first scoring (batch-scored SFL)."""
         self.expired_queries = 0
-        """Level queries refused because they waited `bus.levels.LEVEL_QUERY_EXPIRY_S` or more in the queue."""
+        """Level queries refused because they waited half their asker's stated wait in the queue
+        (`bus.levels.level_query_expired`)."""
         self.injected = 0
         self.policy_version = 0
         self.incarnation = secrets.randbits(31)
@@ -422,7 +423,7 @@ class CurriculumService:
         if wanted is not None and wanted != str(self.curriculum.batch_size):
             query.reply_error(f"this curriculum serves batches of {self.curriculum.batch_size} levels, not {wanted}")
             return 0
-        if query.waited_s >= LEVEL_QUERY_EXPIRY_S:
+        if level_query_expired(query.parameters, query.waited_s):
             self.expired_queries += 1
             query.reply_error(f"the query waited {query.waited_s:.1f} s for the service, too long to serve")
             return 0
