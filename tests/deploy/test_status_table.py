@@ -207,7 +207,9 @@ def test_log_lines_scroll_above_the_table_and_leave_no_stale_block(monkeypatch) 
     handler = logging.StreamHandler(terminal)  # as `impulse launch` logs: a root handler on stderr
     handler.setFormatter(logging.Formatter("%(message)s"))
     root = logging.getLogger()
-    root.addHandler(handler)
+    # Only this handler: an in-process `impulse` call earlier in the worker may have left one on a closed stream.
+    kept = root.handlers[:]
+    root.handlers = [handler]
     logger = logging.getLogger("tests.status_table.scroll")
     try:
         with StatusDisplay(stream=terminal, columns=80) as display:
@@ -217,7 +219,7 @@ def test_log_lines_scroll_above_the_table_and_leave_no_stale_block(monkeypatch) 
                 logger.warning("log line %02d", line)
             display.show(status_block(statuses, children, parts_by_child(children)))
     finally:
-        root.removeHandler(handler)
+        root.handlers = kept
     screen = pyte.Screen(80, 40)
     pyte.Stream(screen).feed(terminal.getvalue().replace("\n", "\r\n"))
     shown = [line.rstrip() for line in screen.display if line.strip()]
