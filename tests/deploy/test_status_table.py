@@ -120,15 +120,22 @@ def test_the_plain_lines_of_a_log_keep_their_words_and_name_a_phase_out_of_the_o
     assert "training" not in status_display.learner_line(training)  # the usual phase goes unsaid
 
 
+class Terminal(io.StringIO):
+    """Captured output that says it is a terminal, as the launcher's stderr is in a shell."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def fake_terminal(monkeypatch) -> Terminal:
+    monkeypatch.setenv("TERM", "xterm")
+    return Terminal()
+
+
 def test_an_entered_display_on_a_terminal_redraws_the_table_in_place(monkeypatch) -> None:
     statuses, children = _run()
 
-    class Terminal(io.StringIO):
-        def isatty(self) -> bool:
-            return True
-
-    terminal = Terminal()
-    monkeypatch.setenv("TERM", "xterm")
+    terminal = fake_terminal(monkeypatch)
     with StatusDisplay(stream=terminal, columns=80) as display:
         for update in (25, 26, 27):
             statuses["learner"]["update"] = update
@@ -197,12 +204,7 @@ def test_log_lines_scroll_above_the_table_and_leave_no_stale_block(monkeypatch) 
     order, above it: no block of an earlier drawing is left between them."""
     statuses, children = _run()
 
-    class Terminal(io.StringIO):
-        def isatty(self) -> bool:
-            return True
-
-    terminal = Terminal()
-    monkeypatch.setenv("TERM", "xterm")
+    terminal = fake_terminal(monkeypatch)
     monkeypatch.setattr("sys.stderr", terminal)
     handler = logging.StreamHandler(terminal)  # as `impulse launch` logs: a root handler on stderr
     handler.setFormatter(logging.Formatter("%(message)s"))
