@@ -10,8 +10,8 @@ One cycle (driven by the shared run loop):
 4. publish the batch (its behaviour version and the learner epoch of the weights that acted ride in the frame
    header) and the per-level results, and report steps/s and counts on the status line;
 5. while a recorder listens (`learner.recorder`), publish the level batch it plays on `actor/played/<actor>`
-   (when it changes, and every PLAYED_LEVELS_EVERY_S for a fixed level set), so that recorded episodes come with
-   their levels;
+   (when it changes, when a recorder appears, and every `bus.levels.PLAYED_LEVELS_EVERY_S` for a fixed level
+   set), so that recorded episodes come with their levels;
 6. with a monitor, offer the watched environments' frames to it (`monitor.stream`): the rollout recorded them on
    the device, the monitor's thread copies and logs them, and a full queue or the rate limit drops them rather
    than slowing the actor.
@@ -60,7 +60,7 @@ from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_bat
 from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
 from impulse.bus.credits import decode_credit
-from impulse.bus.levels import encode_level_batch, encode_level_results
+from impulse.bus.levels import PLAYED_LEVELS_EVERY_S, encode_level_batch, encode_level_results
 from impulse.bus.roles import ACTOR_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
@@ -80,9 +80,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("impulse.actor")
 
-PLAYED_LEVELS_EVERY_S = 10.0
-"""An unchanged level batch (a fixed level set) is published again this often while a recorder listens, so that
-a recorder started later hears it too."""
 
 class ActingAgent(Protocol):
     """What an actor needs of the agent (`learner.agent.Agent` fits): the environment it was built for, its policy
@@ -275,8 +272,11 @@ class Actor:
         self.counts["sent"] += 1
 
     def _offer_played_levels(self, batch: LevelBatch) -> None:
-        """Publish the level batch about to be played, if a recorder listens and it has not heard it lately."""
+        """Publish the level batch about to be played, if a recorder listens and it has not heard it lately. While
+        none listens the batch counts as unheard, so a recorder that (re)starts hears it at this actor's next
+        cycle rather than a repeat later."""
         if not self._played.matching_status.matching:
+            self._played_ids = None
             return
         ids = np.asarray(jax.device_get(batch.levels.level_id))
         now = time.monotonic()

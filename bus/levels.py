@@ -3,7 +3,10 @@
 - a level batch (LEVELS): the curriculum's answer to an actor's query on `curriculum/levels/sample` (the levels,
   whether each is trained on, where each came from), numbered by the service's samples so far;
 - level results (LEVEL_RESULTS): an actor's per-level outcomes on `actor/results/<actor>`, stamped with the
-  policy that played them.
+  policy that played them;
+- a played level batch (LEVELS again): the levels an actor is about to play, on `actor/played/<actor>`, for the
+  recorder (`learner.recorder`), sent when they change, when a recorder (re)appears, and every
+  PLAYED_LEVELS_EVERY_S.
 
 The arrays' layout and schemas belong to the curriculum (`curriculum.wire`); this module only frames them.
 """
@@ -25,6 +28,13 @@ service refuses a query that has waited half that long in its queue (`level_quer
 the rest of the wait may not cover a sample, and a service that serves queries whose askers have gone (each
 asking again after its wait) falls behind for good, serving every batch in vain while the actors wait. A query
 without it (a one-shot `get` from a tool or a test) never expires."""
+
+PLAYED_LEVELS_EVERY_S = 10.0
+"""An actor publishes an unchanged level batch (a fixed level set) again this often while a recorder listens, so
+that a recorder started later hears it too."""
+PLAYED_LEVEL_WAIT_S = PLAYED_LEVELS_EVERY_S + 5.0
+"""How long the recorder holds a whole episode whose level it has not heard before writing it without one: the
+level is at most one repeat away (`PLAYED_LEVELS_EVERY_S`) unless its message was lost."""
 
 
 def level_query_expired(parameters: Mapping[str, str], waited_s: float) -> bool:

@@ -11,8 +11,10 @@ One cycle (driven by the shared run loop):
    recorder saw it from its first step to its last (an actor's first batch starts every environment's first
    episode), so episodes that were under way when the recorder started, or that span a batch it did not hear (a
    gap in the actor's sequence numbers, an actor restart), are left out and counted;
-3. hand whole episodes to the dataset writer, with their level when it was heard (the index says which have
-   one), and write a shard every `recorder.shard_steps` steps or `recorder.flush_s` seconds.
+3. hand whole episodes to the dataset writer with their level, and write a shard every `recorder.shard_steps`
+   steps or `recorder.flush_s` seconds. An episode whose level has not been heard yet is held until it is, for
+   at most `bus.levels.PLAYED_LEVEL_WAIT_S` (the level may arrive just after the batch, or, for a recorder just
+   restarted, with the actor's next cycle), and then written without it (the index says which have one).
 
 Killed (kill -9) it loses the episodes not yet in a shard and nothing else: shards appear on disk whole
 (`learner.dataset`), and a restarted recorder appends to the same dataset. It stops when the learner has finished
@@ -24,6 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +36,7 @@ from impulse.actors.follow import LearnerPresence
 from impulse.actors.trajectory import TrajectoryBatch
 from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
-from impulse.bus.levels import decode_level_batch
+from impulse.bus.levels import PLAYED_LEVEL_WAIT_S, decode_level_batch
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import StatusPublisher
@@ -135,6 +138,37 @@ class EpisodeAssembler:
         return finished
 
 
+class LevelWait:
+    """Whole episodes whose level the recorder has not heard yet, held for at most `wait_s` (module docstring,
+    step 3)."""
+
+    def __init__(self, wait_s: float = PLAYED_LEVEL_WAIT_S) -> None:
+        self.wait_s = wait_s
+        self._held: list[tuple[float, Episode]] = []  # (when it goes without its level, the episode)
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def hold(self, episode: Episode, now: float) -> None:
+        self._held.append((now + self.wait_s, episode))
+
+    def settle(self, levels: Mapping[int, dict[str, np.ndarray]], now: float, final: bool) -> list[Episode]:
+        """The held episodes whose level is now in `levels` (given it), then those whose wait is over, or every
+        other one when `final` (still without it); the rest stay held."""
+        settled: list[Episode] = []
+        still: list[tuple[float, Episode]] = []
+        for deadline, episode in self._held:
+            level = levels.get(episode.level_id)
+            if level is not None:
+                settled.append(episode._replace(level=level))
+            elif final or now >= deadline:
+                settled.append(episode)
+            else:
+                still.append((deadline, episode))
+        self._held = still
+        return settled
+
+
 class RecorderService:
     """The recorder's state and its run-loop `cycle` (see the module docstring)."""
 
@@ -156,6 +190,7 @@ class RecorderService:
         self.assembler = EpisodeAssembler()
         self.levels: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
         self.counts = {"batches": 0, "episodes_without_level": 0, "level_batches": 0}
+        self.awaiting_level = LevelWait()
         self._started = time.monotonic()
 
     def _hear_levels(self) -> None:
@@ -188,10 +223,18 @@ class RecorderService:
             self.counts["batches"] += 1
             for steps, facts in self.assembler.add(source, incarnation, message.seq, batch):
                 level = self.levels.get(facts["level_id"])
+                episode = Episode(steps=steps, level=level, **facts)
                 if level is None:
-                    self.counts["episodes_without_level"] += 1
-                episodes.append(Episode(steps=steps, level=level, **facts))
+                    self.awaiting_level.hold(episode, time.monotonic())
+                else:
+                    episodes.append(episode)
         return episodes
+
+    def _settled(self, final: bool) -> list[Episode]:
+        """The held episodes ready to write (`LevelWait.settle`), counting those that go without their level."""
+        settled = self.awaiting_level.settle(self.levels, time.monotonic(), final)
+        self.counts["episodes_without_level"] += sum(episode.level is None for episode in settled)
+        return settled
 
     def cycle(self) -> CycleReport | None:
         if self._status.due():
@@ -199,6 +242,7 @@ class RecorderService:
         self.learner.poll()
         self._hear_levels()
         episodes = self._hear_trajectories()
+        episodes += self._settled(final=False)
         self.writer.add(episodes)
         waiting = self.writer.pending_steps
         if waiting >= self.config.shard_steps or (
@@ -231,6 +275,7 @@ class RecorderService:
             "max_bytes": writer.max_bytes,
             "full": writer.full,
             "levels_known": len(self.levels),
+            "episodes_awaiting_level": len(self.awaiting_level),
             "rejected": self.bus.rejects.counts(),
             **writer.counts,
             **self.assembler.counts,
@@ -254,6 +299,8 @@ class RecorderService:
         return False
 
     def close(self) -> None:
-        """Write the whole episodes held, and tell whoever watches where it got to."""
+        """Write the whole episodes held (those still without their level as they are), and tell whoever watches
+        where it got to."""
+        self.writer.add(self._settled(final=True))
         self._flush(final=True)
         self._status.publish(self.status())

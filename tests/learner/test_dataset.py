@@ -1,7 +1,7 @@
 """The recorded dataset (`learner.dataset`): whole episodes and their levels round-trip with their index, disk use
 stays bounded, a writer killed at random moments (kill -9) leaves only whole shards and a restarted one goes on
-after them; and the recorder's episode assembly (`learner.recorder.EpisodeAssembler`) keeps exactly the episodes it
-saw whole."""
+after them; the recorder's episode assembly (`learner.recorder.EpisodeAssembler`) keeps exactly the episodes it
+saw whole, and an episode whose level it has not heard yet waits for it (`learner.recorder.LevelWait`)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import zarr
 from impulse.actors.trajectory import EpisodeStats, Trajectory, TrajectoryBatch
 from impulse.engine.levels.level import level_id_words
 from impulse.learner.dataset import DatasetError, DatasetWriter, Episode, folder_bytes, open_dataset
-from impulse.learner.recorder import EpisodeAssembler
+from impulse.learner.recorder import EpisodeAssembler, LevelWait
 from tests.support.paths import REPO
 
 ENV = {"size": "s", "observation": "entity", "levels": ["a", "b"]}
@@ -214,3 +214,18 @@ def test_the_recorder_keeps_exactly_the_episodes_it_saw_whole():
     assert len(assembler.add("actor-0", 6, 1, batch([[t, t]]))) == 2
     assert assembler.counts["episodes_cut"] == cut_before + 1
     assert assembler.counts["episodes_whole"] == 6
+
+
+def test_an_episode_waits_for_its_level_until_the_wait_is_over():
+    wait = LevelWait(wait_s=15.0)
+    for number, now in ((0, 100.0), (1, 101.0), (2, 102.0)):  # levels 1000, 1001 and 1002, none heard yet
+        wait.hold(episode(number, with_level=False), now)
+    heard = {1001: episode(1).level}
+    [late] = wait.settle(heard, now=105.0, final=False)  # heard late: it goes with its level
+    assert late.policy_version == 1 and late.level is heard[1001]
+    settled = wait.settle(heard, now=105.0, final=False)
+    assert settled == [] and len(wait) == 2  # the other two still wait
+    [gone] = wait.settle(heard, now=115.0, final=False)  # episode 0's 15 s are over: written without its level
+    assert (gone.policy_version, gone.level) == (0, None) and len(wait) == 1
+    [last] = wait.settle({}, now=116.0, final=True)  # the recorder's last flush takes the rest as they are
+    assert (last.policy_version, last.level, len(wait)) == (2, None, 0)
