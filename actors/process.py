@@ -27,14 +27,15 @@ weights of its network (a restarted learner's new epoch excepted), ignores repea
 lockstep (`actors.lockstep`) it rolls out only with weights newer than those of its last batch, so actor and
 learner take turns and a launch is reproducible (docs/distributed.md).
 
-Credits. The learner acknowledges every batch it takes off its queue (trained on or dropped as stale) on
-`credit/<actor>` with the highest sequence number taken; an actor's batches in flight are the ones sent after
-that. Acknowledgements name the actor's incarnation (a random number drawn at start), so a restarted actor is not
-confused by acknowledgements meant for its predecessor; and they carry the learner's epoch, so when a restarted
-learner (new epoch) appears, whatever was in flight to the old one is written off at once, as it is when the
-learner's liveliness token goes and comes back (the link to it broke: a router restart, a network partition). If
-no acknowledgement arrives while out of credit for `actors.credit_timeout_s`, or for longer while the learner's own
-pace says the batch may still be queued (`Actor.credit_deadline_s`: a slow learner, a loaded machine), the
+Credits (both halves of the protocol: `bus.credits`; the actor's is its `CreditLedger`). The learner
+acknowledges every batch it takes off its queue (trained on or dropped as stale) on `credit/<actor>` with the
+highest sequence number taken; an actor's batches in flight are the ones sent after that. Acknowledgements name
+the actor's incarnation (a random number drawn at start), so a restarted actor is not confused by
+acknowledgements meant for its predecessor; and they carry the learner's epoch, so when a restarted learner (new
+epoch) appears, whatever was in flight to the old one is written off at once, as it is when the learner's
+liveliness token goes and comes back (the link to it broke: a router restart, a network partition). If no
+acknowledgement arrives while out of credit for `actors.credit_timeout_s`, or for longer while the learner's own
+pace says the batch may still be queued (`CreditLedger.deadline_s`: a slow learner, a loaded machine), the
 batches in flight are written off too.
 
 Stopping. The actor stops by itself when the learner has finished the run: its latest status (on the learner's own
@@ -59,7 +60,7 @@ from impulse.actors.rollout import RolloutCarry, rollout, start_rollout
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics, make_batch
 from impulse.actors.wire import TrajectoryWire
 from impulse.bus.codec import Rejected
-from impulse.bus.credits import decode_credit
+from impulse.bus.credits import CreditLedger, decode_credit
 from impulse.bus.levels import PLAYED_LEVELS_EVERY_S, encode_level_batch, encode_level_results
 from impulse.bus.roles import ACTOR_ROLE
 from impulse.bus.service import CycleReport, Progress
@@ -162,12 +163,11 @@ class Actor:
         self._status = StatusPublisher(bus, actors.status_every_s)
 
         self._wire: TrajectoryWire | None = None
-        self.seq = 0  # batches sent by this incarnation
-        self.acked = 0  # highest sequence number the learner has taken off its queue
-        self._blocked_since: float | None = None  # when the actor last ran out of credit
+        self.ledger = CreditLedger(self.incarnation, actors.credits, actors.credit_timeout_s,
+                                   queued_ahead=actors.num_actors * actors.credits)
         self._held: TrajectoryBatch | None = None  # drop_oldest: the newest batch waiting for a credit
         self._acted: tuple[int, int] | None = None  # (epoch, version) of the weights of the latest rollout
-        self.counts = {"sent": 0, "dropped_no_credit": 0, "written_off": 0}
+        self.counts = {"sent": 0, "dropped_no_credit": 0}
         self._steps_done = 0
         self._stream: RolloutStream | None = None
         if monitor is not None and self.watch:
@@ -200,17 +200,12 @@ class Actor:
         events = self.follow.poll()
         if events.new_epoch and self.in_flight:
             log.info("the learner restarted: %d batches in flight written off", self.in_flight)
-            self._write_off()
+            self.ledger.write_off()
         if events.learner_back and self.in_flight:
             log.info("the learner is back after an interruption: %d batches in flight written off", self.in_flight)
-            self._write_off()
+            self.ledger.write_off()
 
     # -- credits ------------------------------------------------------------------------------------------
-
-    def _write_off(self) -> None:
-        self.counts["written_off"] += self.seq - self.acked
-        self.acked = self.seq
-        self._blocked_since = None
 
     def _receive_acks(self) -> None:
         for received in self._credits.poll():
@@ -219,54 +214,35 @@ class Actor:
             except Rejected as err:
                 self.bus.rejects.record(err.reason, "credit", err.detail)
                 continue
-            if credit.incarnation != self.incarnation:
-                continue  # meant for an earlier process with this actor's name
-            if credit.learner_epoch > self.epoch >= 0:
-                self._write_off()  # a new learner: nothing sent to the old one will be acknowledged
-                continue
-            if self.acked < credit.acked_seq <= self.seq:
-                self.acked = credit.acked_seq
-                self._blocked_since = None
+            self.ledger.heard(credit, self.epoch)
+
+    @property
+    def seq(self) -> int:
+        """Batches sent by this incarnation."""
+        return self.ledger.seq
 
     @property
     def in_flight(self) -> int:
-        return self.seq - self.acked
+        return self.ledger.in_flight
 
     def credit_deadline_s(self) -> float:
-        """How long to wait out of credit for an acknowledgement before writing the batches in flight off:
-        `actors.credit_timeout_s`, or, if longer, the time the learner takes at its recent pace for the updates
-        that may stand before this actor's batch in its queue (every actor's credits) and the batch's own. So a
-        learner that is merely slow (a loaded machine, a long first compile after a restart) does not have its
-        queue written off and overflowed, while one that lost the batch or left is still noticed."""
-        pace = self.follow.seconds_per_version
-        if pace is None:
-            return self.actors.credit_timeout_s
-        return max(self.actors.credit_timeout_s, (self.actors.num_actors * self.actors.credits + 1) * pace)
+        """How long to wait out of credit before writing the batches in flight off, at the learner's recent pace
+        (`bus.credits.CreditLedger.deadline_s`)."""
+        return self.ledger.deadline_s(self.follow.seconds_per_version)
 
     def _has_credit(self) -> bool:
-        """Whether a batch may be sent now; out of credit with no acknowledgement for longer than
-        `credit_deadline_s`, the batches in flight are written off."""
-        if self.in_flight < self.actors.credits:
-            return True
-        now = time.monotonic()
-        if self._blocked_since is None:
-            self._blocked_since = now
-        deadline = self.credit_deadline_s()
-        if now - self._blocked_since > deadline:
-            log.warning("no acknowledgement for %.0f s: %d batches in flight written off", deadline, self.in_flight)
-            self._write_off()
-            return True
-        return False
+        """Whether a batch may be sent now (`bus.credits.CreditLedger.may_send`)."""
+        return self.ledger.may_send(self.follow.seconds_per_version)
 
     # -- sending ------------------------------------------------------------------------------------------
 
     def _send(self, batch: TrajectoryBatch) -> None:
-        self.seq += 1
-        batch = batch._replace(seq=np.int32(self.seq))
+        seq = self.ledger.next_seq()
+        batch = batch._replace(seq=np.int32(seq))
         if self._wire is None:  # the layout of the batches this actor sends, from the first one
             self._wire = TrajectoryWire(batch, self.agent.spec.sizes, compact=self.actors.wire_compact,
                                         float16=self.actors.wire_float16)
-        self._traj.put(encode_trajectory(self.bus.stamp, self._wire.pack(tree_arrays(batch)), seq=self.seq,
+        self._traj.put(encode_trajectory(self.bus.stamp, self._wire.pack(tree_arrays(batch)), seq=seq,
                                          incarnation=self.incarnation, actor_index=self.index,
                                          layout=self._wire.format))
         self.counts["sent"] += 1
@@ -309,6 +285,7 @@ class Actor:
             "rejected": self.bus.rejects.counts(),
             "weights_latency_ms": self.follow.latency_ms(),
             **self.counts,
+            "written_off": self.ledger.written_off,
             **self.follow.counts,
             **({"monitor": self.monitor.status()} if self.monitor is not None else {}),
         }

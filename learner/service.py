@@ -3,19 +3,15 @@
 One cycle (driven by the shared run loop):
 1. answer weight queries (an actor that starts or lost track asks `weights/latest`) and note actors joining and
    leaving (liveliness);
-2. take every trajectory frame waiting in the bounded inbox and read its header in this thread (never in a
-   zenoh callback): a malformed or foreign frame is dropped and counted by reason; a duplicate sequence number is
-   dropped; a gap in an actor's sequence (after the first batch of it this learner sees) is counted as lost;
-3. take the oldest ready frame off the queue and acknowledge it to its actor (that frees a credit); a frame
-   acted by weights of an earlier learner epoch (before a restart) or more than `ppo.max_policy_lag` versions
-   old is dropped and counted instead of trained on, before its arrays are unpacked; the rest are unpacked and
-   checked against the batch's schema (a frame that does not fit is dropped and counted);
+2. the intake (`learner.intake`): take every trajectory frame waiting in the bounded inbox into the ready queue,
+   its header read and checked (malformed, foreign, duplicate frames refused and counted; gaps counted as lost);
+3. the intake again: take the oldest frame fit to train on off the queue, acknowledging each frame taken to its
+   actor (that frees a credit, `bus.credits`); a frame of an earlier learner epoch (before a restart) or more
+   than `ppo.max_policy_lag` versions old is dropped and counted instead of trained on, before its arrays are
+   unpacked; the rest are unpacked and checked against the batch's schema;
 4. run `ppo_update` on it, publish the new weights every `learner.publish_every` updates (a cached publication for
    late joiners, plus the queryable), and report metrics. On one host, steps 2 and 3 for the next frame run while
    the update is computed (JAX dispatches it asynchronously), before the update's metrics are read.
-
-Only frames that are trained on are unpacked: a queue of frames waiting holds them as they came off the bus (the
-compact format's bytes, not the full arrays), and an overloaded learner spends nothing on frames it drops.
 
 The learner's epoch counts its restarts. Each start claims a new one, above both the epoch stored in the
 checkpoint it resumes and the last one claimed in the run directory (`claim_epoch`), so no two learner
@@ -46,7 +42,7 @@ import secrets
 import time
 from collections import Counter, deque
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import numpy as np
@@ -54,15 +50,13 @@ import numpy as np
 from impulse.actors.process import actor_index
 from impulse.actors.trajectory import TrajectoryBatch, episode_metrics
 from impulse.actors.wire import TrajectoryWire, trajectory_template, weights_hash
-from impulse.bus.codec import Message, Rejected
-from impulse.bus.credits import encode_credit
+from impulse.bus.codec import Rejected
 from impulse.bus.evaluations import decode_evaluation
 from impulse.bus.keys import ACTOR, CURRICULUM, EVALUATOR, LEARNER, RECORDER
 from impulse.bus.roles import LEARNER_ROLE
 from impulse.bus.service import CycleReport, Progress
 from impulse.bus.session import Bus
 from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
-from impulse.bus.trajectories import decode_trajectory
 from impulse.bus.weights import encode_weights
 from impulse.curriculum.stats import metric_columns
 from impulse.engine.memory import check_fits, warn_if_gpu_sized
@@ -71,6 +65,7 @@ from impulse.learner.agent import Agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer, CheckpointError, fine_tuning_origin, read_starting_policy
 from impulse.learner.config import CheckpointConfig, LearnerConfig, PPOConfig
 from impulse.learner.hosts import ONE_HOST, HostGroup, broadcast_from_leader, global_batch, local_copy
+from impulse.learner.intake import DROP_COUNTS, Taken, TrajectoryIntake
 from impulse.learner.non_finite import SKIPPED_COLUMN, NonFiniteGuard, NonFiniteParameters, refuse_non_finite
 from impulse.learner.run_directory import existing_run
 from impulse.learner.scoring import evaluation_columns
@@ -80,48 +75,10 @@ from impulse.learner.update import TrainState, make_optimizer, ppo_update
 log = logging.getLogger("impulse.learner")
 
 LEARNER_ID = LEARNER
-ACK_REFRESH_S = 1.0
-"""Every actor's latest acknowledgement is sent again this often, so a lost one never strands its credits."""
 RATE_WINDOW = 20
 """Updates over which the status line's updates/s and consumed steps/s are measured (compile time excluded)."""
 EPOCH_FILE = "learner-epoch"
 """In the run directory: the last learner epoch claimed (`claim_epoch`)."""
-STALE_ALARM_AFTER = 20
-"""Batches dropped as stale in a row (none trained on between them) after which the learner warns that the actors
-do not act with its weights, and publishes them again; repeated at most every STALE_ALARM_EVERY_S."""
-STALE_ALARM_EVERY_S = 60.0
-DROP_COUNTS = ("dropped_stale", "dropped_old_epoch", "dropped_overflow", "dropped_inbox_full", "lost")
-"""The learner's own drop counters: acted by weights too old, or of an earlier learner epoch; pushed out of the
-ready queue; refused by a full trajectory inbox; missing from an actor's sequence (lost on the way)."""
-
-
-class Queued(NamedTuple):
-    """A trajectory frame waiting to be trained on: which actor (incarnation) sent it, and the frame, its header
-    read and its arrays not yet unpacked or checked (`_take` does that for the frames it trains on only)."""
-
-    actor: str
-    incarnation: int
-    message: Message
-
-
-@dataclasses.dataclass
-class Ingested:
-    """The learner's intake since it started: trajectory frames accepted into its queue, their bytes, and the time
-    its thread spent taking frames out of zenoh and reading their headers (refused ones included); then the frames
-    unpacked and checked when taken for an update (`LearnerService._take`), and the time that took. Together they
-    bound the frames per second one learner can take in besides its updates."""
-
-    frames: int = 0
-    bytes: int = 0
-    seconds: float = 0.0
-    unpacked: int = 0
-    unpack_seconds: float = 0.0
-
-    def status(self) -> dict[str, float]:
-        return {"frames": self.frames, "mb": round(self.bytes / 2**20, 1), "seconds": round(self.seconds, 3),
-                "unpacked": self.unpacked, "unpack_seconds": round(self.unpack_seconds, 3)}
-
-
 class LearnerError(RuntimeError):
     """The learner cannot start (existing run without --resume, unusable checkpoint)."""
 
@@ -203,20 +160,15 @@ class LearnerService:
                                                  config=group_ppo, minibatch_sharding=self.parallel.minibatches),
             self._group_template,
         )
-        self._held: tuple[str, Message, TrajectoryBatch] | None = None  # taken, waiting for the group to agree
+        self._held: Taken | None = None  # taken, waiting for the group to agree
         self.group_stopped = False
         self._stopping = False
-        self._wire = TrajectoryWire(self._template, agent.spec.sizes, compact=wire_compact)
-        self._schema = self._wire.schema
         self.key = jax.random.PRNGKey(seed + 7 + self.epoch)
 
         keys = bus.keys
-        capacity = max(4, 2 * batches_in_flight)
-        self._inbox = bus.inbox(keys.traj_all, capacity)
-        self._inbox_dropped_before = self.counts["dropped_inbox_full"]
-        self._ready: deque[Queued] = deque()
-        self._ready_limit = capacity
-        self.ingested = Ingested()
+        self.intake = TrajectoryIntake(bus, TrajectoryWire(self._template, agent.spec.sizes, compact=wire_compact),
+                                       capacity=max(4, 2 * batches_in_flight), max_policy_lag=ppo.max_policy_lag,
+                                       counts=self.counts, serves=self._serves if group.several else None)
         # Only the leader publishes weights: the learner's other processes hold the same ones.
         if group.is_leader:  # followers adopt weights only from the learner instance whose token they follow
             bus.stamp.nonce = secrets.token_hex(8)
@@ -231,19 +183,10 @@ class LearnerService:
         self._curriculum_columns: dict[str, float] = {}  # the curriculum's newest buffer statistics, for every row
         self.evaluation: dict[str, Any] = {}  # ... and for the status line
         self._status = StatusPublisher(bus, status_every_s)
-        self._credit_publishers: dict[str, Any] = {}
-        self._acks: dict[str, tuple[int, int]] = {}  # actor -> (incarnation, highest seq taken off the queue)
-        self._last_seq: dict[tuple[str, int], int] = {}
-        self._last_ack_refresh = time.monotonic()
         self.actors_alive: set[str] = set()
-        self.lags: Counter[int] = Counter()
-        self.actor_lag: dict[str, int] = {}
         self._weights_frame = b""
         self._weights_hash = weights_hash(self.train.params)  # shapes and dtypes only
         self._recent: deque[float] = deque(maxlen=RATE_WINDOW)  # end times of the latest updates
-        self.stale_streak = 0  # batches dropped as stale since the last one trained on
-        self._stale_versions: Counter[int] = Counter()  # ... and the versions that acted them
-        self._stale_alarm_at = -float("inf")
         self._last_metrics: dict[str, float] = {}
         self.phase = "starting"
         """What the learner does now, for its status line: compiling, training, checkpointing, evaluating ...,
@@ -343,57 +286,7 @@ class LearnerService:
                 log.warning("actor %s left", name)
                 self.actors_alive.discard(name)
 
-    def _acknowledge(self, actor: str, incarnation: int, seq: int) -> None:
-        self._acks[actor] = (incarnation, seq)
-        self._send_ack(actor)
-
-    def _send_ack(self, actor: str) -> None:
-        publisher = self._credit_publishers.get(actor)
-        if publisher is None:
-            publisher = self._credit_publishers[actor] = self.bus.publisher(self.bus.keys.credit(actor))
-        incarnation, seq = self._acks[actor]
-        publisher.put(encode_credit(self.bus.stamp, incarnation, seq))
-
-    def _refresh_acks(self) -> None:
-        if time.monotonic() - self._last_ack_refresh >= ACK_REFRESH_S:
-            self._last_ack_refresh = time.monotonic()
-            for actor in self._acks:
-                self._send_ack(actor)
-
     # -- trajectories -------------------------------------------------------------------------------------
-
-    def _ingest(self) -> None:
-        started = time.perf_counter()
-        waiting = self._inbox.poll()
-        for received in waiting:
-            source = received.key.rsplit("/", 1)[-1]  # the actor, as the key names it (`Keys.traj`)
-            if self.group.several and not self._serves(source):
-                continue  # another learner process's actor
-            try:
-                message, incarnation = decode_trajectory(received.payload, self.bus.keys.run,
-                                                         self._wire.max_frame_bytes, self._wire.format)
-                stream = (source, incarnation)
-                last = self._last_seq.get(stream)
-                if last is not None and message.seq <= last:
-                    raise Rejected("duplicate", f"sequence number {message.seq} after {last}")
-            except Rejected as err:
-                self.bus.rejects.record(err.reason, source, err.detail)
-                continue
-            # Gaps count from the first batch of a stream this learner sees: a restarted learner joins streams
-            # midway, and what was sent before it started was not lost to it.
-            if last is not None and message.seq > last + 1:
-                self.counts["lost"] += message.seq - last - 1
-            self._last_seq[stream] = message.seq
-            if len(self._ready) >= self._ready_limit:
-                dropped = self._ready.popleft()
-                self.counts["dropped_overflow"] += 1
-                self._acknowledge(dropped.actor, dropped.incarnation, dropped.message.seq)
-            self._ready.append(Queued(source, incarnation, message))
-            self.ingested.frames += 1
-            self.ingested.bytes += len(received.payload)
-        if waiting:
-            self.ingested.seconds += time.perf_counter() - started
-        self.counts["dropped_inbox_full"] = self._inbox_dropped_before + self._inbox.dropped
 
     def _serves(self, actor: str) -> bool:
         """Whether this learner process trains on `actor`'s batches (its share of the actors, `HostGroup`)."""
@@ -445,60 +338,9 @@ class LearnerService:
             metrics[f"{prefix}/{role}/{counter.removeprefix('rejected/')}"] = count
         return metrics
 
-    def _take(self) -> tuple[str, Message, TrajectoryBatch] | None:
-        """The oldest batch fit to train on, unpacked and checked, acknowledging everything taken off the queue.
-        The staleness is judged from the frame's header before its arrays are unpacked, and again from the
-        batch's own behaviour version after."""
-        while self._ready:
-            actor, incarnation, message = self._ready.popleft()
-            self._acknowledge(actor, incarnation, message.seq)
-            if message.learner_epoch != self.epoch:
-                self.counts["dropped_old_epoch"] += 1
-                continue
-            if self._lag(message.policy_version) is None:
-                self._drop_stale(message.policy_version)
-                continue
-            started = time.perf_counter()
-            try:
-                batch = self._wire.checked(message)
-            except Rejected as err:
-                self.bus.rejects.record(err.reason, actor, err.detail)
-                continue
-            finally:
-                self.ingested.unpacked += 1
-                self.ingested.unpack_seconds += time.perf_counter() - started
-            lag = self._lag(int(batch.behaviour_version))
-            if lag is None:
-                self._drop_stale(int(batch.behaviour_version))
-                continue
-            self.stale_streak = 0
-            self._stale_versions.clear()
-            self.lags[lag] += 1
-            self.actor_lag[actor] = lag
-            return actor, message, batch
-        return None
-
-    def _drop_stale(self, behaviour_version: int) -> None:
-        """Count a batch dropped as too old (or ahead of this learner); after STALE_ALARM_AFTER in a row, warn and
-        publish the weights again (a follower that refuses them all re-syncs by query: `actors.follow`)."""
-        self.counts["dropped_stale"] += 1
-        self.stale_streak += 1
-        self._stale_versions[behaviour_version] += 1
-        now = time.monotonic()
-        if self.stale_streak >= STALE_ALARM_AFTER and now - self._stale_alarm_at >= STALE_ALARM_EVERY_S:
-            self._stale_alarm_at = now
-            self.counts["stale_alarms"] += 1
-            acted = ", ".join(str(v) for v, _ in self._stale_versions.most_common(3))
-            log.warning("the last %d batches were all dropped as stale: they were acted by policy versions %s while "
-                        "this learner is at %d (ppo.max_policy_lag=%d); the actors are not acting with its weights: "
-                        "publishing them again", self.stale_streak, acted, self._version, self.ppo.max_policy_lag)
-            self._publish_weights()
-
-    def _lag(self, behaviour_version: int) -> int | None:
-        """How many versions behind the learner's policy `behaviour_version` is, or None if that is too far
-        (`ppo.max_policy_lag`) or ahead of it (`learner.update.check_policy_lag`'s rule, on the host)."""
-        lag = self._version - behaviour_version
-        return lag if 0 <= lag <= self.ppo.max_policy_lag else None
+    def _take(self) -> Taken | None:
+        """The oldest batch fit to train on (`TrajectoryIntake.take`, for this learner's epoch and version)."""
+        return self.intake.take(self.epoch, self._version, republish=self._publish_weights)
 
     # -- the cycle ----------------------------------------------------------------------------------------
 
@@ -521,11 +363,11 @@ class LearnerService:
             "env_steps": self.env_steps,
             "updates_per_s": rate,
             "consumed_steps_per_s": rate * self.steps_per_batch,
-            "queue": len(self._ready),
-            "ingested": self.ingested.status(),
+            "queue": self.intake.queued,
+            "ingested": self.intake.ingested.status(),
             "actors": sorted(self.actors_alive),
-            "actor_lag": self.actor_lag,
-            "lag_histogram": {str(k): v for k, v in sorted(self.lags.items())},
+            "actor_lag": self.intake.actor_lag,
+            "lag_histogram": {str(k): v for k, v in sorted(self.intake.lags.items())},
             "rejected": self.rejected(),
             "dropped_queries": self._weights_queries.dropped if self._weights_queries is not None else 0,
             "solve_rate": self._last_metrics.get("window_solve_rate"),
@@ -535,7 +377,7 @@ class LearnerService:
             "peer_drops": self.peer_drops.totals(),
             "evaluation": self.evaluation,
             "skipped_non_finite": self.guard.skipped,
-            "stale_streak": self.stale_streak,
+            "stale_streak": self.intake.stale_streak,
             "nonce": self.bus.stamp.nonce,
             **{name: 0 for name in DROP_COUNTS},
             **dict(self.counts),
@@ -549,14 +391,14 @@ class LearnerService:
         self._watch_actors()
         self._hear_peers()
         self._hear_evaluations()
-        self._ingest()
-        self._refresh_acks()
+        self.intake.ingest()
+        self.intake.acks.refresh()
         if self._held is None:
             self._held = self._take()
         if not self._group_ready():
             return None
         assert self._held is not None
-        _, _, batch = self._held
+        batch = self._held.batch
         self._held = None
         self.key, update_key = jax.random.split(self.key)
         placed = self._place(batch)
@@ -565,7 +407,7 @@ class LearnerService:
         self.update += 1
         if not self.group.several and not self.finished():
             # The next frame is read while the device computes this update.
-            self._ingest()
+            self.intake.ingest()
             self._held = self._take()
         self.env_steps += self.steps_per_batch
         if self.update % self.learner.publish_every == 0:
@@ -578,7 +420,7 @@ class LearnerService:
             **self.guard.columns(),
             actor=float(batch.actor_id),
             steps_per_s=self._rate() * self.steps_per_batch,
-            queue=len(self._ready),
+            queue=self.intake.queued,
             **self.drop_metrics(),
             **self._curriculum_columns,
             **self._evaluation_columns,

@@ -38,15 +38,18 @@ class TrainState(NamedTuple):
 
 
 class LagCheck(NamedTuple):
-    lag: Array  # int32 policy versions between the data's behaviour policy and the learner's
-    accepted: Array  # bool: lag within the configured limit
+    lag: Any  # policy versions between the data's behaviour policy and the learner's
+    accepted: Any  # bool: lag within the configured limit and not negative
 
 
-def check_policy_lag(behaviour_version: Array, learner_version: Array, max_policy_lag: int) -> LagCheck:
-    """How stale a batch is. Batches older than `max_policy_lag` versions are dropped (and counted by the caller)
-    rather than corrected: importance weights that far off-policy are mostly clipped and carry little signal."""
-    lag = jnp.asarray(learner_version, jnp.int32) - jnp.asarray(behaviour_version, jnp.int32)
-    return LagCheck(lag=lag, accepted=lag <= max_policy_lag)
+def check_policy_lag(behaviour_version: Any, learner_version: Any, max_policy_lag: int) -> LagCheck:
+    """How stale a batch is: the one staleness rule, on the host (Python ints, as the learner's intake judges a
+    frame) and on the device (int32 arrays, as the update reports it). Batches older than `max_policy_lag` versions
+    are dropped (and counted by the caller) rather than corrected: importance weights that far off-policy are mostly
+    clipped and carry little signal. A batch acted by a policy newer than the learner's (a lag below 0) is never
+    accepted: no weights of this learner made it."""
+    lag = learner_version - behaviour_version
+    return LagCheck(lag=lag, accepted=(lag >= 0) & (lag <= max_policy_lag))
 
 
 def make_optimizer(config: PPOConfig, num_updates: int) -> optax.GradientTransformation:
@@ -213,7 +216,8 @@ def ppo_update(
                                                trajectory.action[-1])
     params, opt_state, metrics["non_finite"] = keep_if_finite((params, opt_state), (state.params, state.opt_state),
                                                               fine)
-    metrics["policy_lag"] = check_policy_lag(batch.behaviour_version, state.policy_version, 0).lag
+    metrics["policy_lag"] = check_policy_lag(jnp.asarray(batch.behaviour_version, jnp.int32),
+                                             jnp.asarray(state.policy_version, jnp.int32), 0).lag
     metrics["trained_fraction"] = batch.train_mask.mean()
     metrics.update(lag_metrics(log_prob - trajectory.log_prob, batch.train_mask.astype(jnp.float32), config))
     return TrainState(params, opt_state, state.policy_version + 1), metrics

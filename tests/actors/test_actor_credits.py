@@ -76,13 +76,13 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
             assert actor.counts["sent"] == 1, "no credit left: the actor waits"
 
             waited = cycle_until(actor, lambda: actor.counts["sent"] == 2, 30, "the write-off")
-            assert actor.counts["written_off"] == 1 and waited >= TIMEOUT_S * 0.5
+            assert actor.ledger.written_off == 1 and waited >= TIMEOUT_S * 0.5
 
             credit = learner.publisher(learner.keys.credit("actor-0"))
             assert learner.wait_matching(credit, 10)
             credit.put(encode_credit(learner.stamp, actor.incarnation, 2))
             waited = cycle_until(actor, lambda: actor.counts["sent"] == 3, 30, "the acknowledged credit")
-            assert waited < TIMEOUT_S and actor.counts["written_off"] == 1, "freed by the acknowledgement"
+            assert waited < TIMEOUT_S and actor.ledger.written_off == 1, "freed by the acknowledgement"
 
             credit.put(encode_credit(learner.stamp, actor.incarnation + 1, 3))
             deadline = time.monotonic() + 1.0
@@ -124,6 +124,6 @@ def test_credits_bound_in_flight_batches_and_unacknowledged_ones_are_written_off
             credit.put(encode_credit(learner.stamp, actor.incarnation, actor.seq))
             sent = actor.counts["sent"]
             cycle_until(actor, lambda: actor.counts["sent"] == sent + 1, 30, "the batch after the acknowledgement")
-            written_off = actor.counts["written_off"]
-            waited = cycle_until(actor, lambda: actor.counts["written_off"] > written_off, 60, "the slow write-off")
+            written_off = actor.ledger.written_off
+            waited = cycle_until(actor, lambda: actor.ledger.written_off > written_off, 60, "the slow write-off")
             assert waited >= 0.8 * actor.credit_deadline_s() > TIMEOUT_S, "waited for the slow learner's pace"

@@ -12,6 +12,9 @@ def test_lag_is_versions_behind_and_limit_is_inclusive():
     check = check_policy_lag(jnp.array([10, 8, 6, 5]), 10, max_policy_lag=4)
     assert check.lag.tolist() == [0, 2, 4, 5]
     assert check.accepted.tolist() == [True, True, True, False]
+    # The same rule on the host, as the learner's intake judges a frame's header: a batch from a newer policy
+    # than the learner's is never accepted.
+    assert check_policy_lag(6, 10, 4) == (4, True) and check_policy_lag(11, 10, 4) == (-1, False)
 
 
 def test_the_update_measures_lag_from_the_batch_versions():
