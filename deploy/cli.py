@@ -31,12 +31,8 @@ from typing import Any
 
 from impulse.deploy.commands import COMMANDS, Command, bench
 from impulse.deploy.config import ConfigError, config_to_toml, resolve_config
+from impulse.deploy.runtime.exit_codes import EXIT_BROKEN_PIPE, EXIT_USAGE
 from impulse.deploy.runtime.log_setup import LEVELS, configure_logging
-
-EXIT_USAGE = 2
-EXIT_BROKEN_PIPE = 128 + 13
-"""The status of a process that wrote to a pipe whose reader had gone (128 + SIGPIPE), what a shell reports for
-`yes | head`: the output was cut short, not the command wrong."""
 
 DIRECTORY_OPTIONS = frozenset({"--resume", "--run", "--init-from", "--checkpoint"})
 """Options whose `type=Path` value names a directory a command reads (a run directory or a checkpoint folder);

@@ -96,6 +96,9 @@ class RunConfig:
     def __post_init__(self) -> None:
         check_run_name(self.name)
         check_range("total_env_steps", self.total_env_steps, at_least=1)
+        if self.curriculum.method != "dr" and self.env.levels != RANDOM_LEVELS:
+            raise ValueError(f"curriculum.method={self.curriculum.method} needs env.levels=random (a curriculum picks "
+                             f"among generated levels), not {self.env.levels!r}")
         if self.actors.lockstep and self.learner.publish_every != 1:
             raise ValueError("actors.lockstep waits for the weights of every update: set learner.publish_every=1 "
                              f"(it is {self.learner.publish_every})")

@@ -103,12 +103,9 @@ def build(config: TrainingSetup) -> tuple[FusedTrainer, Agent, list[str], Level 
     agent = make_agent(config.network, spec)
     names, levels = _levels(config, spec.sizes)
     num_updates = config.ppo.updates_for(config.total_env_steps)
-    curriculum = None
-    if levels is None:
-        curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
-    elif config.curriculum.method != "dr":
-        raise RunError(f"curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum picks "
-                       f"among generated levels), not {config.env.levels!r}")
+    # A fixed level set has no curriculum (the run configuration refuses a method other than "dr" with one).
+    curriculum = None if levels is not None else make_curriculum(config.curriculum, spec, env_params,
+                                                                 config.ppo.num_envs)
     trainer = FusedTrainer(agent, env_params, config.ppo, num_updates, curriculum=curriculum)
     return trainer, agent, names, levels
 

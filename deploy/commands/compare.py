@@ -22,10 +22,11 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from impulse.deploy.runtime.exit_codes import EXIT_USAGE
+
 if TYPE_CHECKING:
     from impulse.monitor.runs import Axis, MetricSummary, RunSummary, Window
 
-EXIT_USAGE = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

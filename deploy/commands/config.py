@@ -8,7 +8,8 @@ import difflib
 import shutil
 import sys
 
-EXIT_USAGE = 2
+from impulse.deploy.runtime.exit_codes import EXIT_USAGE
+
 MAX_SHOWN_KEY = 100
 """How much of a long KEY that matches nothing the error message quotes (it is one line)."""
 

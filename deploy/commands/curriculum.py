@@ -26,12 +26,11 @@ from typing import Any, TypeVar
 from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
 from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.curriculum")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 CURRICULUM_SECTION = "curriculum."
 CHECKPOINT_REST_S = 10.0
 """The curriculum service's checkpoints come at most this often (a crash loses at most this long of results)."""

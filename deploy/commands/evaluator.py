@@ -16,6 +16,7 @@ from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, Role
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
 from impulse.deploy.runtime.run_dirs import open_run_for
 
@@ -25,8 +26,6 @@ ROLE = Role(EVALUATOR, asks=FOLLOWS_WEIGHTS, hears=LEARNER_BROADCASTS)
 """What the evaluator may do on a router with access control: follow the learner's weights (its evaluations go
 under its own prefix, which the learner hears)."""
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:

@@ -18,12 +18,11 @@ from typing import TYPE_CHECKING
 
 from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 
 if TYPE_CHECKING:
     from impulse.learner.kinetix_import import ImportedPolicy
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 RECORD_FILENAME = "kinetix_import.json"
 
 

@@ -38,6 +38,7 @@ from impulse.bus.session import Bus
 from impulse.bus.status import read_status
 from impulse.deploy.config import write_resolved_config
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN, EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import viewer_config
 from impulse.deploy.runtime.preflight import PreflightError, run_preflight
 from impulse.deploy.runtime.process_roles import (
@@ -59,14 +60,12 @@ from impulse.deploy.runtime.process_roles import (
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.status_display import StatusDisplay, status_block
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, describe_failure
+from impulse.deploy.runtime.supervisor import Child, Supervisor, describe_failure
 from impulse.engine.memory import HOST_PROCESSES_ENV
 from impulse.learner.run_directory import existing_run, holds_checkpoints
 
 log = logging.getLogger("impulse.launch")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 POLL_S = 0.2
 
 
@@ -101,10 +100,6 @@ def run_launch(args: argparse.Namespace, config: RunConfig, roles: tuple[Process
     if args.resume is None and holds_checkpoints(run_dir / config.checkpoint.directory):
         print(f"impulse launch: {existing_run(run_dir)}", file=sys.stderr)
         return EXIT_FAILED
-    if config.curriculum.method != "dr" and not config.uses_curriculum_service:
-        print(f"impulse launch: curriculum.method={config.curriculum.method} needs env.levels=random (a curriculum "
-              f"picks among generated levels), not {config.env.levels!r}", file=sys.stderr)
-        return EXIT_USAGE
     if config.learner.hosts > 1:
         print(f"impulse launch: learner.hosts={config.learner.hosts} is a learner on several machines, which "
               "`impulse launch` (one machine) does not start: start each learner process with `impulse learner "

@@ -10,10 +10,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.progress import Heartbeat
 
-EXIT_INVALID = 1
-EXIT_USAGE = 2
 _SIZES = ("s", "m", "l")
 _VIDEO_STEPS = 256
 
@@ -149,7 +148,7 @@ def _validate(args: argparse.Namespace) -> int:
     unfound = f", {len(missing)} paths with no level file" if missing else ""
     unsolved = f" ({unsolvable} of them cannot be solved)" if unsolvable else ""
     print(f"{total - invalid} of {total} level files valid{unsolved}{unfound}")
-    return EXIT_INVALID if invalid or missing else 0
+    return EXIT_FAILED if invalid or missing else 0
 
 
 def _load(path: Path, size: str | None, validate: bool = True):
@@ -168,14 +167,14 @@ def _show(args: argparse.Namespace) -> int:
 
     loaded = _load(args.path, args.size, validate=False)
     if loaded is None:
-        return EXIT_INVALID
+        return EXIT_FAILED
     print(f"level: {args.path}")
     print(describe_level(loaded.level, loaded.sizes, file_sizes=loaded.file_sizes, params=loaded.params,
                          frame_skip=loaded.frame_skip))
     problems = validate_scene(loaded.state)
     for problem in problems:
         print(f"problem: {problem}")
-    return EXIT_INVALID if problems else 0
+    return EXIT_FAILED if problems else 0
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -192,13 +191,13 @@ def _render(args: argparse.Namespace) -> int:
     [path] = args.paths
     loaded = _load(path, None, validate=False)
     if loaded is None:
-        return EXIT_INVALID
+        return EXIT_FAILED
     image = render_level(loaded.level, scale=1.0 if args.scale is None else args.scale)
     try:
         save_png(image, args.output)
     except OSError as err:
         print(f"impulse levels render: cannot write {args.output}: {err}", file=sys.stderr)
-        return EXIT_INVALID
+        return EXIT_FAILED
     print(f"wrote {args.output} ({image.shape[1]} x {image.shape[0]} pixels)")
     return 0
 
@@ -227,22 +226,22 @@ def _render_video(args: argparse.Namespace) -> int:
     for line in missing:
         print(f"impulse levels render: {line}", file=sys.stderr)
     if missing:
-        return EXIT_INVALID
+        return EXIT_FAILED
     try:
         own = [load_kinetix_level(file, validate=False).sizes for file in files]
     except LevelFileError as err:
         print(f"impulse levels render: {err}", file=sys.stderr)
-        return EXIT_INVALID
+        return EXIT_FAILED
     fitting = [name for name in _SIZES if all(sizes.fits_in(size_preset(name)) for sizes in own)]
     size = args.size or (fitting[0] if fitting else None)
     if size is None:
         print("impulse levels render: these levels fit no size class together (s, m, l)", file=sys.stderr)
-        return EXIT_INVALID
+        return EXIT_FAILED
     levels = []
     for file in files:
         loaded = _load(file, size)
         if loaded is None:
-            return EXIT_INVALID
+            return EXIT_FAILED
         levels.append(loaded.level)
     spec = EnvSpec(sizes=size_preset(size), max_timesteps=args.steps)
     episodes = play_episodes(None, None, spec, EnvParams(), stack_levels(levels), jax.random.PRNGKey(0))
@@ -251,7 +250,7 @@ def _render_video(args: argparse.Namespace) -> int:
                              scale=DEFAULT_SCALE if args.scale is None else args.scale)
     except OSError as err:
         print(f"impulse levels render: cannot write {args.video}: {err}", file=sys.stderr)
-        return EXIT_INVALID
+        return EXIT_FAILED
     longest = int(episodes.first.sum(axis=0).max())
     print(f"wrote {args.video}: {len(files)} level{'s' * (len(files) > 1)} played with no-op actions for up to "
           f"{longest} steps (size {size.upper()})")
@@ -263,11 +262,11 @@ def _convert(args: argparse.Namespace) -> int:
 
     loaded = _load(args.source, args.size)
     if loaded is None:
-        return EXIT_INVALID
+        return EXIT_FAILED
     try:
         save_kinetix_level(args.target, loaded.level, loaded.sizes, loaded.params, loaded.frame_skip, loaded.options)
     except OSError as err:
         print(f"impulse levels convert: cannot write {args.target}: {err}", file=sys.stderr)
-        return EXIT_INVALID
+        return EXIT_FAILED
     print(f"wrote {args.target} (size {args.size.upper()})")
     return 0

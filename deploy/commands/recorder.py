@@ -14,6 +14,7 @@ from impulse.bus.keys import RECORDER
 from impulse.bus.roles import LEARNER_BROADCASTS, Role
 from impulse.bus.routes import patterns
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
 
 log = logging.getLogger("impulse.service")
@@ -22,8 +23,6 @@ ROLE = Role(RECORDER, hears=(*patterns("traj", "levels_played"), *LEARNER_BROADC
 """What the recorder may do on a router with access control: hear the actors' trajectories and the levels they
 play, and the learner's presence; it publishes only its status."""
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def add_recorder_arguments(parser: argparse.ArgumentParser) -> None:

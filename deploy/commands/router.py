@@ -13,12 +13,11 @@ import logging
 import sys
 
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.runloop import StopFlag
 
 log = logging.getLogger("impulse.router")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def add_router_arguments(parser: argparse.ArgumentParser) -> None:

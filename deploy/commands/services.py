@@ -21,14 +21,12 @@ from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN, EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
 
 log = logging.getLogger("impulse.service")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:

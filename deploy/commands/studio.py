@@ -20,7 +20,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-EXIT_USAGE = 2
+from impulse.deploy.runtime.exit_codes import EXIT_USAGE
+
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_LEVELS_DIR = Path("studio-levels")

@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-EXIT_USAGE = 2
+from impulse.deploy.runtime.exit_codes import EXIT_USAGE
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -29,6 +29,7 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.progress import Heartbeat, ProgressLine
 from impulse.deploy.runtime.run_dirs import (
     create_run_dir,
@@ -40,8 +41,6 @@ from impulse.deploy.runtime.run_dirs import (
 
 log = logging.getLogger("impulse.train")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 @dataclass

@@ -20,6 +20,7 @@ from typing import Any
 from impulse.deploy.config import ConfigError, config_from_dict, config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 from impulse.engine.env.config import EnvConfig
 from impulse.learner.config import NetworkConfig
@@ -27,8 +28,6 @@ from impulse.learner.run_directory import existing_run, holds_checkpoints
 
 log = logging.getLogger("impulse.train")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def add_train_bc_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,14 +22,13 @@ import time
 from pathlib import Path
 
 from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.supervisor import guarded
 
 log = logging.getLogger("impulse.view")
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 SERVER_START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 10.0
 

@@ -31,8 +31,9 @@ from typing import Any, NamedTuple, TextIO
 from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
 from rich.text import Text
 
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN
 from impulse.deploy.runtime.progress import Column, LiveArea, fitted_table, interactive
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, describe_exit
+from impulse.deploy.runtime.supervisor import Child, describe_exit
 
 log = logging.getLogger("impulse.launch")
 

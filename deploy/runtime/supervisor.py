@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN
 from impulse.engine.io_errors import disk_full_message, disk_usage, writing
 
 log = logging.getLogger("impulse.launch")
@@ -47,9 +48,6 @@ RESTART_BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 16.0, 30.0)
 STABLE_AFTER_S = 60.0
 GIVE_UP_AFTER = 3
 """Identical quick failures in a row after which a child is not restarted."""
-EXIT_CANNOT_RUN = 78
-"""Exit status of a process whose configuration cannot run here (sysexits' EX_CONFIG): restarting it would fail
-the same way, after the same long compile, so it is never restarted."""
 EXTERNAL_SIGNALS = frozenset({signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP})
 """Signals that end a child from outside: they say nothing about how its start-up goes, so they never count."""
 LOG_TAIL_BYTES = 64 * 1024

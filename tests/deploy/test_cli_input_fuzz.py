@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from impulse.deploy.cli import EXIT_BROKEN_PIPE, main
+from impulse.deploy.cli import main
 from impulse.deploy.config import (
     MAX_CONFIG_BYTES,
     MAX_OVERRIDE_BYTES,
@@ -30,6 +30,7 @@ from impulse.deploy.config import (
 )
 from impulse.deploy.config_reference import keys
 from impulse.deploy.run_config import MAX_RUN_NAME, RunConfig, check_run_name
+from impulse.deploy.runtime.exit_codes import EXIT_BROKEN_PIPE
 from tests.support.paths import REPO
 
 SEED = 53

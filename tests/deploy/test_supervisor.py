@@ -12,9 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN
 from impulse.deploy.runtime.process_roles import parts_by_child
 from impulse.deploy.runtime.status_display import StatusDisplay, render
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN, Child, Supervisor, error_line, is_failure
+from impulse.deploy.runtime.supervisor import Child, Supervisor, error_line, is_failure
 
 FAST = {"give_up_after": 3, "backoff_s": (0.05,)}
 

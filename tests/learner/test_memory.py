@@ -18,7 +18,7 @@ from impulse.bus.session import Bus
 from impulse.deploy.cli import main
 from impulse.deploy.config import resolve_config
 from impulse.deploy.run_config import RunConfig
-from impulse.deploy.runtime.supervisor import EXIT_CANNOT_RUN
+from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN
 from impulse.engine import memory
 from impulse.engine.env.spec import env_from_config
 from impulse.engine.memory import DoesNotFit, check_fits, free_bytes, program_bytes
