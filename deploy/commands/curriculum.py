@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from impulse.curriculum.client import CurriculumClient, CurriculumUnreachable
+from impulse.deploy.commands.options import TOOL_RUN_HELP, add_run_and_connect
 from impulse.deploy.config import ConfigError, apply_overrides, config_to_toml
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
@@ -40,9 +41,8 @@ Reply = TypeVar("Reply")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="curriculum_action", metavar="ACTION", required=True)
     serve = actions.add_parser("serve", help="run the curriculum service", allow_abbrev=False)
-    serve.add_argument("--run", type=Path, metavar="RUN_DIR", help="use the config saved in RUN_DIR")
+    add_run_and_connect(serve)
     serve.add_argument("--config", type=Path, metavar="FILE.toml", help="TOML config (without --run)")
-    serve.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint to connect to instead of bus.hub")
     serve.add_argument("--resume", action="store_true", help="continue from the service's newest checkpoint")
     serve.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
 
@@ -62,8 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 allow_abbrev=False)
     inject.add_argument("level", type=Path, metavar="LEVEL.json", help="a Kinetix level file")
     for p in (set_, get, inspect, inject):
-        p.add_argument("--run", type=Path, metavar="RUN_DIR", required=True, help="the run's directory")
-        p.add_argument("--connect", metavar="ENDPOINT", help="zenoh endpoint instead of the run's bus.hub")
+        add_run_and_connect(p, TOOL_RUN_HELP, required=True)
 
 
 def run(args: argparse.Namespace, _config: object) -> int:

@@ -9,10 +9,10 @@ import argparse
 import logging
 import sys
 from contextlib import nullcontext
-from pathlib import Path
 
 from impulse.bus.keys import EVALUATOR
 from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, Role
+from impulse.deploy.commands.options import add_run_and_connect
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
@@ -29,11 +29,7 @@ under its own prefix, which the learner hears)."""
 
 
 def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
-                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
-                        "overrides still apply")
-    parser.add_argument("--connect", metavar="ENDPOINT",
-                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tls/hostA.example.org:7447")
+    add_run_and_connect(parser)
 
 
 def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:

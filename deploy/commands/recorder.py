@@ -13,6 +13,7 @@ from pathlib import Path
 from impulse.bus.keys import RECORDER
 from impulse.bus.roles import LEARNER_BROADCASTS, Role
 from impulse.bus.routes import patterns
+from impulse.deploy.commands.options import add_run_and_connect
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
@@ -26,13 +27,9 @@ play, and the learner's presence; it publishes only its status."""
 
 
 def add_recorder_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
-                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
-                        "overrides still apply")
+    add_run_and_connect(parser)
     parser.add_argument("--out", type=Path, metavar="PATH",
                         help="the dataset folder (instead of recorder.path)")
-    parser.add_argument("--connect", metavar="ENDPOINT",
-                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tls/hostA.example.org:7447")
 
 
 def dataset_path(config: RunConfig, run_dir: Path) -> Path | None:

@@ -17,6 +17,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from impulse.deploy.commands.options import add_run_and_connect
 from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
@@ -30,11 +31,7 @@ log = logging.getLogger("impulse.service")
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
-                        help="use the config saved in RUN_DIR (as `impulse launch` writes it); key=value "
-                        "overrides still apply")
-    parser.add_argument("--connect", metavar="ENDPOINT",
-                        help="zenoh endpoint to connect to instead of bus.hub, e.g. tcp/10.0.0.5:7447")
+    add_run_and_connect(parser)
 
 
 def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
