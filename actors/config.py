@@ -29,17 +29,6 @@ class ActorConfig:
     memory_fraction: float = 0.0
     """Fraction of the GPU's memory each actor process preallocates (XLA_PYTHON_CLIENT_MEM_FRACTION), so several
     actors and the learner can share one GPU; 0 keeps JAX's default (75% for the first process)."""
-    status_every_s: float = 1.0
-    """How often each process publishes its status line for `impulse launch`'s display; 0: at every turn of its
-    loop (hundreds a second in an idle curriculum service)."""
-    wire_compact: bool = False
-    """Send trajectories in the compact format (`actors.wire`): booleans as bits, only the entity rows a batch
-    uses, exactly (2 to 3 times fewer bytes on the bus), for runs across hosts; it costs the actors and the learner
-    several times the padded copy, so on one machine the padded arrays (False) are faster. The learner reads the
-    same setting."""
-    wire_float16: bool = False
-    """With `wire_compact`: observation features as float16 (half the bytes again; the learner widens them back
-    to float32, so it trains on inputs rounded to float16's 11 significant bits). False: exact float32."""
     lockstep: bool = False
     """Actor and learner take turns: every batch is rolled out by the weights of the update just before it (policy
     lag 0), and the actor's random stream depends on the run's seed and its index only, not on its incarnation.
@@ -58,9 +47,6 @@ class ActorConfig:
         check_range("actors.credits", self.credits, at_least=1)
         check_range("actors.credit_timeout_s", self.credit_timeout_s, above=0)
         check_range("actors.memory_fraction", self.memory_fraction, at_least=0, below=1)
-        check_range("actors.status_every_s", self.status_every_s, at_least=0)
         if self.lockstep and self.num_actors != 1:
             raise ValueError(f"actors.lockstep takes turns with one actor, not {self.num_actors}: set "
                              "actors.num_actors=1")
-        if self.wire_float16 and not self.wire_compact:
-            raise ValueError("actors.wire_float16 is part of the compact format: set actors.wire_compact=true too")

@@ -160,7 +160,7 @@ class Actor:
         self._played_ids: np.ndarray | None = None
         self._played_at = -float("inf")
         self._credits = bus.inbox(keys.credit(self.name), 64, drop_oldest=True)
-        self._status = StatusPublisher(bus, actors.status_every_s)
+        self._status = StatusPublisher(bus, bus.config.status_every_s)
 
         self._wire: TrajectoryWire | None = None
         self.ledger = CreditLedger(self.incarnation, actors.credits, actors.credit_timeout_s,
@@ -240,8 +240,8 @@ class Actor:
         seq = self.ledger.next_seq()
         batch = batch._replace(seq=np.int32(seq))
         if self._wire is None:  # the layout of the batches this actor sends, from the first one
-            self._wire = TrajectoryWire(batch, self.agent.spec.sizes, compact=self.actors.wire_compact,
-                                        float16=self.actors.wire_float16)
+            self._wire = TrajectoryWire(batch, self.agent.spec.sizes, compact=self.bus.config.wire_compact,
+                                        float16=self.bus.config.wire_float16)
         self._traj.put(encode_trajectory(self.bus.stamp, self._wire.pack(tree_arrays(batch)), seq=seq,
                                          incarnation=self.incarnation, actor_index=self.index,
                                          layout=self._wire.format))

@@ -10,7 +10,7 @@ at the door instead of crashing or recompiling one.
 **Two trajectory formats** (`TrajectoryWire`, the frame's `bus.trajectories` format number). `padded` (format 1,
 the default) sends the batch's arrays as they are: no work beyond one copy into the frame, which is what a run on
 one machine wants, where bytes cost little (shared memory) and the actors' and the learner's time is the limit.
-`compact` (format 2, `actors.wire_compact`) is for runs across hosts, where the network is the limit. A batch pads
+`compact` (format 2, `bus.wire_compact`) is for runs across hosts, where the network is the limit. A batch pads
 every entity to the size's slot counts and is mostly observation, so compact frames carry:
 
 - booleans (masks, done flags, the attention mask) travel as bits (`np.packbits`, C order, `name` as uint8);
@@ -22,7 +22,7 @@ every entity to the size's slot counts and is mostly observation, so compact fra
   vector, whose inactive rows are zero), so in practice only active rows travel; but any row that differs from the
   fill is sent, so the learner rebuilds exactly the padded arrays its update was compiled for, whatever the levels
   put in their unused slots;
-- with `float16` (`actors.wire_float16`), observation features travel as float16 when every value of the array
+- with `float16` (`bus.wire_float16`), observation features travel as float16 when every value of the array
   fits float16's range (else float32), and are widened back to float32 by the learner: a rounding of the inputs
   (relative error <= 2^-11), not of the layout.
 

@@ -255,7 +255,7 @@ def rollout_batch(size: str, observation: str, num_envs: int, num_steps: int) ->
 def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int, repeats: int = 5) -> dict[str, Any]:
     """Bytes on the bus per env step of one trajectory batch of a real rollout, with its floors, in three
     formats: `padded` (format 1, the arrays as they are), `compact` (`actors.wire.TrajectoryWire`, exact) and
-    `compact_float16` (`actors.wire_float16`). Frames are encoded for real, so header, array table and the 64-byte
+    `compact_float16` (`bus.wire_float16`). Frames are encoded for real, so header, array table and the 64-byte
     alignment of every array are counted; encode (pack + encode) and decode (decode + unpack + schema check +
     tree_from_arrays) are timed here alone, median of `repeats`."""
     from impulse.actors.wire import TrajectoryWire
@@ -308,7 +308,7 @@ def bytes_per_step(size: str, observation: str, num_envs: int, num_steps: int, r
         "note": (
             "one batch of a real rollout (random initial weights) on the size's levels; bytes_per_step = encoded "
             "frame length / (T*E) of the format actors send by default (compact, exact); formats: padded = the "
-            "previous format, compact_float16 = actors.wire_float16. encode_ms = pack + encode, decode_check_ms = "
+            "previous format, compact_float16 = bus.wire_float16. encode_ms = pack + encode, decode_check_ms = "
             "decode + unpack + schema check + tree_from_arrays, in this process alone (median). floor_compact: "
             "the same fields with entity arrays cut "
             "to the mean active slots of the size's levels (attention mask over active bodies only), observation "
@@ -571,7 +571,7 @@ def distributed_record(result: RunResult, skip: int, fused_rate: float | None, c
         **({"process_env": result.memory} if result.memory else {}),
         "note": ("env_steps_per_s from metrics.jsonl time_s (learner wall clock at the end of each update) between "
                  "update skip_updates and the last; policy_lag from metrics.jsonl; drop counts from the final "
-                 "status lines on the bus (up to actors.status_every_s old; absent counters are 0)"),
+                 "status lines on the bus (up to bus.status_every_s old; absent counters are 0)"),
     }
 
 
@@ -660,8 +660,8 @@ def inprocess_costs(config: RunConfig, repeats: int) -> dict[str, Any]:
     update_s = _median_s(one_update, repeats)
 
     template = trajectory_template(spec, ppo.num_envs, ppo.num_steps)
-    wire = TrajectoryWire(template, spec.sizes, compact=config.actors.wire_compact,
-                          float16=config.actors.wire_float16)
+    wire = TrajectoryWire(template, spec.sizes, compact=config.bus.wire_compact,
+                          float16=config.bus.wire_float16)
     run = "bench"
 
     stamp = Stamp(run, epoch=1, policy_version=1)

@@ -465,7 +465,7 @@ def run_learner(config_path: Path, overrides: list[str], sizes: list[int], proce
     progress("recording a trajectory batch from a real rollout ...")
     batch = record_batch(config)
     steps_per_frame = config.ppo.num_envs * config.ppo.num_steps
-    wire_settings = {"compact": config.actors.wire_compact, "float16": config.actors.wire_float16}
+    wire_settings = {"compact": config.bus.wire_compact, "float16": config.bus.wire_float16}
     sizes_of_scene = env_from_config(config.env)[0].sizes
     hub = f"tcp/127.0.0.1:{free_port()}"
     workdir = Path(tempfile.mkdtemp(prefix="fleet-"))

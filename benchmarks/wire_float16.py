@@ -1,4 +1,4 @@
-"""Does learning notice float16 features on the wire (`actors.wire_float16`)? Two measurements:
+"""Does learning notice float16 features on the wire (`bus.wire_float16`)? Two measurements:
 
 1. One update, exactly: a batch of a real rollout (S levels, random initial weights, 64 x 64 steps) goes through
    the compact wire in float32 and in float16, and the learner's PPO update (`learner.update.ppo_update`) runs on
@@ -34,7 +34,7 @@ import numpy as np
 from impulse.benchmarks._harness import REPO, emit, environment, progress
 
 QUICK_LAUNCH = REPO / "configs" / "quick-launch.toml"
-MODES = {"float32": [], "float16": ["actors.wire_float16=true"]}
+MODES = {"float32": [], "float16": ["bus.wire_float16=true"]}
 
 
 def one_update() -> dict[str, Any]:
@@ -80,7 +80,7 @@ def launch(mode: str, seed: int, args: argparse.Namespace, work: Path) -> dict[s
     run_dir = work / f"{mode}-{seed}"
     command = [sys.executable, "-m", "impulse.deploy.cli", "launch", "--config", str(QUICK_LAUNCH), f"seed={seed}",
                f"run_dir={run_dir}", f"name=f16-{mode}-{seed}-{os.getpid()}", f"bus.hub=tcp/127.0.0.1:{args.port}",
-               f"total_env_steps={args.updates * 64 * 64}", "actors.wire_compact=true", *MODES[mode]]
+               f"total_env_steps={args.updates * 64 * 64}", "bus.wire_compact=true", *MODES[mode]]
     started = time.perf_counter()
     with (work / f"{mode}-{seed}.log").open("wb") as out:
         done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO, timeout=args.timeout)

@@ -58,7 +58,7 @@ def decode_trajectory(payload: bytes, run: str, max_bytes: int, layout: int) -> 
     version = message.meta.get(FORMAT, FORMAT_WITHOUT_KEY)
     if version != layout or type(version) is not int:
         raise Rejected("bad_version", f"trajectory format {_BRIEF.repr(version)}, this learner reads {layout} "
-                                      "(actors.wire_compact must be the same for the whole run)")
+                                      "(bus.wire_compact must be the same for the whole run)")
     incarnation = message.meta.get(INCARNATION)
     if type(incarnation) is not int:
         raise Rejected("schema", f"a trajectory frame without a valid incarnation ({incarnation!r})")

@@ -8,7 +8,9 @@ came from, what was expected, and the closest valid keys.
 Supported field types: int, float (an int is accepted; NaN and infinities are refused), bool, str, `Literal[...]`,
 `X | None`, `tuple[...]` and `list[...]` of those, and nested dataclasses (TOML tables). A table whose class names a
 `SHORTHAND` field may be given a plain value, meaning that field (`curriculum=sfl` is `curriculum.method=sfl`). An
-integral float such as `1e9` is accepted for an int. TOML has no null, so an optional field is set to None with the
+integral float such as `1e9` is accepted for an int. A key that moved to another section (the root class's
+`MOVED_KEYS`, old dotted name -> new) is still read under its old name, in a file or an override, with one warning
+line saying the new one. TOML has no null, so an optional field is set to None with the
 word `none` (the string "none" in a file), and `config_to_toml` writes None the same way; a resolved config
 therefore reads back to an equal instance.
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import logging
 import math
 import os
 import stat
@@ -38,6 +41,8 @@ from typing import Any, Literal, TypeVar, Union
 import tomli_w
 
 T = TypeVar("T")
+
+log = logging.getLogger("impulse.config")
 
 NONE_WORD = "none"
 CONFIG_FILENAME = "config.toml"
@@ -75,10 +80,12 @@ def resolve_config(cls: type[T], toml_path: Path | None = None, overrides: Itera
     """Build a `cls` instance from its defaults, the TOML file (if any), then the overrides, in that order."""
     tree: dict[str, Any] = {}
     if toml_path is not None:
-        _merge(cls, cls, tree, _read_toml(Path(toml_path)), "", source=f"from {_shown_path(toml_path)}")
+        source = f"from {_shown_path(toml_path)}"
+        _merge(cls, cls, tree, _moved_tables(cls, _read_toml(Path(toml_path)), source), "", source=source)
     for item in overrides:
         key, raw = _split_override(item)
-        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from override '{_shown(item)}'", raw=raw)
+        source = f"from override '{_shown(item)}'"
+        _merge_dotted(cls, tree, _moved_key(cls, key, source), _parse_value(raw), source=source, raw=raw)
     return _build(cls, tree, "", base=None)
 
 
@@ -89,7 +96,8 @@ def apply_overrides(instance: T, overrides: Iterable[str], source: str = "overri
     tree: dict[str, Any] = {}
     for item in overrides:
         key, raw = _split_override(item)
-        _merge_dotted(cls, tree, key, _parse_value(raw), source=f"from {source} '{_shown(item)}'", raw=raw)
+        shown = f"from {source} '{_shown(item)}'"
+        _merge_dotted(cls, tree, _moved_key(cls, key, shown), _parse_value(raw), source=shown, raw=raw)
     return _build(cls, tree, "", base=instance)
 
 
@@ -97,7 +105,7 @@ def config_from_dict(cls: type[T], data: dict[str, Any], source: str) -> T:
     """A `cls` instance from TOML-shaped data (as `config_to_dict` or a dataset's attributes hold a section),
     checked as a TOML file is; `source` names where the data came from in errors."""
     tree: dict[str, Any] = {}
-    _merge(cls, cls, tree, data, "", source=source)
+    _merge(cls, cls, tree, _moved_tables(cls, data, source), "", source=source)
     return _build(cls, tree, "", base=None)
 
 
@@ -206,6 +214,36 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{shown}: invalid TOML: arrays or inline tables nested too deeply") from None
     except ValueError as e:  # an integer of more digits than Python converts from text
         raise ConfigError(f"{shown}: invalid TOML: {_shown(str(e))}") from None
+
+
+def _moved_key(root: type, key: str, source: str) -> str:
+    """The key an override names now: its new name if it is one of `root.MOVED_KEYS`' old ones (said once)."""
+    new = getattr(root, "MOVED_KEYS", {}).get(key)
+    if new is None:
+        return key
+    log.warning("config key '%s' (%s) is now '%s': read as that; write '%s'", key, source, new, new)
+    return new
+
+
+def _moved_tables(root: type, data: dict[str, Any], source: str) -> dict[str, Any]:
+    """TOML-shaped `data` with each of `root.MOVED_KEYS`' old keys moved to its new place (said once each); a key
+    given under both names is refused."""
+    moved = getattr(root, "MOVED_KEYS", {})
+    if not moved:
+        return data
+    data = {name: dict(value) if isinstance(value, dict) else value for name, value in data.items()}
+    for old, new in moved.items():
+        old_table, _, old_name = old.rpartition(".")
+        table = data.get(old_table)
+        if not isinstance(table, dict) or old_name not in table:
+            continue
+        new_table, _, new_name = new.rpartition(".")
+        target = data.setdefault(new_table, {})
+        if not isinstance(target, dict) or new_name in target:
+            raise ConfigError(f"config key '{old}' ({source}) is now '{new}', which is set too: keep only '{new}'")
+        target[new_name] = table.pop(old_name)
+        log.warning("config key '%s' (%s) is now '%s': read as that; write '%s'", old, source, new, new)
+    return data
 
 
 def _split_override(item: str) -> tuple[str, str]:

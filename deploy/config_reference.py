@@ -138,6 +138,13 @@ def as_markdown(root: type = RunConfig) -> str:
             cell = lambda text: text.replace("|", "\\|")  # noqa: E731
             out.append(f"| `{k.name}` | {cell(k.type)} | `{cell(k.default)}` | {cell(k.meaning)} |")
         out.append("")
+    moved = getattr(root, "MOVED_KEYS", {})
+    if moved:
+        out += ["## Moved keys", "",
+                "Still read under their old names (in a file or an override), with a warning line naming the new one.",
+                "", "| old key | now |", "|---|---|"]
+        out += [f"| `{old}` | `{new}` |" for old, new in moved.items()]
+        out.append("")
     return "\n".join(out)
 
 

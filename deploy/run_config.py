@@ -6,8 +6,11 @@ overrides. A service is given the sections it uses, never the whole tree."""
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
+from typing import ClassVar
 
 from impulse.actors.config import ActorConfig
 from impulse.bus.config import BusConfig, RouterConfig
@@ -92,6 +95,15 @@ class RunConfig:
     router: RouterConfig = field(default_factory=RouterConfig)
     """`impulse router`, for runs across machines."""
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
+
+    MOVED_KEYS: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "actors.status_every_s": "bus.status_every_s",
+        "actors.wire_compact": "bus.wire_compact",
+        "actors.wire_float16": "bus.wire_float16",
+    })
+    """Keys that moved to another section (old dotted name -> new), still read under their old names, with a
+    warning line (`deploy.config`): a config.toml written before the move, a pretrained agent's, a habit. Every
+    process's status cadence and the trajectory wire format are the bus's settings, not the actors' alone."""
 
     def __post_init__(self) -> None:
         check_run_name(self.name)

@@ -175,7 +175,7 @@ class RecorderService:
     def __init__(self, config: RecorderConfig, *, bus: Bus, writer: DatasetWriter, template: TrajectoryBatch,
                  sizes: SceneSizes, wire_compact: bool, status_every_s: float, ident: str = RECORDER_ID):
         """`template`: the shapes of the run's trajectory batches (`actors.wire.trajectory_template`);
-        `wire_compact`: the actors send the compact format (`actors.wire_compact`)."""
+        `wire_compact`: the actors send the compact format (`bus.wire_compact`)."""
         self.config = config
         self.bus = bus
         self.writer = writer

@@ -112,7 +112,7 @@ class LearnerService:
         (actors x credits), which sizes the inbox; `config_toml`: the resolved run config, kept in checkpoints;
         `init_from`: fine-tuning, a run directory or shipped agent whose policy a run with no checkpoint of its own
         starts from (one that has checkpoints resumes them: a restarted learner goes on from its own);
-        `wire_compact`: the actors send the compact trajectory format (`actors.wire_compact`); `group`: this
+        `wire_compact`: the actors send the compact trajectory format (`bus.wire_compact`); `group`: this
         process's place among the learner's hosts (`learner.hosts.join_hosts`), one process by default."""
         self.ppo, self.learner = ppo, learner
         self.config_toml = config_toml

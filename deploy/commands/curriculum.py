@@ -329,7 +329,7 @@ def serve(args: argparse.Namespace) -> int:
         try:
             service = CurriculumService(curriculum, bus, checkpoints, config_to_toml(config), resolve_knobs,
                                         item=CURRICULUM, seed=config.seed, resume=args.resume,
-                                        status_every_s=config.actors.status_every_s, scorer=scorer)
+                                        status_every_s=config.bus.status_every_s, scorer=scorer)
         except CheckpointError as err:
             print(f"impulse curriculum serve: cannot resume: {err}", file=sys.stderr)
             return EXIT_FAILED

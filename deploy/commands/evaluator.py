@@ -65,7 +65,7 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_FAILED
     with Bus(config.bus, config.name, ROLE.name, EVALUATOR_ID) as bus, \
             open_monitor(config) or nullcontext() as monitor:
-        service = EvaluatorService(config.evaluator, seed=config.seed, status_every_s=config.actors.status_every_s,
+        service = EvaluatorService(config.evaluator, seed=config.seed, status_every_s=config.bus.status_every_s,
                                    bus=bus, agent=agent, env_params=env_params, sets=sets)
         log.info("evaluator up: run %s, %d levels (%s), every %d policy versions, %d attempts each", config.name,
                  len(sets.names), config.evaluator.levels, config.evaluator.every_updates,

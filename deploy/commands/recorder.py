@@ -67,8 +67,8 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_FAILED
     with Bus(config.bus, config.name, ROLE.name, RECORDER_ID) as bus:
         service = RecorderService(config.recorder, bus=bus, writer=writer, template=template, sizes=spec.sizes,
-                                  wire_compact=config.actors.wire_compact,
-                                  status_every_s=config.actors.status_every_s)
+                                  wire_compact=config.bus.wire_compact,
+                                  status_every_s=config.bus.status_every_s)
         log.info("recorder up: run %s, writing whole episodes to %s (%d shards there already, %.1f MB of %.1f GB)",
                  config.name, path, writer.next_shard, writer.bytes_used / 1e6, writer.max_bytes / 1e9)
         run_loop(service, LoopOptions())

@@ -112,9 +112,9 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
             service = LearnerService(
                 config.ppo, config.learner, config.checkpoint, seed=config.seed, num_updates=config.num_updates,
                 batches_in_flight=config.actors.num_actors * config.actors.credits,
-                status_every_s=config.actors.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
+                status_every_s=config.bus.status_every_s, run_dir=run_dir, config_toml=config_to_toml(config),
                 bus=bus, agent=agent, resume=args.resume, init_from=init_from,
-                wire_compact=config.actors.wire_compact, group=group)
+                wire_compact=config.bus.wire_compact, group=group)
         except LearnerError as err:
             print(f"impulse learner: {err}", file=sys.stderr)
             _remove_refused_run(created, run_dir, config)

@@ -110,7 +110,7 @@ def test_out_of_range_features_stay_float32(rolled):
 
 
 def test_a_frame_of_the_other_format_is_refused_and_counted(rolled):
-    """A learner reads the one format its run is set up for (`actors.wire_compact`); a frame of the other is
+    """A learner reads the one format its run is set up for (`bus.wire_compact`); a frame of the other is
     refused as "bad_version", never misread. A frame as builds before the compact format sent it (padded, no
     `format` in the meta) is format 1, which padded learners still read."""
     spec, batch = rolled

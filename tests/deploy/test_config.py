@@ -141,6 +141,29 @@ def test_cross_field_check_becomes_config_error() -> None:
         resolve_config(RunConfig, None, ["ppo.num_minibatches=7"])
 
 
+def test_a_moved_key_is_read_under_its_old_name_with_a_warning(tmp_path: Path, caplog) -> None:
+    """`RunConfig.MOVED_KEYS`: a config.toml written before a key moved, or an old habit on the command line, still
+    works, and says the new name; the same key under both names is refused."""
+    old = tmp_path / "old.toml"
+    old.write_text("[actors]\nnum_actors = 3\nstatus_every_s = 2.5\n")
+    with caplog.at_level("WARNING", logger="impulse.config"):
+        config = resolve_config(RunConfig, old, ["actors.wire_compact=true"])
+    assert (config.bus.status_every_s, config.bus.wire_compact, config.actors.num_actors) == (2.5, True, 3)
+    said = caplog.text
+    assert "'actors.status_every_s'" in said and "is now 'bus.status_every_s'" in said
+    assert "'actors.wire_compact'" in said and "is now 'bus.wire_compact'" in said
+    both = tmp_path / "both.toml"
+    both.write_text("[actors]\nstatus_every_s = 2.5\n[bus]\nstatus_every_s = 1.0\n")
+    with pytest.raises(ConfigError, match="is now 'bus.status_every_s', which is set too"):
+        resolve_config(RunConfig, both)
+
+
+def test_a_curriculum_needs_random_levels() -> None:
+    with pytest.raises(ConfigError, match="curriculum.method=plr needs env.levels=random"):
+        resolve_config(RunConfig, None, ["curriculum=plr", "env.levels=handmade"])
+    assert resolve_config(RunConfig, None, ["curriculum=plr", "env.levels=random"]).curriculum.method == "plr"
+
+
 def test_lockstep_is_refused_where_it_could_not_take_turns() -> None:
     resolve_config(RunConfig, None, ["actors.lockstep=true", "actors.num_actors=1"])
     with pytest.raises(ConfigError, match=r"actors\.lockstep takes turns with one actor, not 2"):
@@ -202,7 +225,7 @@ OUT_OF_RANGE = [
     ("actors.credits", "0"),
     ("actors.credit_timeout_s", "0"),
     ("actors.memory_fraction", "1"),
-    ("actors.status_every_s", "-1"),
+    ("bus.status_every_s", "-1"),
     ("learner.publish_every", "0"),
     ("learner.slow_down_s", "-1"),
     ("bus.shm_pool_mib", "0"),
@@ -264,7 +287,7 @@ def test_range_message_states_the_rule() -> None:
     "network.depth=0",  # linear heads over the torso's embedding
     "network.transformer_layers=0",  # mean of the encoded tokens
     "actors.memory_fraction=0",  # JAX's default
-    "actors.status_every_s=0",
+    "bus.status_every_s=0",
     "monitor.watch_envs=0",  # curves only
     "monitor.gallery=0",
     "curriculum={max_edits = 0, num_edits = 0}",  # ACCEL without edits
