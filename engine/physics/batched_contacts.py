@@ -14,6 +14,10 @@ matched where that matters:
 - lever arms and effective masses are recomputed at every visit from the current positions, which the joint
   pass moves during the iterations.
 
+That is why its visit (`solve_batch`) is its own and not `contact_solver.visit_contact`, which the default schedule
+and the fused kernel share: Jax2D's order of operations (dividing by the effective mass at each visit, summing a
+batch's changes) is what this schedule exists to reproduce.
+
 Padding slots do nothing here by default. Jax2D's padding also overwrites the accumulated impulse of each kind's
 last pair (bug B1 of the Jax2D digest): its padded slots carry index -1, which wraps onto that pair, and write it a
 zero in every batch that holds padding. We do not copy that into "jax2d"; `schedule="jax2d_wipe"` reproduces it, off

@@ -9,12 +9,12 @@ two seconds (benchmarks/RESULTS.md). `solver="jax2d"` (batched_contacts.py) reco
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
-from impulse.engine.physics.geometry import cross, cross_scalar_vector, dot, nonzero
+from impulse.engine.physics.geometry import ARRAYS, VectorOps, cross, cross_scalar_vector, dot, nonzero
 from impulse.engine.physics.narrowphase import Contacts
 from impulse.engine.physics.pairs import PairTables
 from impulse.engine.physics.params import SimParams
@@ -120,30 +120,40 @@ def solve_phase(
     normal_impulse: Array,
     tangent_impulse: Array,
 ) -> tuple[Array, Array, Array, Array]:
-    """One sequential-impulse visit of contacts that share no body, solved side by side."""
+    """One sequential-impulse visit of contacts that share no body, solved side by side (`visit_contact` on
+    arrays)."""
     va, vb = velocity[body_a], velocity[body_b]
     wa, wb = angular_velocity[body_a], angular_velocity[body_b]
-
-    def relative_velocity() -> Array:
-        return (vb + cross_scalar_vector(wb, rows.lever_b)) - (va + cross_scalar_vector(wa, rows.lever_a))
-
-    def apply(impulse: Array) -> tuple[Array, Array, Array, Array]:
-        return (
-            va - rows.inverse_mass_a[:, None] * impulse,
-            wa - rows.inverse_inertia_a * cross(rows.lever_a, impulse),
-            vb + rows.inverse_mass_b[:, None] * impulse,
-            wb + rows.inverse_inertia_b * cross(rows.lever_b, impulse),
-        )
-
-    normal_speed = dot(relative_velocity(), rows.normal)
-    new_normal = jnp.maximum(normal_impulse + (rows.target_velocity - normal_speed) * rows.normal_mass, 0.0)
-    va, wa, vb, wb = apply((new_normal - normal_impulse)[:, None] * rows.normal)
-
-    tangent_speed = dot(relative_velocity(), rows.tangent)
-    limit = rows.friction * new_normal
-    new_tangent = jnp.clip(tangent_impulse - tangent_speed * rows.tangent_mass, -limit, limit)
-    va, wa, vb, wb = apply((new_tangent - tangent_impulse)[:, None] * rows.tangent)
-
+    va, wa, vb, wb, new_normal, new_tangent = visit_contact(ARRAYS, rows, va, wa, vb, wb, normal_impulse,
+                                                            tangent_impulse)
     velocity = write_back(velocity, va, vb, body_a, body_b)
     angular_velocity = write_back(angular_velocity, wa, wb, body_a, body_b)
     return velocity, angular_velocity, new_normal, new_tangent
+
+
+def visit_contact(ops: VectorOps, c: Any, va: Any, wa: Any, vb: Any, wb: Any, normal_impulse: Any,
+                  tangent_impulse: Any) -> tuple[Any, Any, Any, Any, Any, Any]:
+    """The contact visit, written once for every schedule that keeps constants per step: the normal impulse, then
+    friction, from the velocities and spins of the contacts' bodies (a, b) and their accumulated impulses; returns
+    the bodies' new velocities and spins and the new impulses. `c` holds the contacts' `ContactRows`; `ops` says
+    how vectors are held: `geometry.ARRAYS` for [k, 2] arrays (`solve_phase`, k contacts side by side), `lanes.LANES`
+    for pairs of rows (the kernel, one contact on every lane)."""
+
+    def relative_velocity() -> Any:
+        return ops.sub(ops.add(vb, ops.spin(wb, c.lever_b)), ops.add(va, ops.spin(wa, c.lever_a)))
+
+    def apply(impulse: Any) -> tuple[Any, Any, Any, Any]:
+        return (
+            ops.sub(va, ops.scale(c.inverse_mass_a, impulse)), wa - c.inverse_inertia_a * ops.cross(c.lever_a, impulse),
+            ops.add(vb, ops.scale(c.inverse_mass_b, impulse)), wb + c.inverse_inertia_b * ops.cross(c.lever_b, impulse),
+        )
+
+    normal_speed = ops.dot(relative_velocity(), c.normal)
+    new_normal = jnp.maximum(normal_impulse + (c.target_velocity - normal_speed) * c.normal_mass, 0.0)
+    va, wa, vb, wb = apply(ops.scale(new_normal - normal_impulse, c.normal))
+
+    tangent_speed = ops.dot(relative_velocity(), c.tangent)
+    limit = c.friction * new_normal
+    new_tangent = jnp.clip(tangent_impulse - tangent_speed * c.tangent_mass, -limit, limit)
+    va, wa, vb, wb = apply(ops.scale(new_tangent - tangent_impulse, c.tangent))
+    return va, wa, vb, wb, new_normal, new_tangent

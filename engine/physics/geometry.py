@@ -1,10 +1,27 @@
-"""2D vector helpers on arrays whose last axis holds (x, y)."""
+"""2D vector helpers on arrays whose last axis holds (x, y), and `VectorOps`: the vector algebra a solver visit is
+written against, so that one visit serves these arrays (the XLA step, `ARRAYS`) and the kernel's lanes, where a
+vector is a pair of rows (`lanes.LANES`)."""
 
 from __future__ import annotations
+
+import operator
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 
 Array = jnp.ndarray
+
+
+class VectorOps(NamedTuple):
+    """The operations on 2D vectors (V) and scalars (S) a solver visit uses, for one way of holding vectors."""
+
+    add: Callable[[Any, Any], Any]  # V + V
+    sub: Callable[[Any, Any], Any]  # V - V
+    scale: Callable[[Any, Any], Any]  # S * V
+    dot: Callable[[Any, Any], Any]  # V . V -> S
+    cross: Callable[[Any, Any], Any]  # V x V -> S
+    spin: Callable[[Any, Any], Any]  # S x V: the velocity of a point at lever V on a body spinning at S
 
 
 def cross(a: Array, b: Array) -> Array:
@@ -34,3 +51,12 @@ def nonzero(x: Array) -> Array:
 
 def length(v: Array) -> Array:
     return jnp.sqrt(dot(v, v))
+
+
+def scale(s: Array, v: Array) -> Array:
+    """s * v for a scalar per vector (s has v's leading axes)."""
+    return s[..., None] * v
+
+
+ARRAYS = VectorOps(add=operator.add, sub=operator.sub, scale=scale, dot=dot, cross=cross, spin=cross_scalar_vector)
+"""`VectorOps` on arrays whose last axis holds (x, y)."""

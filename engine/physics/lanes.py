@@ -22,10 +22,46 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from impulse.engine.physics.geometry import VectorOps
+
 Array = jax.Array
 Row = Array  # [lanes] one value per scene of the block
 Vector = tuple[Row, Row]
 Index = int | Array  # a row index: static, or a traced int32 scalar (a loop counter)
+
+
+def add(a: Vector, b: Vector) -> Vector:
+    return a[0] + b[0], a[1] + b[1]
+
+
+def sub(a: Vector, b: Vector) -> Vector:
+    return a[0] - b[0], a[1] - b[1]
+
+
+def scale(s: Row, v: Vector) -> Vector:
+    return s * v[0], s * v[1]
+
+
+def dot(a: Vector, b: Vector) -> Row:
+    return a[0] * b[0] + a[1] * b[1]
+
+
+def cross(a: Vector, b: Vector) -> Row:
+    return a[0] * b[1] - a[1] * b[0]
+
+
+def spin_velocity(spin: Row, lever: Vector) -> Vector:
+    """spin x lever: the velocity of a point at `lever` on a body spinning at `spin`."""
+    return -spin * lever[1], spin * lever[0]
+
+
+def nonzero(x: Row) -> Row:
+    """`geometry.nonzero` on a row: x, or 1 where x == 0."""
+    return jnp.where(x == 0, 1.0, x)
+
+
+LANES = VectorOps(add=add, sub=sub, scale=scale, dot=dot, cross=cross, spin=spin_velocity)
+"""`geometry.VectorOps` on lanes: a vector is a pair of rows (x, y), one value per scene each."""
 
 
 class Field(NamedTuple):

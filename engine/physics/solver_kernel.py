@@ -6,9 +6,10 @@ by launches and memory traffic (docs/engine.md). Here one kernel launch runs all
 block of scenes (one per lane), on a copy of their state that stays with the block.
 
 What it computes is `step.iterate_phased`, visit for visit: per iteration the joints in slot order
-(joint_solver.solve_joint), then the contacts phase by phase (contact_solver.solve_phase). The formulas are those
-two functions' written over lanes instead of slots; tests/engine/physics/test_physics_kernel.py holds the kernel to
-the XLA schedule on levels and random scenes.
+(joint_solver.solve_joint), then the contacts phase by phase (contact_solver.solve_phase). The contact visit is the
+XLA step's own, `contact_solver.visit_contact`, on lanes (`lanes.LANES`); the joint visit is `visit_joint` below,
+joint_solver.solve_joint's formulas written over lanes. tests/engine/physics/test_physics_kernel.py holds the
+kernel to the XLA schedule on levels and random scenes.
 
 Rolled, so that the program Triton compiles does not grow with the scene: every loop is a loop of the kernel
 (`jax.lax.fori_loop`, an scf.for in Triton), none is unrolled at trace time. The kernel body holds one joint visit
@@ -46,10 +47,23 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as pallas_triton
 
-from impulse.engine.physics.contact_solver import ContactRows
+from impulse.engine.physics.contact_solver import ContactRows, visit_contact
 from impulse.engine.physics.context import Impulses, StepContext
 from impulse.engine.physics.joint_solver import JointSolverState
-from impulse.engine.physics.lanes import Field, Row, RowLayout, Vector, lane_numbers
+from impulse.engine.physics.lanes import (
+    LANES,
+    Field,
+    Row,
+    RowLayout,
+    Vector,
+    add,
+    cross,
+    lane_numbers,
+    nonzero,
+    scale,
+    spin_velocity,
+    sub,
+)
 from impulse.engine.physics.pairs import pair_tables
 from impulse.engine.physics.params import CARRIED_IMPULSE_CAP
 from impulse.engine.physics.sizes import SceneSizes
@@ -266,7 +280,7 @@ def solver_kernel(state_ref, constants_ref, schedule_ref, out_ref, *, sizes: Sce
         va, wa = state.vector(out_ref, "velocity", a), state.row(out_ref, "angular_velocity", a)
         vb, wb = state.vector(out_ref, "velocity", b), state.row(out_ref, "angular_velocity", b)
         normal, tangent = state.row(out_ref, "normal_impulse", v), state.row(out_ref, "tangent_impulse", v)
-        va, wa, vb, wb, normal, tangent = visit_contact(c, va, wa, vb, wb, normal, tangent)
+        va, wa, vb, wb, normal, tangent = visit_contact(LANES, c, va, wa, vb, wb, normal, tangent)
         state.set_vector(out_ref, "velocity", a, va)
         state.set_row(out_ref, "angular_velocity", a, wa)
         state.set_vector(out_ref, "velocity", b, vb)
@@ -284,60 +298,6 @@ def solver_kernel(state_ref, constants_ref, schedule_ref, out_ref, *, sizes: Sce
 
     jax.lax.fori_loop(0, state.num_rows, copy_row, None)
     jax.lax.fori_loop(0, iterations, sweep, None)
-
-
-def _nonzero(x: Row) -> Row:
-    return jnp.where(x == 0, 1.0, x)
-
-
-def _cross(a: Vector, b: Vector) -> Row:
-    return a[0] * b[1] - a[1] * b[0]
-
-
-def _dot(a: Vector, b: Vector) -> Row:
-    return a[0] * b[0] + a[1] * b[1]
-
-
-def _spin_velocity(spin: Row, lever: Vector) -> Vector:
-    """spin x lever: the velocity of a point at `lever` on a body spinning at `spin`."""
-    return -spin * lever[1], spin * lever[0]
-
-
-def _add(a: Vector, b: Vector) -> Vector:
-    return a[0] + b[0], a[1] + b[1]
-
-
-def _sub(a: Vector, b: Vector) -> Vector:
-    return a[0] - b[0], a[1] - b[1]
-
-
-def _scale(s: Row, v: Vector) -> Vector:
-    return s * v[0], s * v[1]
-
-
-def visit_contact(c: ContactRows, va: Vector, wa: Row, vb: Vector, wb: Row, normal_impulse: Row,
-                  tangent_impulse: Row) -> tuple[Vector, Row, Vector, Row, Row, Row]:
-    """contact_solver.solve_phase for one contact on every lane (`c`: its constants, one row or vector each): the
-    normal impulse, then friction; the bodies' new velocities and the contact's new impulses."""
-
-    def relative_velocity() -> Vector:
-        return _sub(_add(vb, _spin_velocity(wb, c.lever_b)), _add(va, _spin_velocity(wa, c.lever_a)))
-
-    def apply(impulse: Vector) -> tuple[Vector, Row, Vector, Row]:
-        return (
-            _sub(va, _scale(c.inverse_mass_a, impulse)), wa - c.inverse_inertia_a * _cross(c.lever_a, impulse),
-            _add(vb, _scale(c.inverse_mass_b, impulse)), wb + c.inverse_inertia_b * _cross(c.lever_b, impulse),
-        )
-
-    normal_speed = _dot(relative_velocity(), c.normal)
-    new_normal = jnp.maximum(normal_impulse + (c.target_velocity - normal_speed) * c.normal_mass, 0.0)
-    va, wa, vb, wb = apply(_scale(new_normal - normal_impulse, c.normal))
-
-    tangent_speed = _dot(relative_velocity(), c.tangent)
-    limit = c.friction * new_normal
-    new_tangent = jnp.clip(tangent_impulse - tangent_speed * c.tangent_mass, -limit, limit)
-    va, wa, vb, wb = apply(_scale(new_tangent - tangent_impulse, c.tangent))
-    return va, wa, vb, wb, new_normal, new_tangent
 
 
 class JointConstants(NamedTuple):
@@ -381,27 +341,27 @@ def visit_joint(c: JointConstants, xa: Vector, xb: Vector, va: Vector, vb: Vecto
     iia, iib = c.inverse_inertia_a, c.inverse_inertia_b
     ra, rb = c.lever_a, c.lever_b
 
-    anchor_a, anchor_b = _add(xa, ra), _add(xb, rb)
+    anchor_a, anchor_b = add(xa, ra), add(xb, rb)
     a_is_static, b_is_static = ima == 0, imb == 0
-    mass_a, mass_b = 1.0 / _nonzero(ima), 1.0 / _nonzero(imb)
+    mass_a, mass_b = 1.0 / nonzero(ima), 1.0 / nonzero(imb)
     point = tuple(
         jnp.where(a_is_static, anchor_a[i], jnp.where(
             b_is_static, anchor_b[i], (anchor_a[i] * mass_a + anchor_b[i] * mass_b) / (mass_a + mass_b)))
         for i in range(2)
     )
-    arm_a, arm_b = _sub(point, xa), _sub(point, xb)
-    relative = _sub(_add(vb, _spin_velocity(wb, arm_b)), _add(va, _spin_velocity(wa, arm_a)))
-    speed = _nonzero(jnp.sqrt(relative[0] ** 2 + relative[1] ** 2))
+    arm_a, arm_b = sub(point, xa), sub(point, xb)
+    relative = sub(add(vb, spin_velocity(wb, arm_b)), add(va, spin_velocity(wa, arm_a)))
+    speed = nonzero(jnp.sqrt(relative[0] ** 2 + relative[1] ** 2))
     direction = (relative[0] / speed, relative[1] / speed)
-    inverse_mass = _nonzero(ima + imb)
-    inverse_inertia = _nonzero(iia + iib)
-    denominator = _nonzero(inverse_mass + _cross(ra, direction) ** 2 * iia + _cross(rb, direction) ** 2 * iib)
-    error = _sub(anchor_b, anchor_a)
+    inverse_mass = nonzero(ima + imb)
+    inverse_inertia = nonzero(iia + iib)
+    denominator = nonzero(inverse_mass + cross(ra, direction) ** 2 * iia + cross(rb, direction) ** 2 * iib)
+    error = sub(anchor_b, anchor_a)
     impulse = tuple(
         (p["joint_stiffness"] * (relative[i] + p["baumgarte_coefficient_joints_v"] * error[i]) / denominator) * on
         for i in range(2)
     )
-    new_wa, new_wb = wa + iia * _cross(ra, impulse), wb - iib * _cross(rb, impulse)
+    new_wa, new_wb = wa + iia * cross(ra, impulse), wb - iib * cross(rb, impulse)
     share = tuple(p["baumgarte_coefficient_joints_p"] * error[i] / inverse_mass for i in range(2))
 
     raw = new_wb - new_wa
@@ -416,10 +376,10 @@ def visit_joint(c: JointConstants, xa: Vector, xb: Vector, va: Vector, vb: Vecto
     new_wa = new_wa + angular_impulse * iia
     new_wb = new_wb - angular_impulse * iib
 
-    total = _add(acc, impulse)
+    total = add(acc, impulse)
     cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_velocity"] / inverse_mass
     norm = jnp.sqrt(total[0] ** 2 + total[1] ** 2)
-    total = _scale(jnp.minimum(1.0, cap / _nonzero(norm)), total)
+    total = scale(jnp.minimum(1.0, cap / nonzero(norm)), total)
     r_cap = CARRIED_IMPULSE_CAP * 2.0 * p["clip_angular_velocity"] / inverse_inertia
     total_r = jnp.clip(acc_r + angular_impulse, -r_cap, r_cap)
 
