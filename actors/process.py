@@ -70,6 +70,7 @@ from impulse.bus.trajectories import encode_trajectory
 from impulse.curriculum.results import LevelResults
 from impulse.curriculum.state import LevelBatch
 from impulse.curriculum.wire import level_batch_arrays, results_arrays
+from impulse.engine.compile_once import compile_once
 from impulse.engine.env.spec import EnvParams, EnvSpec
 from impulse.engine.memory import check_fits
 from impulse.engine.pytree import tree_arrays
@@ -340,7 +341,7 @@ class Actor:
         device has free."""
         log.info("compiling the rollout (%s envs x %s steps) ...", self.num_envs, self.num_steps)
         started = time.perf_counter()
-        compiled = self._rollout.lower(self._params_template, carry, batch).compile()
+        compiled = compile_once(self._rollout.lower(self._params_template, carry, batch), f"{self.name}'s rollout")
         log.info("compiled the rollout in %.1f s", time.perf_counter() - started)
         check_fits(compiled, f"{self.name}'s rollout", self.num_envs, self.num_steps)
 

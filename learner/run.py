@@ -23,6 +23,7 @@ import jax
 from impulse.bus.service import CycleReport, Progress
 from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.stats import buffer_summary, metric_columns
+from impulse.engine.compile_once import compile_once
 from impulse.engine.env.spec import EnvParams, env_from_config
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
@@ -155,7 +156,7 @@ class FusedRun:
         # would otherwise put sharding annotations in the program, so that a resumed or fine-tuned run missed the
         # compilation cache that a fresh run of the same config filled. The compiled program runs on either.
         abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.carry)
-        self._iterate = iterate.lower(abstract, self.levels).compile()
+        self._iterate = compile_once(iterate.lower(abstract, self.levels), "the training step")
         self.compile_s = time.perf_counter() - start
         log.info("compiled the training step in %.1f s (%s envs x %s steps)", self.compile_s,
                  config.ppo.num_envs, config.ppo.num_steps)

@@ -59,6 +59,7 @@ from impulse.bus.session import Bus
 from impulse.bus.status import DropTotals, StatusPublisher, plausible_counts, read_status
 from impulse.bus.weights import encode_weights
 from impulse.curriculum.stats import metric_columns
+from impulse.engine.compile_once import compile_once
 from impulse.engine.memory import check_fits, warn_if_gpu_sized
 from impulse.engine.pytree import tree_arrays
 from impulse.learner.agent import Agent
@@ -494,7 +495,7 @@ class LearnerService:
         log.info("compiling the update (%s envs x %s steps) ...", ppo.num_envs, ppo.num_steps)
         self.report_phase("compiling")
         started = time.perf_counter()
-        compiled = self._update.lower(self.train, self._group_template, self.key).compile()
+        compiled = compile_once(self._update.lower(self.train, self._group_template, self.key), "the learner's update")
         log.info("compiled the update in %.1f s", time.perf_counter() - started)
         check_fits(compiled, "the learner's update", ppo.num_envs, ppo.num_steps)
         self._back_to_training()
