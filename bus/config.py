@@ -7,8 +7,6 @@ from __future__ import annotations
 import ipaddress
 from dataclasses import dataclass
 
-from impulse.engine.config_checks import check_range
-
 
 def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
     """(protocol, host, port) of a network endpoint such as "tcp/127.0.0.1:7447" or "tcp/[::1]:7447?opt=1", host
@@ -91,7 +89,9 @@ class BusConfig:
         if isinstance(connect, str) or not isinstance(connect, tuple | list):
             raise ValueError(f"bus.connect must be a list of endpoints, got {connect!r}")
         object.__setattr__(self, "connect", tuple(_check_endpoint(e, "bus.connect entry") for e in connect))
-        check_range("bus.status_every_s", self.status_every_s, at_least=0)
+        if isinstance(self.status_every_s, bool) or not isinstance(self.status_every_s, int | float) or not (
+                self.status_every_s >= 0):
+            raise ValueError(f"bus.status_every_s must be at least 0, got {self.status_every_s!r}")
         if self.wire_float16 and not self.wire_compact:
             raise ValueError("bus.wire_float16 is part of the compact format: set bus.wire_compact=true too")
         if not isinstance(self.shared_memory, bool):

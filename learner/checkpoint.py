@@ -63,6 +63,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import os
 import shutil
 import sys
 import time
@@ -123,6 +124,12 @@ class CorruptCheckpointError(CheckpointError):
         self.path = path
         self.problem = problem
         self.detail = detail
+
+
+def _another_steps_file(err: OSError, step: int) -> bool:
+    """Whether `err` names a file that belongs to a checkpoint other than `step` (a previous write's)."""
+    name = os.fspath(err.filename) if err.filename is not None else ""
+    return bool(name) and f"{os.sep}{step}{os.sep}" not in name and f"{os.sep}{step}." not in name
 
 
 class Restored(NamedTuple):
@@ -208,7 +215,15 @@ class Checkpointer:
         try:
             with writing(self.directory / str(step)):
                 check_space(self.directory, nbytes)  # the test hook (`engine.io_errors`); nothing otherwise
-                self._manager.save(step, args=args, metrics=metrics)
+                try:
+                    self._manager.save(step, args=args, metrics=metrics)
+                except OSError as err:
+                    if not _another_steps_file(err, step):
+                        raise
+                    # The previous write's metadata, finished by orbax after `wait` returned, failed (its folder
+                    # went away): that write's failure, raised from this save; count it, then save this step.
+                    self._failed_write(err, None)
+                    self._manager.save(step, args=args, metrics=metrics)
         except DiskFullError as err:
             self.failed_saves += 1
             self._after_disk_full(err)
