@@ -6,9 +6,9 @@ A `Role` names the keys (under a run's root `impulse/<run>/v2/`, any run) that a
 line; `bus.router.access_rules` turns a run's roles into Zenoh's rules.
 
 The roles of the protocol itself (learner, curriculum, actor, and operator for command-line tools, the launcher
-and watchers) are declared here. A role added later (the evaluator, the recorder) declares its `Role` in its own
-module, next to the service that plays it, and the command that runs it hands it to the router
-(`impulse router` gathers them from its command table), so adding a role does not edit the bus.
+and watchers) are declared here. A role added later (the evaluator, the recorder) declares its `Role` beside the
+row of the command that runs it (`deploy/commands/__init__.py`; `impulse router` gathers them from that table), so
+adding a role does not edit the bus.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 Options shared by every command (`--log-format`, `--log-level`) are accepted before or after the command name.
 Config overrides are trailing `key=value` words and may be mixed with options. Errors a user can fix (a bad
 config key, an unknown benchmark) end in one line on stderr and exit status 2, never a traceback. Imports are
-kept light (no JAX here) so that `--help` and `--print-config` answer at once.
+kept light (no JAX here) so that `--help` and `--print-config` answer at once: the parser is built from the command
+table and `deploy.commands.options`, and a command's own module is imported only to run it.
 
 Whatever is typed is input, not code: reading it (the arguments, the config file, the overrides) never ends in a
 traceback. A path option that names a directory to read (`--resume`, `--run`, `--init-from`, `--checkpoint`) is
@@ -205,7 +206,7 @@ def _run_command(spec: Command, args: argparse.Namespace) -> int:
         if args.print_config:
             sys.stdout.write(text)
             return 0
-    return int(spec.run(args, config) or 0)
+    return int(spec.run_function()(args, config) or 0)
 
 
 def _run_bench(args: argparse.Namespace) -> int:

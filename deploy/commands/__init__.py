@@ -1,44 +1,42 @@
 """The table of `impulse` subcommands: for each, what it does, the config it resolves, its own options, the function
 that runs it and the role its process holds on a secured router.
 
-Kept apart from argument parsing (`deploy.cli`) so that adding a command means adding one row.
+Kept apart from argument parsing (`deploy.cli`) so that adding a command means adding one row. The table names the
+function that runs a command by its module and name (`runs="train:run_train"`) and imports that module only when
+the command runs (`Command.run_function`): the parser needs only the options (`deploy.commands.options`), so
+`impulse --help` and a config error answer at once while a command module imports what it needs at its top.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
-from impulse.bus.roles import ACTOR_ROLE, CURRICULUM_ROLE, LEARNER_ROLE, OPERATOR_ROLE, Role
-from impulse.deploy.commands import (
-    compare,
-    config,
-    curriculum,
-    evaluator,
-    import_kinetix,
-    launch,
-    levels,
-    recorder,
-    services,
-    studio,
-    tensorboard,
-    train_bc,
-    view,
+from impulse.bus.keys import EVALUATOR, RECORDER
+from impulse.bus.roles import (
+    ACTOR_ROLE,
+    CURRICULUM_ROLE,
+    FOLLOWS_WEIGHTS,
+    LEARNER_BROADCASTS,
+    LEARNER_ROLE,
+    OPERATOR_ROLE,
+    Role,
 )
-from impulse.deploy.commands.router import add_router_arguments, run_router_command
-from impulse.deploy.commands.train import (
-    add_eval_arguments,
-    add_export_arguments,
-    add_train_arguments,
-    run_eval,
-    run_export,
-    run_train,
-)
+from impulse.bus.routes import patterns
+from impulse.deploy.commands import options
 from impulse.deploy.run_config import RunConfig
 
 RunFn = Callable[[argparse.Namespace, Any], int | None]
+
+EVALUATOR_ROLE = Role(EVALUATOR, asks=FOLLOWS_WEIGHTS, hears=LEARNER_BROADCASTS)
+"""What the evaluator may do on a router with access control: follow the learner's weights (its evaluations go
+under its own prefix, which the learner hears)."""
+RECORDER_ROLE = Role(RECORDER, hears=(*patterns("traj", "levels_played"), *LEARNER_BROADCASTS))
+"""What the recorder may do on a router with access control: hear the actors' trajectories and the levels they
+play, and follow the learner (its presence)."""
 
 
 @dataclass(frozen=True)
@@ -50,7 +48,9 @@ class Command:
     """One line for `impulse --help`."""
     description: str
     """What the command does, for `impulse NAME --help`."""
-    run: RunFn
+    runs: str
+    """The function that runs it, as "MODULE:FUNCTION" of a module in this package; called with the parsed
+    arguments and the resolved config (None without one), it returns the exit status."""
     config: type | None = None
     """The config dataclass it resolves from --config and key=value overrides; None if it takes none."""
     arguments: Callable[[argparse.ArgumentParser], None] | None = None
@@ -58,6 +58,11 @@ class Command:
     role: Role | None = None
     """The role of the process the command runs, for a router's access control (`run_roles`); None for tools,
     which are operators."""
+
+    def run_function(self) -> RunFn:
+        """The function named by `runs`, importing its module (and what that imports: JAX for most) now."""
+        module, _, function = self.runs.partition(":")
+        return cast(RunFn, getattr(importlib.import_module(f"{__name__}.{module}"), function))
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -67,8 +72,8 @@ COMMANDS: tuple[Command, ...] = (
         "Fused single-process training: rollouts, PPO updates and the curriculum in one jitted loop on one "
         "device. Writes checkpoints and the resolved config.toml to the run directory.",
         config=RunConfig,
-        run=run_train,
-        arguments=add_train_arguments,
+        runs="train:run_train",
+        arguments=options.add_train_arguments,
     ),
     Command(
         "train-bc",
@@ -78,8 +83,8 @@ COMMANDS: tuple[Command, ...] = (
         "dataset's; the network the one that recorded it unless named. Writes a run directory (checkpoint, "
         "metrics.jsonl, eval.json) that `impulse eval` and `impulse train --init-from` read.",
         config=RunConfig,
-        run=train_bc.run_train_bc,
-        arguments=train_bc.add_train_bc_arguments,
+        runs="train_bc:run_train_bc",
+        arguments=options.add_train_bc_arguments,
     ),
     Command(
         "launch",
@@ -91,8 +96,8 @@ COMMANDS: tuple[Command, ...] = (
         "crashed process is restarted with a back-off (the learner with --resume); Ctrl-C stops everything in "
         "order, the learner writing a final checkpoint. Logs go to RUN_DIR/logs/.",
         config=RunConfig,
-        run=launch.run_launch,
-        arguments=launch.add_launch_arguments,
+        runs="launch:run_launch",
+        arguments=options.add_launch_arguments,
     ),
     Command(
         "learner",
@@ -100,8 +105,8 @@ COMMANDS: tuple[Command, ...] = (
         "The learner service: receives trajectories, applies corrected PPO updates, publishes weights, "
         "checkpoints.",
         config=RunConfig,
-        run=services.run_learner,
-        arguments=services.add_learner_arguments,
+        runs="services:run_learner",
+        arguments=options.add_learner_arguments,
         role=LEARNER_ROLE,
     ),
     Command(
@@ -110,8 +115,8 @@ COMMANDS: tuple[Command, ...] = (
         "An actor service: runs batched rollouts with the newest weights and publishes trajectories and level "
         "results.",
         config=RunConfig,
-        run=services.run_actor,
-        arguments=services.add_actor_arguments,
+        runs="services:run_actor",
+        arguments=options.add_actor_arguments,
         role=ACTOR_ROLE,
     ),
     Command(
@@ -122,9 +127,9 @@ COMMANDS: tuple[Command, ...] = (
         "Kinetix scores; the learner writes the scores to metrics.jsonl. `impulse launch` starts it when "
         "evaluator.levels is set.",
         config=RunConfig,
-        run=evaluator.run_evaluator,
-        arguments=evaluator.add_evaluator_arguments,
-        role=evaluator.ROLE,
+        runs="evaluator:run_evaluator",
+        arguments=options.add_evaluator_arguments,
+        role=EVALUATOR_ROLE,
     ),
     Command(
         "recorder",
@@ -134,9 +139,9 @@ COMMANDS: tuple[Command, ...] = (
         "recorder.max_gigabytes bounds it). `impulse launch` starts it when recorder.path is set; "
         "`impulse train-bc --dataset PATH` learns from it.",
         config=RunConfig,
-        run=recorder.run_recorder,
-        arguments=recorder.add_recorder_arguments,
-        role=recorder.ROLE,
+        runs="recorder:run_recorder",
+        arguments=options.add_recorder_arguments,
+        role=RECORDER_ROLE,
     ),
     Command(
         "curriculum",
@@ -146,8 +151,8 @@ COMMANDS: tuple[Command, ...] = (
         "when env.levels is random). `set KEY=VALUE ... --run RUN_DIR` changes live knobs (replay_prob, "
         "temperature, staleness_coef, score, num_edits, sfl_ratio, ...), applied at the next sample; `get` "
         "prints them; `inspect` prints the buffer (histograms, top levels, lineage; --json, --render DIR).",
-        run=curriculum.run,
-        arguments=curriculum.add_arguments,
+        runs="curriculum:run",
+        arguments=options.add_curriculum_arguments,
         role=CURRICULUM_ROLE,
     ),
     Command(
@@ -157,8 +162,8 @@ COMMANDS: tuple[Command, ...] = (
         "(--connect ENDPOINT). Its [router] config section sets where it listens, the routers of other hosts it "
         "links to, and TLS, passwords and access control from a credentials directory (docs/multi-host.md).",
         config=RunConfig,
-        run=run_router_command,
-        arguments=add_router_arguments,
+        runs="router:run_router_command",
+        arguments=options.add_router_arguments,
     ),
     Command(
         "eval",
@@ -166,8 +171,8 @@ COMMANDS: tuple[Command, ...] = (
         "Evaluate a checkpoint: solve rate, mean return and episode length per level over K episodes each, as "
         "a table (and JSON with --json). Uses the config saved in the run directory.",
         config=RunConfig,
-        run=run_eval,
-        arguments=add_eval_arguments,
+        runs="train:run_eval",
+        arguments=options.add_eval_arguments,
     ),
     Command(
         "export",
@@ -177,8 +182,8 @@ COMMANDS: tuple[Command, ...] = (
         "environment and curriculum state: what pretrained/ ships. `impulse eval --checkpoint DIR`, `impulse train "
         "--init-from DIR` and `--resume DIR` read it.",
         config=RunConfig,
-        run=run_export,
-        arguments=add_export_arguments,
+        runs="train:run_export",
+        arguments=options.add_export_arguments,
     ),
     Command(
         "import-kinetix",
@@ -191,8 +196,8 @@ COMMANDS: tuple[Command, ...] = (
         "Kinetix's defaults unless given with --kinetix-config or --kinetix-option; the ones used are printed and "
         "kept in kinetix_import.json.",
         config=RunConfig,
-        run=import_kinetix.run_import,
-        arguments=import_kinetix.add_import_arguments,
+        runs="import_kinetix:run_import",
+        arguments=options.add_import_arguments,
     ),
     Command(
         "levels",
@@ -201,8 +206,8 @@ COMMANDS: tuple[Command, ...] = (
         "every problem, `show FILE` describes a level, `render FILE -o OUT.png` draws it (`render PATH... --video "
         "OUT.mp4` plays levels with no-op actions into a video), `convert IN OUT --size s|m|l` re-sizes and "
         "normalises it.",
-        run=levels.run,
-        arguments=levels.add_arguments,
+        runs="levels:run",
+        arguments=options.add_levels_arguments,
     ),
     Command(
         "compare",
@@ -211,8 +216,8 @@ COMMANDS: tuple[Command, ...] = (
         "run with its mode, progress, wall clock and the final and best value of each --metric (default: "
         "solve_rate, and eval/mean when a run has it), with --threshold the env steps and time to reach it, then "
         "the config keys whose values differ. --plot FILE.png draws the curves against --by, --json prints JSON.",
-        run=compare.run,
-        arguments=compare.add_arguments,
+        runs="compare:run",
+        arguments=options.add_compare_arguments,
     ),
     Command(
         "studio",
@@ -221,8 +226,8 @@ COMMANDS: tuple[Command, ...] = (
         "thumbnails; an editor that adds, moves, deletes and re-roles shapes and saves Kinetix JSON files that "
         "`impulse levels validate` accepts; play on the server's engine with the keyboard, and watch an agent "
         "(--run, or pretrained/*) play. Listens on 127.0.0.1; any other --host needs --token.",
-        run=studio.run,
-        arguments=studio.add_arguments,
+        runs="studio:run",
+        arguments=options.add_studio_arguments,
     ),
     Command(
         "tensorboard",
@@ -230,16 +235,16 @@ COMMANDS: tuple[Command, ...] = (
         "Write RUN_DIR/tensorboard/ from RUN_DIR/metrics.jsonl, the scalars a run writes live when "
         "monitor.tensorboard is on (one per numeric column, step env_steps), for runs that have none. A folder that "
         "already holds event files is refused unless --replace. View with `tensorboard --logdir runs/`.",
-        run=tensorboard.run,
-        arguments=tensorboard.add_arguments,
+        runs="tensorboard:run",
+        arguments=options.add_tensorboard_arguments,
     ),
     Command(
         "config",
         "describe the configuration keys",
         "The configuration reference: `describe [KEY]` prints every key (or one key, or a section's keys) with "
         "its type, default and meaning, from the config dataclasses themselves (docs/config.md holds the same).",
-        run=config.run,
-        arguments=config.add_arguments,
+        runs="config:run",
+        arguments=options.add_config_arguments,
     ),
     Command(
         "view",
@@ -249,8 +254,8 @@ COMMANDS: tuple[Command, ...] = (
         "FILE.rrd also writes everything streamed to a file (open it later with `rerun FILE.rrd`); --headless "
         "--record FILE.rrd records with no viewer. `impulse launch --view` (or `--record` alone) starts it for you.",
         config=RunConfig,
-        run=view.run_view,
-        arguments=view.add_view_arguments,
+        runs="view:run_view",
+        arguments=options.add_view_arguments,
     ),
 )
 

@@ -23,45 +23,26 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from impulse.deploy.runtime.exit_codes import EXIT_USAGE
+from impulse.monitor.runs import (
+    AXES,
+    MACHINE_COLUMNS,
+    MISSING,
+    RunError,
+    check_metrics,
+    config_diff,
+    default_metrics,
+    mismatches,
+    plot_runs,
+    read_runs,
+    summarise,
+)
 
 if TYPE_CHECKING:
     from impulse.monitor.runs import Axis, MetricSummary, RunSummary, Window
 
 
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR",
-                        help="run directories of `impulse train` or `impulse launch` (running ones too)")
-    parser.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
-                        help="a metrics.jsonl column to compare (repeatable; default: solve_rate, and eval/mean when "
-                        "a run has it)")
-    parser.add_argument("--by", default="env_steps", metavar="env_steps|time_s|update",
-                        help="the x axis of --plot and where the best value is placed (default: env_steps; time_s "
-                        "counts seconds since each run's first update)")
-    parser.add_argument("--threshold", type=float, metavar="VALUE",
-                        help="also show the env steps and time at which each metric first reached VALUE")
-    parser.add_argument("--window", metavar="LOW:HIGH",
-                        help="also show each metric's mean ± standard error over the rows between LOW and HIGH along "
-                        "--by, both included (an end may be left open: 500: or :1250), and how many rows that was")
-    parser.add_argument("--plot", type=Path, metavar="FILE.png", help="draw each metric against --by, a line per run")
-    parser.add_argument("--json", action="store_true", help="print the comparison as JSON instead of a table")
-    parser.add_argument("--identical", type=int, metavar="N",
-                        help="instead: check that the runs' first N updates agree bit for bit in every column they "
-                        "share (time_s and steps_per_s left out); exit status 1, listing the differences, if not")
-
-
 def run(args: argparse.Namespace, _config: object = None) -> int:
     # Loaded here, not with the CLI: the services' entry points import no monitor code but its config section.
-    from impulse.monitor.runs import (
-        AXES,
-        RunError,
-        check_metrics,
-        config_diff,
-        default_metrics,
-        plot_runs,
-        read_runs,
-        summarise,
-    )
 
     if args.identical is not None:
         return check_identical(args.runs, args.identical)
@@ -122,7 +103,6 @@ def window_label(window: Window, by: Axis) -> str:
 def check_identical(paths: Sequence[Path], updates: int) -> int:
     """`--identical N`: 0 and one line when the runs agree bit for bit over their first N updates; 1 and every
     differing value otherwise; 2 for a path that is not a run or one with fewer rows."""
-    from impulse.monitor.runs import MACHINE_COLUMNS, RunError, mismatches, read_runs
 
     if updates < 1:
         print(f"impulse compare: --identical needs at least 1 update, got {updates}", file=sys.stderr)
@@ -148,7 +128,6 @@ def as_json(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, t
             window: Window | None, diff: dict[str, list[Any]], labels: Sequence[str]) -> dict[str, Any]:
     """The comparison as JSON-ready data: the options (an open window end as null), one object per run, and
     {key: {label: value}} of the config differences (null where a run's config lacks the key)."""
-    from impulse.monitor.runs import MISSING
 
     return {
         "metrics": list(metrics), "by": by, "threshold": threshold,
@@ -226,7 +205,6 @@ def table(summaries: Sequence[RunSummary], metrics: Sequence[str], by: Axis, thr
 
 def diff_table(diff: dict[str, list[Any]], labels: Sequence[str]) -> str:
     """The config keys whose values differ, one line each with every run's value."""
-    from impulse.monitor.runs import MISSING
 
     if not diff:
         return "config: no differences (name and run_dir aside)" if len(labels) > 1 else "config: one run"

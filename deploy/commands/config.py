@@ -8,26 +8,17 @@ import difflib
 import shutil
 import sys
 
+from impulse.deploy.config_reference import as_text, keys, matching
 from impulse.deploy.runtime.exit_codes import EXIT_USAGE
 
 MAX_SHOWN_KEY = 100
 """How much of a long KEY that matches nothing the error message quotes (it is one line)."""
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    actions = parser.add_subparsers(dest="config_action", metavar="ACTION")
-    describe = actions.add_parser(
-        "describe", help="every key with its type, default and meaning",
-        description="Print configuration keys with their type, default and meaning: KEY alone, every key of a "
-        "section (ppo, curriculum, ...), or all of them. docs/config.md holds the same reference.")
-    describe.add_argument("key", nargs="?", help="a key (ppo.num_envs) or a section (ppo); all when omitted")
-
-
 def run(args: argparse.Namespace, _config: object = None) -> int:
     if args.config_action != "describe":
         print("impulse config: give an action: describe [KEY]", file=sys.stderr)
         return EXIT_USAGE
-    from impulse.deploy.config_reference import as_text, keys, matching
 
     selected = matching(args.key)
     if not selected:

@@ -10,26 +10,22 @@ import logging
 import sys
 from contextlib import nullcontext
 
-from impulse.bus.keys import EVALUATOR
-from impulse.bus.roles import FOLLOWS_WEIGHTS, LEARNER_BROADCASTS, Role
-from impulse.deploy.commands.options import add_run_and_connect
+from impulse.bus.session import Bus
+from impulse.deploy.commands import EVALUATOR_ROLE
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.devices import restrict_gpus
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
 from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.levels.sets import LevelSetError
+from impulse.learner.agent import make_agent
+from impulse.learner.evaluator import EVALUATOR_ID, EvaluatorService
+from impulse.learner.scoring import load_level_sets
 
 log = logging.getLogger("impulse.service")
-
-ROLE = Role(EVALUATOR, asks=FOLLOWS_WEIGHTS, hears=LEARNER_BROADCASTS)
-"""What the evaluator may do on a router with access control: follow the learner's weights (its evaluations go
-under its own prefix, which the learner hears)."""
-
-
-
-def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
-    add_run_and_connect(parser)
 
 
 def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
@@ -48,13 +44,6 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse evaluator: evaluator.devices: {err}", file=sys.stderr)
         return EXIT_USAGE
     enable_compile_cache()
-    from impulse.bus.session import Bus
-    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-    from impulse.engine.env.spec import env_from_config
-    from impulse.engine.levels.sets import LevelSetError
-    from impulse.learner.agent import make_agent
-    from impulse.learner.evaluator import EVALUATOR_ID, EvaluatorService
-    from impulse.learner.scoring import load_level_sets
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)
@@ -63,7 +52,7 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
     except LevelSetError as err:
         print(f"impulse evaluator: evaluator.levels: {err}", file=sys.stderr)
         return EXIT_FAILED
-    with Bus(config.bus, config.name, ROLE.name, EVALUATOR_ID) as bus, \
+    with Bus(config.bus, config.name, EVALUATOR_ROLE.name, EVALUATOR_ID) as bus, \
             open_monitor(config) or nullcontext() as monitor:
         service = EvaluatorService(config.evaluator, seed=config.seed, status_every_s=config.bus.status_every_s,
                                    bus=bus, agent=agent, env_params=env_params, sets=sets)

@@ -16,9 +16,25 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import jax
+import jax.numpy as jnp
+
 from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
+from impulse.engine.env.spec import env_from_config
+from impulse.learner.agent import make_agent
+from impulse.learner.checkpoint import TRAIN, Checkpointer
+from impulse.learner.kinetix_import import (
+    KinetixImportError,
+    check_against,
+    describe_settings,
+    import_kinetix,
+    parse_option,
+    read_kinetix_checkpoint,
+    with_network,
+)
+from impulse.learner.update import TrainState, make_optimizer
 
 if TYPE_CHECKING:
     from impulse.learner.kinetix_import import ImportedPolicy
@@ -26,31 +42,7 @@ if TYPE_CHECKING:
 RECORD_FILENAME = "kinetix_import.json"
 
 
-def add_import_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("checkpoint", type=Path, metavar="CHECKPOINT",
-                        help="a Kinetix checkpoint: full_model.pbz2 (or params.pbz2, model.pbz2) as its training "
-                        "scripts save them, a directory holding one, or a pretrained directory (params.safetensors "
-                        "+ config.json)")
-    parser.add_argument("--out", type=Path, required=True, metavar="RUN_DIR",
-                        help="the Impulse run directory to write (must hold no checkpoints yet)")
-    parser.add_argument("--kinetix-config", type=Path, metavar="FILE",
-                        help="Kinetix config with the model settings, for checkpoints that do not carry them: the "
-                        "config.yaml a Kinetix run writes under logs/, or a config.json")
-    parser.add_argument("--kinetix-option", action="append", default=[], metavar="KEY=VALUE",
-                        help="a Kinetix model setting (repeatable), over the checkpoint's and --kinetix-config's, "
-                        "e.g. activation=relu, legacy_entity_id=true, full_attention_mask=true")
-
-
 def run_import(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.learner.kinetix_import import (
-        KinetixImportError,
-        describe_settings,
-        import_kinetix,
-        parse_option,
-        read_kinetix_checkpoint,
-        with_network,
-    )
-
     try:
         options = dict(parse_option(text) for text in args.kinetix_option)
         checkpoint = read_kinetix_checkpoint(args.checkpoint, args.kinetix_config)
@@ -81,14 +73,7 @@ def run_import(args: argparse.Namespace, config: RunConfig) -> int:
 def write_checkpoint(config: RunConfig, imported: ImportedPolicy, run_dir: Path) -> int:
     """Write config.toml and the `train` item at step 0 into `run_dir`; returns the parameter count. The tree is
     checked against the network's own before anything is written."""
-    import jax
-    import jax.numpy as jnp
 
-    from impulse.engine.env.spec import env_from_config
-    from impulse.learner.agent import make_agent
-    from impulse.learner.checkpoint import TRAIN, Checkpointer
-    from impulse.learner.kinetix_import import check_against
-    from impulse.learner.update import TrainState, make_optimizer
 
     run_dir.mkdir(parents=True, exist_ok=True)
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:

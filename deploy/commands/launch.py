@@ -29,7 +29,6 @@ import logging
 import os
 import sys
 import time
-from pathlib import Path
 
 from impulse.bus.codec import Rejected
 from impulse.bus.inbox import Received
@@ -63,28 +62,11 @@ from impulse.deploy.runtime.status_display import StatusDisplay, status_block
 from impulse.deploy.runtime.supervisor import Child, Supervisor, describe_failure
 from impulse.engine.memory import HOST_PROCESSES_ENV
 from impulse.learner.run_directory import existing_run, holds_checkpoints
+from impulse.learner.scoring import format_scores
 
 log = logging.getLogger("impulse.launch")
 
 POLL_S = 0.2
-
-
-def add_launch_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--resume", type=Path, metavar="RUN_DIR",
-                        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there")
-    parser.add_argument("--init-from", type=Path, metavar="RUN_DIR",
-                        help="fine-tune: a new run whose learner starts from the policy of RUN_DIR's newest "
-                        "checkpoint (a run directory or a shipped agent such as pretrained/general-s), with a fresh "
-                        "optimiser, actors and curriculum; the [network] section comes from RUN_DIR's config.toml")
-    parser.add_argument("--status-every", type=float, default=10.0, metavar="SECONDS",
-                        help="when the output is not a terminal, log the status lines this often (default 10)")
-    parser.add_argument("--view", action="store_true",
-                        help="stream to a Rerun viewer: starts `impulse view` (native with a display, else the web "
-                        "viewer, whose address is logged) and turns monitoring on in every process")
-    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
-                        help="write everything the processes stream to FILE.rrd (open it later with `rerun "
-                        "FILE.rrd`); turns monitoring on like --view, and without --view starts no viewer, only a "
-                        "Rerun server that records (`impulse view --headless`)")
 
 
 def run_launch(args: argparse.Namespace, config: RunConfig, roles: tuple[ProcessRole, ...] = PROCESS_ROLES) -> int:
@@ -223,8 +205,6 @@ def run_launch(args: argparse.Namespace, config: RunConfig, roles: tuple[Process
         return EXIT_FAILED
     scores = run_dir / "eval.json"
     if finished and scores.is_file():
-        from impulse.learner.scoring import format_scores  # JAX loads here only, for the table's helper
-
         log.info("evaluation of the final policy (%s):\n%s", scores, format_scores(json.loads(scores.read_text())))
     return 0 if finished or interrupted else EXIT_FAILED
 

@@ -1,6 +1,6 @@
 """`impulse levels`: validate, show, render and convert level files (Kinetix JSON, also Impulse's own format).
 
-Engine imports happen inside the actions, so `impulse --help` stays free of JAX. Exit status: 0 when everything
+Exit status: 0 when everything
 worked, 1 when a file is invalid or cannot be processed (every problem is printed), 2 for usage errors.
 """
 
@@ -10,71 +10,25 @@ import argparse
 import sys
 from pathlib import Path
 
+import jax
+
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.progress import Heartbeat
-
-_SIZES = ("s", "m", "l")
-_VIDEO_STEPS = 256
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    actions = parser.add_subparsers(dest="levels_action", metavar="ACTION")
-
-    validate = actions.add_parser(
-        "validate", help="check level files and print every problem",
-        description="Check level files: the JSON structure, every field's shape and value, roles, bindings, "
-        "indices, the fit into --size, and the scene itself. Prints every problem per file; exits 1 if any file "
-        "is invalid. Folders are searched for *.json files.",
-    )
-    validate.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="level files or folders")
-    validate.add_argument("--size", choices=_SIZES, type=str.lower, help="also check that each file fits this size")
-
-    show = actions.add_parser(
-        "show", help="describe a level: shapes, roles, joints, thrusters, controls",
-        description="Print a readable summary of a level file: its size class, every shape (role, kind, position, "
-        "size, fixed or dynamic), joints (type, motor, binding), thrusters and what each action dimension does.",
-    )
-    show.add_argument("path", type=Path, metavar="FILE")
-    show.add_argument("--size", choices=_SIZES, type=str.lower, help="load into this size first")
-
-    render = actions.add_parser(
-        "render", help="draw a level's initial scene as a PNG, or play levels into a video",
-        description="Draw the level's initial scene (the 5 m x 5 m arena, y up) as a PNG: shapes in role colours, "
-        "fixed shapes darker, joints as dots (fixed joints as squares) and thrusters as triangles pointing the way "
-        "they push, coloured by binding. With --video instead: play each level (files, or folders of them) from "
-        "its start with the no-op action (motors and thrusters off: the level's own dynamics) for --steps agent "
-        "steps and write the episodes side by side as a video, drawn as `impulse eval --video` draws a policy's "
-        "episodes (a level whose episode ends holds its last frame, framed green if solved, red if not). To watch "
-        "a policy play levels instead: `impulse eval --checkpoint RUN_DIR --levels FILE --video OUT.mp4`.",
-    )
-    render.add_argument("paths", nargs="+", type=Path, metavar="PATH",
-                        help="the level file (with --video: level files or folders of them)")
-    written = render.add_mutually_exclusive_group(required=True)
-    written.add_argument("-o", "--output", type=Path, metavar="OUT.png", help="PNG file to write")
-    written.add_argument("--video", type=Path, metavar="OUT.gif|.webp|.mp4",
-                         help="play the levels and write an animated GIF or WebP, or an MP4 (H.264), by the suffix")
-    render.add_argument(
-        "--scale", type=float,
-        help="image size as a multiple of Kinetix's 500 x 500 screen (default 1: 100 pixels per metre; with "
-        "--video 0.4 per level, as impulse eval's videos)",
-    )
-    render.add_argument("--steps", type=int, default=_VIDEO_STEPS, metavar="N",
-                        help=f"with --video: agent steps to play, at most (default {_VIDEO_STEPS}, a training "
-                        "episode's length: env.max_timesteps; 30 steps per second of video)")
-    render.add_argument("--size", choices=_SIZES, type=str.lower,
-                        help="with --video: load every level into this size (default: the smallest that fits all)")
-
-    convert = actions.add_parser(
-        "convert", help="load a level into a size and save it (resize, normalise)",
-        description="Load a level file into the given size (at least the file's own size: slots are added, never "
-        "removed) and save it in the normalised Kinetix format.",
-    )
-    convert.add_argument("source", type=Path, metavar="IN")
-    convert.add_argument("target", type=Path, metavar="OUT")
-    convert.add_argument("--size", choices=_SIZES, type=str.lower, required=True, help="target size")
-
-    parser.set_defaults(levels_parser=parser)
-
+from impulse.engine.env.spec import EnvParams, EnvSpec
+from impulse.engine.levels.checks import unsolvable_reasons
+from impulse.engine.levels.kinetix_json import (
+    LevelFileError,
+    level_file_problems,
+    load_kinetix_level,
+    save_kinetix_level,
+)
+from impulse.engine.levels.level import stack_levels
+from impulse.engine.levels.summary import describe_level
+from impulse.engine.physics.sizes import SIZE_NAMES, size_preset
+from impulse.engine.physics.validate import validate_scene
+from impulse.learner.evaluate import play_episodes
+from impulse.monitor.png import render_level, save_png
+from impulse.monitor.video import DEFAULT_SCALE, check_video_path, write_episodes_video
 
 SLOW_ACTIONS = {"render": "levels render: loading the levels and drawing them (JAX compiles the first time)",
                 "convert": "levels convert: loading, checking and resizing the level (JAX compiles the first time)"}
@@ -95,8 +49,6 @@ def run(args: argparse.Namespace, _config: object) -> int:
 
 
 def _sizes(name: str | None):
-    from impulse.engine.physics.sizes import size_preset
-
     return size_preset(name) if name else None
 
 
@@ -121,8 +73,6 @@ def _level_files(paths: list[Path]) -> tuple[list[Path], list[str]]:
 def _validate(args: argparse.Namespace) -> int:
     """Every problem of every file; a valid file that cannot be solved (`engine.levels.checks`) is still valid (it
     does not change the exit status), but its line says why it cannot be solved."""
-    from impulse.engine.levels.checks import unsolvable_reasons
-    from impulse.engine.levels.kinetix_json import level_file_problems, load_kinetix_level
 
     files, missing = _level_files(args.paths)
     for line in missing:
@@ -152,8 +102,6 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _load(path: Path, size: str | None, validate: bool = True):
-    from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
-
     try:
         return load_kinetix_level(path, _sizes(size), validate=validate)
     except LevelFileError as err:
@@ -162,9 +110,6 @@ def _load(path: Path, size: str | None, validate: bool = True):
 
 
 def _show(args: argparse.Namespace) -> int:
-    from impulse.engine.levels.summary import describe_level
-    from impulse.engine.physics.validate import validate_scene
-
     loaded = _load(args.path, args.size, validate=False)
     if loaded is None:
         return EXIT_FAILED
@@ -178,8 +123,6 @@ def _show(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from impulse.monitor.png import render_level, save_png
-
     if args.scale is not None and not args.scale > 0:
         print(f"impulse levels render: --scale must be positive, got {args.scale}", file=sys.stderr)
         return EXIT_USAGE
@@ -205,14 +148,7 @@ def _render(args: argparse.Namespace) -> int:
 def _render_video(args: argparse.Namespace) -> int:
     """`levels render --video`: the levels played with no-op actions (`learner.evaluate.play_episodes`) and drawn
     as `impulse eval --video` draws episodes (`monitor.video.write_episodes_video`)."""
-    import jax
 
-    from impulse.engine.env.spec import EnvParams, EnvSpec
-    from impulse.engine.levels.kinetix_json import LevelFileError, load_kinetix_level
-    from impulse.engine.levels.level import stack_levels
-    from impulse.engine.physics.sizes import size_preset
-    from impulse.learner.evaluate import play_episodes
-    from impulse.monitor.video import DEFAULT_SCALE, check_video_path, write_episodes_video
 
     try:
         check_video_path(args.video)
@@ -232,7 +168,7 @@ def _render_video(args: argparse.Namespace) -> int:
     except LevelFileError as err:
         print(f"impulse levels render: {err}", file=sys.stderr)
         return EXIT_FAILED
-    fitting = [name for name in _SIZES if all(sizes.fits_in(size_preset(name)) for sizes in own)]
+    fitting = [name for name in SIZE_NAMES if all(sizes.fits_in(size_preset(name)) for sizes in own)]
     size = args.size or (fitting[0] if fitting else None)
     if size is None:
         print("impulse levels render: these levels fit no size class together (s, m, l)", file=sys.stderr)
@@ -258,8 +194,6 @@ def _render_video(args: argparse.Namespace) -> int:
 
 
 def _convert(args: argparse.Namespace) -> int:
-    from impulse.engine.levels.kinetix_json import save_kinetix_level
-
     loaded = _load(args.source, args.size)
     if loaded is None:
         return EXIT_FAILED

@@ -10,26 +10,18 @@ import logging
 import sys
 from pathlib import Path
 
-from impulse.bus.keys import RECORDER
-from impulse.bus.roles import LEARNER_BROADCASTS, Role
-from impulse.bus.routes import patterns
-from impulse.deploy.commands.options import add_run_and_connect
+from impulse.actors.wire import trajectory_template
+from impulse.bus.session import Bus
+from impulse.deploy.commands import RECORDER_ROLE
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
+from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+from impulse.engine.env.spec import env_from_config
+from impulse.learner.dataset import DatasetError, DatasetWriter
+from impulse.learner.recorder import RECORDER_ID, RecorderService
 
 log = logging.getLogger("impulse.service")
-
-ROLE = Role(RECORDER, hears=(*patterns("traj", "levels_played"), *LEARNER_BROADCASTS))
-"""What the recorder may do on a router with access control: hear the actors' trajectories and the levels they
-play, and the learner's presence; it publishes only its status."""
-
-
-
-def add_recorder_arguments(parser: argparse.ArgumentParser) -> None:
-    add_run_and_connect(parser)
-    parser.add_argument("--out", type=Path, metavar="PATH",
-                        help="the dataset folder (instead of recorder.path)")
 
 
 def dataset_path(config: RunConfig, run_dir: Path) -> Path | None:
@@ -50,12 +42,6 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
         print("impulse recorder: where should it write? set recorder.path=PATH (or pass --out PATH)",
               file=sys.stderr)
         return EXIT_USAGE
-    from impulse.actors.wire import trajectory_template
-    from impulse.bus.session import Bus
-    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-    from impulse.engine.env.spec import env_from_config
-    from impulse.learner.dataset import DatasetError, DatasetWriter
-    from impulse.learner.recorder import RECORDER_ID, RecorderService
 
     spec, _ = env_from_config(config.env)
     template = trajectory_template(spec, config.ppo.num_envs, config.ppo.num_steps)
@@ -65,7 +51,7 @@ def run_recorder(args: argparse.Namespace, config: RunConfig) -> int:
     except (DatasetError, OSError) as err:
         print(f"impulse recorder: {err}", file=sys.stderr)
         return EXIT_FAILED
-    with Bus(config.bus, config.name, ROLE.name, RECORDER_ID) as bus:
+    with Bus(config.bus, config.name, RECORDER_ROLE.name, RECORDER_ID) as bus:
         service = RecorderService(config.recorder, bus=bus, writer=writer, template=template, sizes=spec.sizes,
                                   wire_compact=config.bus.wire_compact,
                                   status_every_s=config.bus.status_every_s)

@@ -12,6 +12,8 @@ import dataclasses
 import logging
 import sys
 
+from impulse.bus.router import CredentialsError, open_listeners_warning, run_router
+from impulse.deploy.commands import run_roles
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.runloop import StopFlag
@@ -19,19 +21,7 @@ from impulse.deploy.runtime.runloop import StopFlag
 log = logging.getLogger("impulse.router")
 
 
-
-def add_router_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--listen", action="append", metavar="ENDPOINT",
-                        help="listen on ENDPOINT instead of router.listen (repeatable), e.g. tls/0.0.0.0:7447")
-    parser.add_argument("--roles", action="store_true",
-                        help="print the roles whose credentials the router's access control knows, one per line, "
-                        "and exit (what deploy/cluster/security/make-test-certs.sh makes credentials for)")
-
-
 def run_router_command(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.bus.router import CredentialsError, open_listeners_warning, run_router
-    from impulse.deploy.commands import run_roles
-
     roles = run_roles()
     if args.roles:
         print("\n".join(role.name for role in roles))

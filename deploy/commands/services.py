@@ -17,7 +17,11 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from impulse.deploy.commands.options import add_run_and_connect
+from impulse.actors.levels import CurriculumLevels, LevelSource, LocalLevels
+from impulse.actors.process import Actor, actor_name
+from impulse.bus.roles import ACTOR_ROLE, LEARNER_ROLE
+from impulse.bus.session import Bus
+from impulse.curriculum.wire import level_batch_template
 from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
@@ -25,33 +29,19 @@ from impulse.deploy.runtime.devices import restrict_gpus
 from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN, EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
+from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.levels.sets import LevelSetError
+from impulse.engine.memory import DoesNotFit
+from impulse.learner.agent import make_agent
+from impulse.learner.curriculum_inputs import batch_level_results
+from impulse.learner.hosts import HostsError, join_hosts, local_copy
+from impulse.learner.non_finite import NonFiniteUpdates
+from impulse.learner.run import FINAL_EVALUATION, final_evaluation
+from impulse.learner.service import LEARNER_ID, LearnerError, LearnerService
+from impulse.monitor.scalars import ScalarSinkError
 
 log = logging.getLogger("impulse.service")
-
-
-
-def add_service_arguments(parser: argparse.ArgumentParser) -> None:
-    add_run_and_connect(parser)
-
-
-def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
-    add_service_arguments(parser)
-    parser.add_argument("--resume", action="store_true",
-                        help="continue from the newest checkpoint in the run directory (fresh if there is none)")
-    parser.add_argument("--init-from", type=Path, metavar="RUN_DIR",
-                        help="fine-tune: while the run has no checkpoint of its own, start from the policy of "
-                        "RUN_DIR's newest checkpoint (a run directory or a shipped agent such as "
-                        "pretrained/general-s), with a fresh optimiser; the [network] section comes from RUN_DIR")
-    parser.add_argument("--hub", action="store_true",
-                        help="also be the bus hub (listen on bus.hub) when no `impulse launch` provides one")
-    parser.add_argument("--host-index", type=int, metavar="N",
-                        help="with learner.hosts > 1: this process's place in the learner's group, 0 (the leader, "
-                        "which checkpoints and publishes) to hosts-1; under SLURM, SLURM_PROCID by default")
-
-
-def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
-    add_service_arguments(parser)
-    parser.add_argument("--index", type=int, default=0, metavar="N", help="this actor's number (default 0)")
 
 
 def _resolve(args: argparse.Namespace, config: RunConfig, command: str) -> tuple[RunConfig, Path] | None:
@@ -73,7 +63,6 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     except ValueError as err:
         print(f"impulse learner: learner.devices: {err}", file=sys.stderr)
         return EXIT_USAGE
-    from impulse.monitor.scalars import ScalarSinkError
 
     try:
         sinks = scalar_sinks_for(config, run_dir)
@@ -81,22 +70,12 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
         print(f"impulse learner: {err}", file=sys.stderr)
         return EXIT_USAGE
     enable_compile_cache()
-    from impulse.learner.hosts import HostsError, join_hosts, local_copy
 
-    try:  # first: JAX must not have started before the group is joined
+    try:  # first: JAX must not have started a backend before the group is joined (imports start none)
         group = join_hosts(config.learner.hosts, config.learner.coordinator, args.host_index)
     except HostsError as err:
         print(f"impulse learner: {err}", file=sys.stderr)
         return EXIT_USAGE
-    from impulse.bus.roles import LEARNER_ROLE
-    from impulse.bus.session import Bus
-    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-    from impulse.engine.env.spec import env_from_config
-    from impulse.engine.memory import DoesNotFit
-    from impulse.learner.agent import make_agent
-    from impulse.learner.non_finite import NonFiniteUpdates
-    from impulse.learner.run import FINAL_EVALUATION, final_evaluation
-    from impulse.learner.service import LEARNER_ID, LearnerError, LearnerService
 
     # A new run made here (not a launcher's, not resumed) is taken back if it is refused before it trains.
     created = create_run_dir(run_dir) and args.run is None and not args.resume and group.is_leader
@@ -179,7 +158,7 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_USAGE
     config, _ = resolved
     if config.actors.memory_fraction > 0:
-        # Read by JAX's GPU backend when it starts, so it must be set before the first import of jax.
+        # Read by JAX's GPU backend when it starts, so it must be set before JAX first touches a device.
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{config.actors.memory_fraction:g}")
     if config.actors.devices:
         try:
@@ -188,17 +167,6 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
             print(f"impulse actor: actors.devices: {err}", file=sys.stderr)
             return EXIT_USAGE
     enable_compile_cache()
-    from impulse.actors.levels import CurriculumLevels, LevelSource, LocalLevels
-    from impulse.actors.process import Actor, actor_name
-    from impulse.bus.roles import ACTOR_ROLE
-    from impulse.bus.session import Bus
-    from impulse.curriculum.wire import level_batch_template
-    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-    from impulse.engine.env.spec import env_from_config
-    from impulse.engine.levels.sets import LevelSetError
-    from impulse.engine.memory import DoesNotFit
-    from impulse.learner.agent import make_agent
-    from impulse.learner.curriculum_inputs import batch_level_results
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)

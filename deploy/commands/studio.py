@@ -20,42 +20,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from impulse.deploy.config import ConfigError, resolve_config
+from impulse.deploy.run_config import RunConfig
+from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.exit_codes import EXIT_USAGE
+from impulse.deploy.runtime.pilots import load_pilot
+from impulse.deploy.runtime.run_dirs import run_dir_of
+from impulse.engine.env.spec import env_from_config
+from impulse.studio.console import CurriculumLink
+from impulse.studio.security import host_name, is_loopback, new_token, studio_address
 
-DEFAULT_PORT = 8765
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_LEVELS_DIR = Path("studio-levels")
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9._~-]{8,200}")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default=DEFAULT_HOST,
-                        help=f"address to listen on (default {DEFAULT_HOST}: this machine only; any other address "
-                        "needs --token)")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT})")
-    parser.add_argument("--levels-dir", type=Path, default=DEFAULT_LEVELS_DIR, metavar="DIR",
-                        help=f"folder the editor saves levels into, shown as the 'saved' set (default "
-                        f"./{DEFAULT_LEVELS_DIR})")
-    parser.add_argument("--levels", action="append", default=[], metavar="SOURCE",
-                        help="more levels for the gallery: a level file, a folder of them or a glob pattern "
-                        "(repeatable)")
-    parser.add_argument("--run", type=Path, metavar="RUN_DIR",
-                        help="a run directory (or a checkpoint folder) whose agent the Play page offers to watch; "
-                        "when the run has a curriculum service, the Curriculum page shows its buffer and knobs "
-                        "and the editor can send levels into its buffer")
-    parser.add_argument("--token", metavar="T",
-                        help="access token every request must carry (default: a random one made at each start, "
-                        "shown in the printed address; required when --host is not loopback); 8 to 200 letters, "
-                        "digits or ._~-")
-    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
-                        help="another host name the studio answers to (repeatable): a name you reach it by other "
-                        "than localhost, 127.0.0.1, [::1] and --host, such as this machine's name on the network; "
-                        "requests naming any other host are refused (DNS rebinding)")
-
-
 def _problem(args: argparse.Namespace) -> str | None:
-    from impulse.studio.security import host_name, is_loopback
-
     if not 0 < args.port < 65536:
         return f"--port must be 1 to 65535, got {args.port}"
     if args.token is not None and not TOKEN_PATTERN.fullmatch(args.token):
@@ -97,11 +75,6 @@ def _curriculum_of(run: Path | None) -> Any:
     Curriculum page, and levels sent into its buffer), else None."""
     if run is None:
         return None
-    from impulse.deploy.config import ConfigError, resolve_config
-    from impulse.deploy.run_config import RunConfig
-    from impulse.deploy.runtime.run_dirs import run_dir_of
-    from impulse.engine.env.spec import env_from_config
-    from impulse.studio.console import CurriculumLink
 
     try:
         config = resolve_config(RunConfig, run_dir_of(run) / "config.toml", [])
@@ -126,9 +99,6 @@ def run(args: argparse.Namespace, _config: object = None) -> int:
         print(f"impulse studio: {err.name or err} is not installed: pip install -e . (or starlette and "
               "'uvicorn[standard]')", file=sys.stderr)
         return EXIT_USAGE
-    from impulse.deploy.runtime.compile_cache import enable_compile_cache
-    from impulse.deploy.runtime.pilots import load_pilot
-    from impulse.studio.security import new_token, studio_address
 
     enable_compile_cache()
     token = args.token or new_token()

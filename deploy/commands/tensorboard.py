@@ -11,21 +11,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from impulse.deploy.runtime.exit_codes import EXIT_USAGE
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR",
-                        help="run directories holding a metrics.jsonl")
-    parser.add_argument("--replace", action="store_true",
-                        help="delete the event files a run's tensorboard/ folder already holds, then write it anew")
+from impulse.monitor.scalars import TENSORBOARD_DIR, event_files, export_tensorboard
 
 
 def run(args: argparse.Namespace, _config: object = None) -> int:
-    from impulse.monitor.scalars import TENSORBOARD_DIR, event_files, export_tensorboard
-
     for run_dir in args.run_dirs:
         if not (run_dir / "metrics.jsonl").is_file():
             print(f"impulse tensorboard: {run_dir} has no metrics.jsonl", file=sys.stderr)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from impulse.deploy.config import (
     ConfigError,
     config_to_toml,
@@ -30,6 +32,7 @@ from impulse.deploy.config import (
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
+from impulse.deploy.runtime.monitoring import scalar_sinks_for
 from impulse.deploy.runtime.progress import Heartbeat, ProgressLine
 from impulse.deploy.runtime.run_dirs import (
     create_run_dir,
@@ -38,9 +41,14 @@ from impulse.deploy.runtime.run_dirs import (
     open_run_for,
     remove_unstarted_run,
 )
+from impulse.deploy.runtime.runloop import LoopOptions, run_loop
+from impulse.learner.non_finite import NonFiniteUpdates
+from impulse.learner.run import FusedRun, RunError, evaluate_run, export_policy
+from impulse.learner.scoring import format_scores
+from impulse.monitor.scalars import ScalarSinkError, check_sinks
+from impulse.monitor.video import check_video_path, write_episodes_video
 
 log = logging.getLogger("impulse.train")
-
 
 
 @dataclass
@@ -65,9 +73,6 @@ def train_run(
     """Train until `config.total_env_steps` (or `stop_after_updates` more updates, for tests and benchmarks),
     checkpointing on the configured cadence and when stopped, then evaluate if the run is complete. `init_from`: a
     run directory whose newest policy the new run starts from (fine-tuning)."""
-    from impulse.deploy.runtime.monitoring import scalar_sinks_for
-    from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-    from impulse.learner.run import FusedRun
 
     sinks = scalar_sinks_for(config, run_dir)
     with Heartbeat("building the environment and the network", logger=log) as beat:
@@ -91,29 +96,7 @@ def train_run(
     )
 
 
-def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--resume", type=Path, metavar="RUN_DIR",
-        help="continue the run in RUN_DIR from its newest checkpoint, with the config saved there "
-        "(key=value overrides still apply, e.g. total_env_steps to train longer)",
-    )
-    parser.add_argument(
-        "--updates", type=int, metavar="N",
-        help="stop after N more updates (checkpointing), even if total_env_steps is not reached",
-    )
-    parser.add_argument(
-        "--init-from", type=Path, metavar="RUN_DIR",
-        help="fine-tune: a new run that starts from the policy of RUN_DIR's newest checkpoint (a run directory or "
-        "a shipped agent such as pretrained/general-s), with a fresh optimiser, environments and curriculum; the "
-        "[network] section comes from RUN_DIR's config.toml",
-    )
-
-
 def run_train(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.learner.non_finite import NonFiniteUpdates
-    from impulse.learner.run import RunError  # JAX loads only when a run starts
-    from impulse.monitor.scalars import ScalarSinkError, check_sinks
-
     try:
         check_sinks(config.monitor)
     except ScalarSinkError as err:
@@ -153,26 +136,6 @@ EVAL_SECONDS_PER_STEP = 1 / 30
 """Evaluation episodes are recorded as if played at 30 agent steps per second of `wall` time."""
 
 
-def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
-                        help="a run directory (its newest checkpoint) or one checkpoint's directory")
-    parser.add_argument("--levels", metavar="SET",
-                        help='"handmade", "kinetix:s|m|l|all" (Kinetix\'s hand-made sets, found as '
-                        '$IMPULSE_KINETIX_LEVELS says), a level file, a folder or a glob (default: eval.levels, else '
-                        'the training levels)')
-    parser.add_argument("--attempts", type=int, metavar="K", help="episodes per level (default: eval.attempts)")
-    parser.add_argument("--seed", type=int, default=0, help="evaluation seed (same seed, same numbers)")
-    parser.add_argument("--greedy", action="store_true", help="take the most likely action instead of sampling")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the scores as JSON here")
-    parser.add_argument("--record", type=Path, metavar="FILE.rrd",
-                        help="also play one episode per level and write it to a Rerun recording (open it with "
-                        "`rerun FILE.rrd`), drawn as live rollouts are")
-    parser.add_argument("--video", type=Path, metavar="FILE.gif|.webp|.mp4",
-                        help="also play one episode per level and write them side by side as an animated GIF or "
-                        "WebP, or an MP4 (H.264) by the suffix (30 frames per second; a finished level is framed "
-                        "green if solved, red if not)")
-
-
 def _open_checkpoint(args: argparse.Namespace, command: str) -> tuple[RunConfig, Path, int | None] | None:
     """(config, run directory, checkpoint step or None for the newest) of `--checkpoint`, with the key=value
     overrides; None after printing the problem as `impulse COMMAND: ...`."""
@@ -191,8 +154,6 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_USAGE
     config, run_dir, step = opened
     if args.video is not None:
-        from impulse.monitor.video import check_video_path
-
         try:
             check_video_path(args.video)
         except ValueError as err:
@@ -200,10 +161,9 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
             return EXIT_USAGE
     recorders = ([("the recording", args.record, _recorder(config.name, args.record))] if args.record is not None
                  else []) + ([("the video", args.video, _video_writer(args.video))] if args.video is not None else [])
-    # From the first second: loading JAX alone takes several on a busy CPU, compiling the evaluation tens more.
-    with Heartbeat("loading JAX, the checkpoint's configuration and the levels", logger=log) as beat:
+    # From here on: compiling the evaluation takes tens of seconds on a busy CPU.
+    with Heartbeat("loading the checkpoint's configuration and the levels", logger=log) as beat:
         enable_compile_cache()
-        from impulse.learner.run import RunError, evaluate_run  # JAX loads here
 
         def write(names: list[str], episodes: Any, policy_version: int) -> None:
             for what, path, writer in recorders:
@@ -224,7 +184,6 @@ def run_eval(args: argparse.Namespace, config: RunConfig) -> int:
         except RunError as err:
             print(f"impulse eval: {err}", file=sys.stderr)
             return EXIT_FAILED
-    from impulse.learner.scoring import format_scores
 
     print(format_scores(table))
     if args.record is not None:
@@ -240,8 +199,7 @@ def _recorder(run: str, path: Path) -> Callable[[list[str], Any, int], None]:
     """Writes evaluation episodes to an .rrd file, under rollouts/eval/<level name>."""
 
     def record(names: list[str], episodes: Any, policy_version: int) -> None:
-        import numpy as np
-
+        # Rerun loads only when a recording is asked for: a machine without rerun-sdk evaluates too (docs/gpu.md).
         from impulse.monitor.blueprint import episodes_blueprint
         from impulse.monitor.rollouts import RolloutFrames, log_rollout
         from impulse.monitor.stream import open_recording
@@ -266,25 +224,13 @@ def _video_writer(path: Path) -> Callable[[list[str], Any, int], None]:
     """Writes evaluation episodes side by side as an animated GIF or WebP, or an MP4 (`monitor.video`)."""
 
     def write(names: list[str], episodes: Any, policy_version: int) -> None:
-        from impulse.monitor.video import write_episodes_video
-
         write_episodes_video(path, names, episodes, fps=1 / EVAL_SECONDS_PER_STEP)
 
     return write
 
 
-def add_export_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", type=Path, required=True, metavar="RUN_DIR",
-                        help="a run directory (its newest checkpoint) or one checkpoint's directory")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="the new, small run directory")
-    parser.add_argument("--note", action="append", default=[], metavar="KEY=VALUE",
-                        help="a fact to keep with the policy (e.g. commit=abc123), in its counters and "
-                        "agent.json")
-
-
 def run_export(args: argparse.Namespace, config: RunConfig) -> int:
     """`impulse export`: a run's policy alone, in a directory small enough to ship (see `export_policy`)."""
-    from impulse.learner.run import RunError, export_policy
 
     enable_compile_cache()
     opened = _open_checkpoint(args, "export")

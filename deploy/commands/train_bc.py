@@ -17,23 +17,33 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+
 from impulse.deploy.config import ConfigError, config_from_dict, config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 from impulse.engine.env.config import EnvConfig
+from impulse.engine.env.spec import env_from_config
+from impulse.learner.agent import make_agent
+from impulse.learner.bc import (
+    EpochStats,
+    clone,
+    cloning_data,
+    is_kinetix_dataset,
+    kinetix_cloning_data,
+    select_episodes,
+)
+from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.config import NetworkConfig
+from impulse.learner.dataset import DatasetError, open_dataset
+from impulse.learner.run import final_evaluation
 from impulse.learner.run_directory import existing_run, holds_checkpoints
+from impulse.learner.update import TrainState, make_optimizer
 
 log = logging.getLogger("impulse.train")
-
-
-
-def add_train_bc_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--dataset", type=Path, required=True, metavar="PATH",
-                        help="a dataset written by the recorder (recorder.path of a run, or `impulse recorder "
-                        "--out`)")
 
 
 def _with_dataset_sections(config: RunConfig, env: dict, network: dict, source: str) -> RunConfig:
@@ -52,9 +62,6 @@ def _with_dataset_sections(config: RunConfig, env: dict, network: dict, source: 
 
 
 def run_train_bc(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.learner.bc import is_kinetix_dataset
-    from impulse.learner.dataset import DatasetError, open_dataset
-
     dataset = None
     try:
         if is_kinetix_dataset(args.dataset):
@@ -89,15 +96,7 @@ def run_train_bc(args: argparse.Namespace, config: RunConfig) -> int:
 def clone_into(config: RunConfig, path: Path, dataset: Any, run_dir: Path) -> None:
     """Clone a policy from the dataset at `path` (`dataset`: ours opened, None for one in Kinetix's format) per
     `config` and write it, its metrics and its scores into `run_dir`."""
-    import jax
-    import jax.numpy as jnp
 
-    from impulse.engine.env.spec import env_from_config
-    from impulse.learner.agent import make_agent
-    from impulse.learner.bc import EpochStats, clone, cloning_data, kinetix_cloning_data, select_episodes
-    from impulse.learner.checkpoint import TRAIN, Checkpointer
-    from impulse.learner.run import final_evaluation
-    from impulse.learner.update import TrainState, make_optimizer
 
     spec, env_params = env_from_config(config.env)
     agent = make_agent(config.network, spec)

@@ -19,31 +19,19 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import open_run_for
 from impulse.deploy.runtime.runloop import StopFlag
 from impulse.deploy.runtime.supervisor import guarded
+from impulse.monitor.stream import server_reachable
+from impulse.monitor.viewer import viewer_plan
 
 log = logging.getLogger("impulse.view")
 
 SERVER_START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 10.0
-
-
-def add_view_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run", type=Path, metavar="RUN_DIR", help="the run directory (its config.toml names the "
-                        "viewer's port: monitor.url)")
-    parser.add_argument("--record", type=Path, metavar="FILE.rrd", help="also write everything streamed to FILE.rrd")
-    shown = parser.add_mutually_exclusive_group()
-    shown.add_argument("--web", action="store_true", help="serve the web viewer even when there is a display")
-    shown.add_argument("--native", action="store_true", help="open the native viewer (needs a display)")
-    shown.add_argument("--headless", action="store_true",
-                       help="no viewer: only the server the run streams to, writing everything to --record FILE.rrd")
-    parser.add_argument("--bind", default="127.0.0.1", metavar="HOST",
-                        help="address the servers listen on (default 127.0.0.1; 0.0.0.0 exposes them to the network)")
 
 
 def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
@@ -61,9 +49,6 @@ def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
 
 
 def run_view(args: argparse.Namespace, config: RunConfig) -> int:
-    from impulse.monitor.stream import server_reachable
-    from impulse.monitor.viewer import viewer_plan
-
     opened = open_run_for("view", config, run_dir=args.run, overrides=args.overrides)
     if opened is None:
         return EXIT_USAGE
@@ -119,8 +104,6 @@ def run_view(args: argparse.Namespace, config: RunConfig) -> int:
 
 
 def _wait_for_server(url: str, process: subprocess.Popen[bytes], stop: StopFlag) -> bool:
-    from impulse.monitor.stream import server_reachable
-
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while time.monotonic() < deadline and not stop.stop and process.poll() is None:
         if server_reachable(url):

@@ -1,8 +1,5 @@
 """JAX's persistent compilation cache for every Impulse process, so a second start skips recompiling; and, on
-request, a record of what each process compiled and for how long (`IMPULSE_COMPILE_LOG`).
-
-JAX is imported when the cache is enabled, not with this module: every command module imports it, and `impulse
---help`, `--print-config` and a config error must answer without loading JAX (deploy/cli.py)."""
+request, a record of what each process compiled and for how long (`IMPULSE_COMPILE_LOG`)."""
 
 from __future__ import annotations
 
@@ -15,6 +12,9 @@ import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
+
+import jax
+from jax import monitoring
 
 COMPILE_LOG_ENV = "IMPULSE_COMPILE_LOG"
 """A file path: each process that enables the cache appends one JSON line to it when it exits, with the seconds
@@ -33,7 +33,6 @@ def enable_compile_cache() -> Path:
     """Keep compiled programs across runs (the training step takes tens of seconds to compile on CPU): in
     $IMPULSE_CACHE_DIR, else the checkout's ignored .cache/jax (shared with the tests), else ~/.cache/impulse.
     With $IMPULSE_COMPILE_LOG set, also record this process's compiles there (`COMPILE_LOG_ENV`)."""
-    import jax  # here, not at the top: the module docstring
 
     checkout = Path(__file__).resolve().parents[2]
     if os.environ.get("IMPULSE_CACHE_DIR"):
@@ -61,7 +60,6 @@ def record_compiles(path: Path) -> None:
     """Add up this process's trace, lower and compile durations per function name, and append them to `path` as
     one JSON line at exit ({"argv", "pid", "wall_s", "totals": {stage: s}, "functions": {name: {stage: [count,
     s]}}}). Once per process: later calls do nothing."""
-    from jax import monitoring  # with the cache: the module docstring
 
     if _recording:
         return

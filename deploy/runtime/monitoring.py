@@ -5,7 +5,8 @@ recording id and the run's default blueprint. The learner and the actors log the
 status numbers (`MetricsLogger`); actors also stream rollouts (`actors.process`); the curriculum service logs its
 statistics, histograms, top-level gallery and knob changes (`CurriculumLogger`).
 
-Rerun is imported only once monitoring is on, so a run with it off needs no rerun-sdk (a lent GPU machine, whose
+Rerun is imported only once monitoring is on (the imports of `monitor.stream`, `monitor.blueprint` and
+`monitor.metrics` inside this module's functions), so a run with it off needs no rerun-sdk (a lent GPU machine, whose
 package set cannot take its 170 MB wheel, runs the distributed benchmark that way: docs/gpu.md).
 
 The processes that write `metrics.jsonl` also hand its rows to TensorBoard and W&B (`monitor.scalars`), whatever
@@ -21,11 +22,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import jax
+
+from impulse.actors.process import actor_name
+from impulse.curriculum.stats import top_levels
 from impulse.deploy.config import config_to_toml
 from impulse.deploy.run_config import RunConfig
+from impulse.engine.levels.drawing import scene_drawing
+from impulse.monitor.scalars import ScalarSink, check_sinks, open_sinks
 
 if TYPE_CHECKING:
-    from impulse.monitor.scalars import ScalarSink
     from impulse.monitor.stream import Monitor
 
 STATUS_EVERY_S = 2.0
@@ -34,8 +40,7 @@ OnCycle = Callable[[dict[str, Any], dict[str, float]], None]
 
 def run_blueprint(config: RunConfig) -> Any:
     """The default layout for this run's processes (its actors, whether it has a curriculum service)."""
-    from impulse.actors.process import actor_name
-    from impulse.monitor.blueprint import default_blueprint
+    from impulse.monitor.blueprint import default_blueprint  # Rerun: the module docstring
 
     return default_blueprint([actor_name(i) for i in range(config.actors.num_actors)],
                              config.monitor.watch_envs, config.monitor.gallery, config.uses_curriculum_service)
@@ -101,10 +106,6 @@ class CurriculumLogger:
         self._log_buffer()
 
     def _log_buffer(self) -> None:
-        import jax
-
-        from impulse.curriculum.stats import top_levels
-        from impulse.engine.levels.drawing import scene_drawing
         from impulse.monitor.metrics import CURRICULUM, log_gallery, log_histograms, log_scalars
 
         report = self.service.inspect(self.gallery)
@@ -137,8 +138,6 @@ def scalar_sinks_for(config: RunConfig, run_dir: Path) -> Callable[[int], list[S
     """The run loop's `scalar_sinks` for a process writing `run_dir`'s metrics.jsonl: TensorBoard and W&B as
     `config.monitor` says, W&B with the resolved config. Checks first what they need (`ScalarSinkError`), so that a
     missing W&B client stops the process before its run starts."""
-    from impulse.monitor.scalars import check_sinks, open_sinks  # loaded with the run, not with the CLI
-
     check_sinks(config.monitor)
     resolved = tomllib.loads(config_to_toml(config))
 

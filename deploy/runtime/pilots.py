@@ -5,20 +5,19 @@ a shipped agent, as `impulse eval --checkpoint` restores it. The studio cannot r
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
+from impulse.deploy.config import ConfigError, resolve_config
+from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.run_dirs import locate_checkpoint
+from impulse.learner.checkpoint import TRAIN
+from impulse.learner.run import RunError, build, restore_policy
+from impulse.studio.level_io import LevelInputError
+from impulse.studio.play import Pilot
 
 
-def load_pilot(checkpoint: str) -> Any:
+def load_pilot(checkpoint: str) -> Pilot:
     """A `studio.play.Pilot` from a run directory or one checkpoint's folder, as `impulse eval --checkpoint`
     restores it; `LevelInputError` with the reason when it cannot be loaded."""
-    from impulse.deploy.config import ConfigError, resolve_config
-    from impulse.deploy.run_config import RunConfig
-    from impulse.learner.checkpoint import TRAIN
-    from impulse.learner.run import RunError, build, restore_policy
-    from impulse.studio.level_io import LevelInputError
-    from impulse.studio.play import Pilot
 
     path = Path(checkpoint)
     try:

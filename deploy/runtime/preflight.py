@@ -6,8 +6,8 @@ and crashing again, behind a status line that says "exit status 1". Found here, 
 key and the problem, and nothing has been started or written.
 
 One function per check, each raising `PreflightError`; `run_preflight` runs those the run needs, cheapest first.
-JAX is imported only by the checks that need it (level sets, checkpoints); in the launcher it is kept on the CPU
-(`cpu_only`), so that the launcher never takes an accelerator's memory from the processes it is about to start.
+The checks that need JAX (level sets, checkpoints) run it on the CPU in the launcher (`cpu_only`), so that the
+launcher never takes an accelerator's memory from the processes it is about to start.
 """
 
 from __future__ import annotations
@@ -21,9 +21,21 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import jax
+import numpy as np
+
 from impulse.bus.config import endpoint_parts
+from impulse.bus.router import CredentialsError, client_security
+from impulse.curriculum.methods import make_curriculum
 from impulse.deploy.runtime import process_roles
 from impulse.deploy.runtime.process_roles import LaunchPlan
+from impulse.engine.env.spec import env_from_config
+from impulse.engine.levels import handmade
+from impulse.engine.levels.sets import HANDMADE, load_level_set
+from impulse.learner.agent import make_agent
+from impulse.learner.checkpoint import CURRICULUM, TRAIN, Checkpointer, CheckpointError
+from impulse.learner.update import TrainState, make_optimizer
+from impulse.monitor.scalars import ScalarSinkError, check_sinks
 
 if TYPE_CHECKING:
     from impulse.deploy.run_config import RunConfig
@@ -110,7 +122,6 @@ def check_hub_port(config: RunConfig) -> None:
 def check_scalar_sinks(config: RunConfig) -> None:
     """What the learner's TensorBoard and W&B sinks need (tensorboardX when `monitor.tensorboard` is on, the W&B
     client when `monitor.wandb_project` is set)."""
-    from impulse.monitor.scalars import ScalarSinkError, check_sinks
 
     try:
         check_sinks(config.monitor)
@@ -123,7 +134,6 @@ def check_credentials(config: RunConfig, roles: Iterable[str]) -> None:
     credentials), each started role's files are there: what `bus.router.client_security` reads at connect time."""
     if not config.bus.credentials or not config.bus.connect:
         return
-    from impulse.bus.router import CredentialsError, client_security
 
     for role in roles:
         try:
@@ -141,7 +151,6 @@ def check_level_set(key: str, source: str, config: RunConfig) -> None:
     wrong with it: building its designs is tested code and costs seconds of eager JAX compiling on a small CPU."""
     log.info("checking %s = %s", key, source)
     sizes = _scene_sizes(config)
-    from impulse.engine.levels.sets import HANDMADE, load_level_set
 
     if source == HANDMADE or source.startswith(HANDMADE + ":"):
         _check_handmade(key, source.partition(":")[2], sizes, config.env.size)
@@ -159,7 +168,6 @@ def check_learner_checkpoint(config: RunConfig, directory: Path) -> None:
     optimiser state, policy version), as `impulse learner --resume` will restore it. A corrupt newest checkpoint
     is moved aside by the restore, as the learner would do."""
     log.info("checking that the learner's checkpoint in %s fits this config's network", directory)
-    from impulse.learner.checkpoint import TRAIN
 
     _restore(directory, config.checkpoint, TRAIN, _train_template(config), "cannot resume from the learner's")
 
@@ -168,7 +176,6 @@ def check_fine_tuning_source(config: RunConfig, directory: Path) -> None:
     """`--init-from`: the source's newest intact checkpoint (in `directory`) holds a policy of this config's
     network, as the learner will read it: as a reader, which moves nothing in the source."""
     log.info("checking the policy to start from in %s", directory)
-    from impulse.learner.checkpoint import TRAIN
 
     if not _holds_entries(directory):
         raise PreflightError(f"--init-from: no checkpoint in {directory}")
@@ -178,12 +185,7 @@ def check_fine_tuning_source(config: RunConfig, directory: Path) -> None:
 
 def _train_template(config: RunConfig) -> Any:
     """The shapes of the learner's training state (network, optimiser state, policy version) for `config`."""
-    import jax
-    import numpy as np
 
-    from impulse.engine.env.spec import env_from_config
-    from impulse.learner.agent import make_agent
-    from impulse.learner.update import TrainState, make_optimizer
 
     spec, _ = env_from_config(config.env)
     try:
@@ -201,11 +203,7 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
     """The curriculum service's newest usable checkpoint in `directory` restores into this config's curriculum
     state (method, buffer size, level sizes), as `impulse curriculum serve --resume` will restore it."""
     log.info("checking that the curriculum's checkpoint in %s fits this config", directory)
-    import jax
 
-    from impulse.curriculum.methods import make_curriculum
-    from impulse.engine.env.spec import env_from_config
-    from impulse.learner.checkpoint import CURRICULUM
 
     spec, env_params = env_from_config(config.env)
     curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
@@ -219,7 +217,6 @@ def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, te
     """Restore `item` of the newest checkpoint in `directory` with `template` (`set_aside`: as
     `Checkpointer.restore`); a `CheckpointError` (no usable checkpoint, another network) becomes a `PreflightError`
     that begins with `what` and names the directory."""
-    from impulse.learner.checkpoint import Checkpointer, CheckpointError
 
     try:
         with Checkpointer(directory, checkpoint_config) as checkpoints:
@@ -237,7 +234,6 @@ def _restore(directory: Path, checkpoint_config: CheckpointConfig, item: str, te
 
 def _check_handmade(key: str, picked: str, sizes: SceneSizes, size_name: str) -> None:
     """The checks `engine.levels.sets` makes of a hand-made set before building it."""
-    from impulse.engine.levels import handmade
 
     available = handmade.names()
     names = [name for name in picked.split(",") if name]
@@ -253,8 +249,6 @@ def _check_handmade(key: str, picked: str, sizes: SceneSizes, size_name: str) ->
 
 
 def _scene_sizes(config: RunConfig) -> SceneSizes:
-    from impulse.engine.env.spec import env_from_config
-
     spec, _ = env_from_config(config.env)
     return spec.sizes
 
@@ -267,8 +261,6 @@ def _holds_entries(directory: Path) -> bool:
 def _keep_jax_on_cpu() -> None:
     """Make this process's JAX use the CPU, unless it has already started a backend (then it is too late, and
     whatever started it chose)."""
-    import jax
-
     try:
         from jax._src import xla_bridge
 

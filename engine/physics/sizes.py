@@ -57,6 +57,8 @@ SIZE_M = SceneSizes(num_polygons=6, num_circles=3, num_joints=2, num_thrusters=2
 SIZE_L = SceneSizes(num_polygons=12, num_circles=4, num_joints=6, num_thrusters=2)
 
 _PRESETS = {"s": SIZE_S, "m": SIZE_M, "l": SIZE_L}
+SIZE_NAMES = tuple(_PRESETS)
+"""The names `size_preset` knows, smallest first."""
 
 
 def size_preset(name: str) -> SceneSizes:

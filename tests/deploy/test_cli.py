@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from impulse.deploy.cli import main
-from impulse.deploy.commands import bench
+from impulse.deploy.commands import COMMANDS, bench, options
+from impulse.engine.physics.sizes import SIZE_NAMES
 from tests.support.paths import REPO
 
 REPO_ROOT = REPO
@@ -33,6 +34,14 @@ def test_help_lists_every_command() -> None:
     assert result.returncode == 0, result.stderr
     for name in ("train", "launch", "learner", "actor", "curriculum", "router", "eval", "levels", "view", "bench"):
         assert name in result.stdout
+
+
+def test_every_command_names_a_function_that_runs_it_and_the_parser_knows_the_sizes() -> None:
+    # The table names each command's function by module and name (the parser loads no command module); a row whose
+    # name is misspelt fails here rather than when a user first runs the command.
+    for command in COMMANDS:
+        assert callable(command.run_function()), command.runs
+    assert options.SIZE_NAMES == SIZE_NAMES
 
 
 def test_print_config_shows_overrides(tmp_path: Path) -> None:

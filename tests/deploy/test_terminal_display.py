@@ -88,7 +88,7 @@ def test_a_launch_on_an_80_column_terminal_then_eval_of_its_policy(tmp_path: Pat
 
 def _check_eval_reports_progress_from_its_first_second(run_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`impulse eval` (in this process, JAX loaded already; stderr is not a terminal, so log lines) on the launch's
-    two levels: its first line is the heartbeat's, before anything is loaded; it names the evaluation before the
+    two levels: its first line is the heartbeat's, before the checkpoint is read; it names the evaluation before the
     evaluation is compiled; a compile or a run longer than the heartbeat's 5 s says it still runs meanwhile; the
     table comes last, on stdout."""
     capsys.readouterr()
@@ -101,7 +101,7 @@ def _check_eval_reports_progress_from_its_first_second(run_dir: Path, capsys: py
         assert found, f"no line matching {pattern!r}:\n{captured.err}"
         return found[0]
 
-    assert first(r"loading JAX, the checkpoint's configuration and the levels \.\.\.") == 0, captured.err
+    assert first(r"loading the checkpoint's configuration and the levels \.\.\.") == 0, captured.err
     evaluating = first(r"evaluating 2 levels x 2 attempts \(compiling, then 4 episodes\)")
     evaluated = first(r"evaluated 2 levels in [\d.]+ s")
     assert 0 < evaluating < evaluated, captured.err
