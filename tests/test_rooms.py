@@ -172,3 +172,32 @@ def test_the_checker_sees_submodules_relative_and_nested_imports(tmp_path):
     assert our_imports(sample, tmp_path) == {
         "engine", "engine.env", "engine.physics", "engine.physics.step", "deploy.cli", "deploy.cli.main"
     }
+
+
+def function_local_imports(path: Path) -> list[int]:
+    """The lines of `path`'s import statements that sit inside a function (a `TYPE_CHECKING` block does not)."""
+    lines: list[int] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import | ast.ImportFrom) and in_function:
+                lines.append(child.lineno)
+            visit(child, in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef))
+
+    visit(ast.parse(path.read_text(), str(path)), False)
+    return lines
+
+
+MOST_LOCAL_IMPORTS_IN_DEPLOY = 20
+"""Commands load lazily by name (`deploy.commands.Command.run_function`), so a module of deploy/ imports at its top;
+what stays inside a function has a reason there (Rerun only once a monitor is opened, an optional package's clear
+error)."""
+
+
+def test_deploy_imports_at_the_top_of_its_modules(tmp_path):
+    found = {str(path.relative_to(REPO)): lines for path in sorted((REPO / "deploy").rglob("*.py"))
+             if (lines := function_local_imports(path))}
+    assert sum(map(len, found.values())) < MOST_LOCAL_IMPORTS_IN_DEPLOY, found
+    sample = tmp_path / "sample.py"
+    sample.write_text("import os\n\ndef f():\n    import json\n    if True:\n        from a import b\n")
+    assert function_local_imports(sample) == [4, 6]
