@@ -10,9 +10,11 @@ and a second `make test` on the same machine skips recompiling. Every program is
 launched processes each run hundreds of them as they start.
 
 `make test` runs the suite as three streams side by side (pytest-xdist, `-n 3 --dist loadgroup`): tests marked
-`heavy` (they start processes of their own: launches, Zenoh sessions, viewers, training subprocesses; or train
-for a while) run one after another on one worker; every other test runs in order on one of two more workers, the
-engine's and the curriculum's tests on one, the rest on the other. On a 2-core machine the heavy tests' processes
+`heavy` (they start processes of their own: launches, routers, viewers, training subprocesses; or train for a
+while) run one after another on one worker; every other test runs in order on one of two more workers, the
+engine's and the curriculum's tests on one, the rest on the other. A test that only opens Zenoh sessions on
+loopback in its own process (the curriculum service's tests) is light: the heavy stream is the suite's longest,
+and those tests run as well beside it. On a 2-core machine the heavy tests' processes
 spend much of their time waiting (for updates, kills, timeouts), so two light streams keep both cores busy where
 one would leave one idle. A stream never compiles a program twice, and streams share what they compile through
 the compilation cache above. The split balances the two light streams (each about half of their CPU time).

@@ -28,8 +28,6 @@ from impulse.learner.candidate_scorer import PolicyScorer
 from impulse.learner.checkpoint import CURRICULUM, Checkpointer
 from tests.support.launch_procs import QUICK_LAUNCH, free_port
 
-pytestmark = pytest.mark.heavy
-
 RUN = "batch-sfl-test"
 NONCE = "0123456789abcdef"
 """The instance nonce of the learner this test plays (`bus.keys.INSTANCE`)."""

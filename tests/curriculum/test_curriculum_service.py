@@ -39,8 +39,6 @@ from tests.support.checkpoint_damage import corrupt_newest
 from tests.support.curriculum_service import BATCH, SPEC, resolve_knobs, start_service
 from tests.support.launch_procs import free_port
 
-pytestmark = pytest.mark.heavy
-
 RUN = "curriculum-test"
 
 
