@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from impulse.engine.env.actions import action_space
+from impulse.engine.env.config import EnvConfig
 from impulse.engine.env.observations import observation_shape
-from impulse.engine.env.spec import EnvSpec
+from impulse.engine.env.spec import EnvParams, EnvSpec, env_from_config
 from impulse.learner.config import NetworkConfig
 from impulse.learner.distributions import Distribution, distribution_for
 from impulse.learner.networks import ActorCritic, make_network
@@ -69,3 +70,18 @@ def make_agent(network: NetworkConfig, spec: EnvSpec) -> Agent:
     shape = observation_shape(spec)
     array_dims = len(shape.shape) if isinstance(shape, jax.ShapeDtypeStruct) else 1
     return Agent(make_network(network, distribution, array_dims), distribution, spec)
+
+
+class EnvAndAgent(NamedTuple):
+    """A run's environment (its static spec and its parameters) and the agent that plays it."""
+
+    spec: EnvSpec
+    env_params: EnvParams
+    agent: Agent
+
+
+def env_and_agent(env: EnvConfig, network: NetworkConfig) -> EnvAndAgent:
+    """The environment of a run's `[env]` section and the agent of its `[network]` section for it: what every
+    process that plays or trains builds first (`ValueError` when the network cannot read the observations)."""
+    spec, env_params = env_from_config(env)
+    return EnvAndAgent(spec, env_params, make_agent(network, spec))

@@ -24,12 +24,12 @@ from impulse.bus.service import CycleReport, Progress
 from impulse.curriculum.methods import make_curriculum
 from impulse.curriculum.stats import buffer_summary, metric_columns
 from impulse.engine.compile_once import compile_once
-from impulse.engine.env.spec import EnvParams, env_from_config
+from impulse.engine.env.spec import EnvParams
 from impulse.engine.levels.level import Level
 from impulse.engine.levels.sets import HANDMADE, RANDOM, LevelSetError, load_level_set
 from impulse.engine.memory import DoesNotFit, check_fits, warn_if_gpu_sized
 from impulse.engine.physics.sizes import SceneSizes
-from impulse.learner.agent import Agent, make_agent
+from impulse.learner.agent import Agent, env_and_agent
 from impulse.learner.checkpoint import (
     CURRICULUM,
     ENVS,
@@ -100,8 +100,7 @@ def _eval_sets(config: TrainingSetup, sizes: SceneSizes, train_names: list[str],
 
 
 def build(config: TrainingSetup) -> tuple[FusedTrainer, Agent, list[str], Level | None]:
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+    spec, env_params, agent = env_and_agent(config.env, config.network)
     names, levels = _levels(config, spec.sizes)
     num_updates = config.ppo.updates_for(config.total_env_steps)
     # A fixed level set has no curriculum (the run configuration refuses a method other than "dr" with one).

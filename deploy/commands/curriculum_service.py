@@ -110,7 +110,6 @@ def inspect_checkpoint(args: argparse.Namespace, config: RunConfig, run_dir: Pat
     """`inspect --checkpoint [STEP]`: the report of the buffer a checkpoint holds (read only: a corrupt checkpoint
     is named, never moved)."""
 
-
     if config.env.levels != "random":
         print(f"impulse curriculum inspect: run {config.name!r} plays the fixed level set "
               f"env.levels={config.env.levels!r}: it has no curriculum to inspect", file=sys.stderr)

@@ -19,9 +19,8 @@ from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor
 from impulse.deploy.runtime.run_dirs import open_run_for
 from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-from impulse.engine.env.spec import env_from_config
 from impulse.engine.levels.sets import LevelSetError
-from impulse.learner.agent import make_agent
+from impulse.learner.agent import env_and_agent
 from impulse.learner.evaluator import EVALUATOR_ID, EvaluatorService
 from impulse.learner.scoring import load_level_sets
 
@@ -45,8 +44,7 @@ def run_evaluator(args: argparse.Namespace, config: RunConfig) -> int:
         return EXIT_USAGE
     enable_compile_cache()
 
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+    spec, env_params, agent = env_and_agent(config.env, config.network)
     try:
         sets = load_level_sets(config.evaluator.levels, spec.sizes)
     except LevelSetError as err:

@@ -22,8 +22,7 @@ import jax.numpy as jnp
 from impulse.deploy.config import config_to_toml, write_resolved_config
 from impulse.deploy.run_config import RunConfig
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
-from impulse.engine.env.spec import env_from_config
-from impulse.learner.agent import make_agent
+from impulse.learner.agent import env_and_agent
 from impulse.learner.checkpoint import TRAIN, Checkpointer
 from impulse.learner.kinetix_import import (
     KinetixImportError,
@@ -74,12 +73,11 @@ def write_checkpoint(config: RunConfig, imported: ImportedPolicy, run_dir: Path)
     """Write config.toml and the `train` item at step 0 into `run_dir`; returns the parameter count. The tree is
     checked against the network's own before anything is written."""
 
-
     run_dir.mkdir(parents=True, exist_ok=True)
     with Checkpointer(run_dir / config.checkpoint.directory, config.checkpoint) as checkpoints:
         if checkpoints.latest_step() is not None:
             raise RuntimeError(f"{run_dir} already holds checkpoints; choose another --out")
-        agent = make_agent(config.network, env_from_config(config.env)[0])
+        agent = env_and_agent(config.env, config.network).agent
         check_against(imported, jax.eval_shape(agent.init, jax.random.PRNGKey(0)))
         params = jax.tree.map(jnp.asarray, imported.params)
         # The optimiser state's structure does not depend on the schedule's length, so one update will do.

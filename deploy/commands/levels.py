@@ -149,7 +149,6 @@ def _render_video(args: argparse.Namespace) -> int:
     """`levels render --video`: the levels played with no-op actions (`learner.evaluate.play_episodes`) and drawn
     as `impulse eval --video` draws episodes (`monitor.video.write_episodes_video`)."""
 
-
     try:
         check_video_path(args.video)
     except ValueError as err:

@@ -30,10 +30,9 @@ from impulse.deploy.runtime.exit_codes import EXIT_CANNOT_RUN, EXIT_FAILED, EXIT
 from impulse.deploy.runtime.monitoring import MetricsLogger, open_monitor, scalar_sinks_for
 from impulse.deploy.runtime.run_dirs import create_run_dir, fine_tuning_for, open_run_for, remove_unstarted_run
 from impulse.deploy.runtime.runloop import LoopOptions, run_loop
-from impulse.engine.env.spec import env_from_config
 from impulse.engine.levels.sets import LevelSetError
 from impulse.engine.memory import DoesNotFit
-from impulse.learner.agent import make_agent
+from impulse.learner.agent import env_and_agent
 from impulse.learner.curriculum_inputs import batch_level_results
 from impulse.learner.hosts import HostsError, join_hosts, local_copy
 from impulse.learner.non_finite import NonFiniteUpdates
@@ -81,8 +80,7 @@ def run_learner(args: argparse.Namespace, config: RunConfig) -> int:
     created = create_run_dir(run_dir) and args.run is None and not args.resume and group.is_leader
     if args.run is None and group.is_leader:
         write_resolved_config(config, run_dir)
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+    spec, env_params, agent = env_and_agent(config.env, config.network)
     # The learner's other processes on several hosts write nothing of the run's: the leader does.
     leads = group.is_leader
     with Bus(config.bus, config.name, LEARNER_ROLE.name, group.name(LEARNER_ID), listen=args.hub) as bus, \
@@ -168,8 +166,7 @@ def run_actor(args: argparse.Namespace, config: RunConfig) -> int:
             return EXIT_USAGE
     enable_compile_cache()
 
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+    spec, env_params, agent = env_and_agent(config.env, config.network)
     with Bus(config.bus, config.name, ACTOR_ROLE.name, actor_name(args.index)) as bus, \
             open_monitor(config) or nullcontext() as monitor:
         levels: LevelSource

@@ -26,8 +26,7 @@ from impulse.deploy.runtime.compile_cache import enable_compile_cache
 from impulse.deploy.runtime.exit_codes import EXIT_FAILED, EXIT_USAGE
 from impulse.deploy.runtime.run_dirs import create_run_dir, open_run_for, remove_unstarted_run
 from impulse.engine.env.config import EnvConfig
-from impulse.engine.env.spec import env_from_config
-from impulse.learner.agent import make_agent
+from impulse.learner.agent import env_and_agent
 from impulse.learner.bc import (
     EpochStats,
     clone,
@@ -97,9 +96,7 @@ def clone_into(config: RunConfig, path: Path, dataset: Any, run_dir: Path) -> No
     """Clone a policy from the dataset at `path` (`dataset`: ours opened, None for one in Kinetix's format) per
     `config` and write it, its metrics and its scores into `run_dir`."""
 
-
-    spec, env_params = env_from_config(config.env)
-    agent = make_agent(config.network, spec)
+    spec, env_params, agent = env_and_agent(config.env, config.network)
     if dataset is None:
         train, held_out = kinetix_cloning_data(path, agent, config.bc.validation_fraction, config.seed)
         log.info("Kinetix dataset %s: learning from %d transitions, %d held out", path, train.steps, held_out.steps)

@@ -186,7 +186,6 @@ def check_fine_tuning_source(config: RunConfig, directory: Path) -> None:
 def _train_template(config: RunConfig) -> Any:
     """The shapes of the learner's training state (network, optimiser state, policy version) for `config`."""
 
-
     spec, _ = env_from_config(config.env)
     try:
         agent = make_agent(config.network, spec)
@@ -203,7 +202,6 @@ def check_curriculum_checkpoint(config: RunConfig, directory: Path) -> None:
     """The curriculum service's newest usable checkpoint in `directory` restores into this config's curriculum
     state (method, buffer size, level sizes), as `impulse curriculum serve --resume` will restore it."""
     log.info("checking that the curriculum's checkpoint in %s fits this config", directory)
-
 
     spec, env_params = env_from_config(config.env)
     curriculum = make_curriculum(config.curriculum, spec, env_params, config.ppo.num_envs)
