@@ -33,6 +33,10 @@ from impulse.learner.scoring import LevelSets, Scored, evaluating_phase, evaluat
 log = logging.getLogger("impulse.evaluator")
 
 EVALUATOR_ID = EVALUATOR
+CHUNK_LEVELS = 8
+"""Levels the evaluator plays at a time (`score_policy`'s `chunk_levels`): its status says after each chunk how many
+levels of the set are scored, so the launcher's display shows a long evaluation advance (42 levels x 20 attempts
+take minutes on a CPU). A chunk of 8 levels x 20 attempts is still 160 episodes side by side."""
 
 
 class EvaluatorService:
@@ -55,7 +59,9 @@ class EvaluatorService:
         self.last_seconds = 0.0
         self.scoring: tuple[int, float] | None = None
         """(policy version, wall-clock start) of the scoring under way, which holds the loop: its status says so
-        before it starts, and the launcher's display counts its seconds."""
+        before it starts and after each chunk of levels, and the launcher's display counts its seconds."""
+        self.levels_scored = 0
+        """Levels of the scoring under way scored so far."""
 
     def _due(self) -> bool:
         if self.follow.params is None:
@@ -75,11 +81,12 @@ class EvaluatorService:
         if self.scored_at is not None and epoch == self.scored_at[0]:
             skipped = max(0, (version - self.scored_at[1]) // self.config.every_updates - 1)
         start = time.perf_counter()
-        self.scoring = (version, time.time())
+        self.scoring, self.levels_scored = (version, time.time()), 0
         self._status.publish(self.status())
         try:
             scored = score_policy(self.agent, self.follow.params, self.env_params, self.sets,
-                                  jax.random.PRNGKey(self.seed + 1 + version), self.config.attempts)
+                                  jax.random.PRNGKey(self.seed + 1 + version), self.config.attempts,
+                                  on_level=self._scored_level, chunk_levels=CHUNK_LEVELS)
         finally:
             self.scoring = None
         self.last_seconds = time.perf_counter() - start
@@ -113,13 +120,19 @@ class EvaluatorService:
             **self._phase(),
         }
 
+    def _scored_level(self, done: int, total: int, name: str, solve_rate: float) -> None:
+        """After each chunk of levels, the status says how many are scored (`score_policy`'s `on_level`)."""
+        self.levels_scored = done
+        if done == total or done % CHUNK_LEVELS == 0:
+            self._status.publish(self.status())
+
     def _phase(self) -> dict[str, Any]:
-        """The blocking phase, while it scores: which policy, on how many levels, since when."""
+        """The blocking phase, while it scores: which policy, how many levels of how many are scored, since when."""
         if self.scoring is None:
             return {}
         version, since = self.scoring
-        return {"phase": evaluating_phase(len(self.sets.names), self.config.attempts), "phase_since": since,
-                "scoring_version": version}
+        return {"phase": evaluating_phase(len(self.sets.names), self.config.attempts, self.levels_scored),
+                "phase_since": since, "scoring_version": version}
 
     def start(self) -> None:
         """Nothing to prepare: it scores once weights arrive."""

@@ -111,10 +111,12 @@ class Scored(NamedTuple):
         return float(np.mean([s["solve_rate"] for s in self.table.values()])) if self.table else float("nan")
 
 
-def evaluating_phase(levels: int, attempts: int) -> str:
+def evaluating_phase(levels: int, attempts: int, scored: int | None = None) -> str:
     """How an evaluation's phase is named wherever it is shown (the trainers' progress, the evaluator's status):
-    "evaluating 42 levels x 20 attempts"."""
-    return f"evaluating {levels} level{'s' if levels != 1 else ''} x {attempts} attempt{'s' if attempts != 1 else ''}"
+    "evaluating 42 levels x 20 attempts", or with `scored`, how many of them are scored so far, first, so that a
+    narrow display keeps it: "evaluating 16/42 levels x 20 attempts"."""
+    counted = f"{levels}" if scored is None else f"{scored}/{levels}"
+    return f"evaluating {counted} level{'s' if levels != 1 else ''} x {attempts} attempt{'s' if attempts != 1 else ''}"
 
 
 LevelScored = Callable[[int, int, str, float], None]
@@ -122,15 +124,33 @@ LevelScored = Callable[[int, int, str, float], None]
 
 
 def score_policy(agent: Agent, params: Any, env_params: EnvParams, sets: LevelSets, key: jax.Array, attempts: int,
-                 greedy: bool = False, on_level: LevelScored | None = None) -> Scored:
+                 greedy: bool = False, on_level: LevelScored | None = None,
+                 chunk_levels: int | None = None) -> Scored:
     """`params` played `attempts` times on every level of `sets` (Kinetix's protocol). `on_level` is told of each
-    level's solve rate as it is known: all the levels are played in one program, so they are known together, when
-    it ends (a caller shows the wait before it as a phase)."""
-    scores = evaluate(agent, params, env_params, sets.levels, key, attempts=attempts, greedy=greedy)
-    table = scores_table(sets.names, scores)
-    if on_level is not None:
-        for done, (name, row) in enumerate(table.items(), start=1):
-            on_level(done, len(table), name, row["solve_rate"])
+    level's solve rate as it is known.
+
+    Without `chunk_levels` all the levels are played in one program, so they are known together, when it ends (a
+    caller shows the wait before it as a phase). With it, they are played that many at a time, so that a long
+    evaluation shows how far it is: every chunk runs the same program (the last one is filled up by repeating its
+    last level, whose extra scores are dropped), with a key of its own (`jax.random.fold_in(key, chunk)`), and
+    `on_level` hears a chunk's levels when it ends. The random draws differ from the unchunked evaluation's, the
+    protocol does not."""
+    total = len(sets.names)
+    size = total if chunk_levels is None else max(1, min(chunk_levels, total))
+    table: Table = {}
+    for chunk, start in enumerate(range(0, total, size)):
+        count = min(size, total - start)
+        if size == total:
+            levels, chunk_key = sets.levels, key
+        else:
+            rows = np.minimum(np.arange(start, start + size), total - 1)
+            levels, chunk_key = jax.tree.map(lambda x, rows=rows: x[rows], sets.levels), jax.random.fold_in(key, chunk)
+        scores = evaluate(agent, params, env_params, levels, chunk_key, attempts=attempts, greedy=greedy)
+        part = scores_table(sets.names[start:start + count], LevelScores(*(x[:count] for x in scores)))
+        if on_level is not None:
+            for done, (name, row) in enumerate(part.items(), start=len(table) + 1):
+                on_level(done, total, name, row["solve_rate"])
+        table.update(part)
     return Scored(table, group_means(table, sets.members))
 
 
