@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from impulse.deploy.cli import main
+from impulse.deploy.commands import config as config_command
 from impulse.deploy.config import (
     MAX_CONFIG_BYTES,
     MAX_OVERRIDE_BYTES,
@@ -279,7 +280,7 @@ def test_a_broken_pipe_that_is_not_stdout_is_not_hidden(monkeypatch, capsys) -> 
     def broken(*args: object, **kwargs: object) -> str:
         raise BrokenPipeError("a socket")
 
-    monkeypatch.setattr("impulse.deploy.config_reference.as_text", broken)
+    monkeypatch.setattr(config_command, "as_text", broken)  # where `impulse config describe` calls it
     with pytest.raises(BrokenPipeError):
         main(["config", "describe", "ppo"])
 
